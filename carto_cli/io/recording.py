@@ -1,0 +1,99 @@
+"""The interface every recording source implements, and topic kinds."""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Iterator
+
+from carto_cli.records import Record, Transform
+
+
+# Message types carto understands, by the kind of record they become.
+# Names are normalised to the ROS2 form 'pkg/msg/Type' (ROS1 'pkg/Type' is mapped).
+SCAN_TYPES = (
+    "sensor_msgs/msg/LaserScan",
+    "sensor_msgs/msg/MultiEchoLaserScan",
+    "sensor_msgs/msg/PointCloud2",
+)
+ODOMETRY_TYPES = ("nav_msgs/msg/Odometry",)
+IMU_TYPES = ("sensor_msgs/msg/Imu",)
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
+
+
+def normalise_type(msgtype: str) -> str:
+    """'sensor_msgs/LaserScan' -> 'sensor_msgs/msg/LaserScan' (ROS1 and ROS2 spell it differently)."""
+    parts = msgtype.split("/")
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    return msgtype
+
+
+def kind_of(topic: str, msgtype: str) -> str:
+    """'scan', 'odometry', 'imu', 'tf_static', 'tf' or 'other'."""
+    t = normalise_type(msgtype)
+    if t in SCAN_TYPES:
+        return "scan"
+    if t in ODOMETRY_TYPES:
+        return "odometry"
+    if t in IMU_TYPES:
+        return "imu"
+    if t in TF_TYPES:
+        return "tf_static" if topic.rstrip("/").endswith("tf_static") else "tf"
+    return "other"
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    name: str
+    msgtype: str  # normalised, see normalise_type
+    count: int
+
+    @property
+    def kind(self) -> str:
+        return kind_of(self.name, self.msgtype)
+
+
+@dataclass(frozen=True)
+class ReadOptions:
+    """How raw messages become records. PointCloud2 points outside [min_z, max_z] are dropped."""
+
+    min_z: float = -0.1
+    max_z: float = 0.1
+
+
+class Recording(ABC):
+    """An opened recording. Use as a context manager; ``records`` streams lazily.
+
+    Implementations must stream in constant memory, yield records in time order
+    across topics, and turn every decoding failure into a ``FormatError`` naming
+    the file.
+    """
+
+    format: str = ""  # 'ros1', 'ros2-sqlite3', 'ros2-mcap', 'mcap', 'carmen'
+
+    def __init__(self, path: Path, options: ReadOptions | None = None):
+        self.path = Path(path)
+        self.options = options or ReadOptions()
+
+    @abstractmethod
+    def topics(self) -> list[TopicInfo]:
+        """Every topic in the recording with its type and message count."""
+
+    @abstractmethod
+    def static_transforms(self) -> list[Transform]:
+        """Transforms from /tf_static (empty when there are none)."""
+
+    @abstractmethod
+    def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
+        """Scan / Odometry / Imu records of the given topics (all supported ones when None), in time order."""
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
