@@ -1,2 +1,159 @@
-def main():
-    raise SystemExit("carto: the command line is being assembled")
+"""The `carto` command line: parses arguments and calls the library; nothing more."""
+from __future__ import annotations
+
+import functools
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from carto_cli import __version__
+from carto_cli.errors import CartoError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="2D LiDAR SLAM from recorded data: maps, relocalization, tuning and profiling.",
+    context_settings={"help_option_names": ["-h", "--help"]},
+    pretty_exceptions_enable=False,
+)
+
+
+class _State:
+    debug = False
+    quiet = False
+
+
+state = _State()
+
+
+def _fail(message: str, code: int) -> None:
+    typer.echo(f"carto: {message}", err=True)
+    raise typer.Exit(code)
+
+
+def handle_errors(fn):
+    """User errors: one line, exit 2. Internal errors: one line, exit 1. Tracebacks only with --debug."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except typer.Exit:
+            raise
+        except CartoError as e:
+            if state.debug:
+                raise
+            _fail(f"error: {e}", 2)
+        except KeyboardInterrupt:
+            _fail("interrupted", 130)
+        except Exception as e:  # noqa: BLE001 - the last line of defence before a traceback
+            if state.debug:
+                raise
+            _fail(f"internal error: {type(e).__name__}: {e} (rerun with --debug for a traceback)", 1)
+
+    return wrapper
+
+
+def _version(value: bool):
+    if value:
+        typer.echo(f"carto {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    debug: bool = typer.Option(False, "--debug", help="Show tracebacks for errors."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
+):
+    state.debug = debug
+    state.quiet = quiet
+
+
+def _read_options(min_z: float, max_z: float):
+    from carto_cli.io.recording import ReadOptions
+
+    if min_z > max_z:
+        raise CartoError(f"--min-z ({min_z}) is above --max-z ({max_z})")
+    return ReadOptions(min_z=min_z, max_z=max_z)
+
+
+MIN_Z = typer.Option(-0.1, "--min-z", help="PointCloud2: lowest z kept when slicing to 2D (m).")
+MAX_Z = typer.Option(0.1, "--max-z", help="PointCloud2: highest z kept when slicing to 2D (m).")
+
+
+@app.command()
+@handle_errors
+def info(
+    recording: Path = typer.Argument(..., help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]."),
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+    min_z: float = MIN_Z,
+    max_z: float = MAX_Z,
+):
+    """Describe a recording: topics, rates, scan geometry, static TF, warnings."""
+    from carto_cli.info import format_info, inspect_recording
+    from carto_cli.io.open import open_recording
+    from carto_cli.progress import progress
+
+    with open_recording(recording, _read_options(min_z, max_z)) as rec:
+        total = sum(t.count for t in rec.topics() if t.kind in ("scan", "odometry", "imu"))
+        with progress(f"reading {recording.name}", total, state.quiet) as bar:
+            result = inspect_recording(rec, on_record=bar.advance)
+    if as_json:
+        typer.echo(json.dumps(result.to_dict(), indent=2, allow_nan=False, default=_json_default))
+    else:
+        typer.echo(format_info(result))
+
+
+def _json_default(value):
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+@app.command()
+@handle_errors
+def convert(
+    source: Path = typer.Argument(..., help="Any recording carto reads."),
+    out: Path = typer.Argument(..., help="Output: .bag (ROS1), .mcap (standalone MCAP) or a directory (ROS2 bag)."),
+    fmt: Optional[str] = typer.Option(
+        None, "--format", help="ros1, ros2-sqlite3, ros2-mcap or mcap (default: from OUT's suffix)."
+    ),
+    scan_topic: Optional[str] = typer.Option(None, "--scan-topic", help="Only this scan topic."),
+    odom_topic: Optional[str] = typer.Option(None, "--odom-topic", help="Only this odometry topic."),
+    imu_topic: Optional[str] = typer.Option(None, "--imu-topic", help="Only this IMU topic."),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace OUT if it exists."),
+    min_z: float = MIN_Z,
+    max_z: float = MAX_Z,
+):
+    """Convert between ROS1 bags, ROS2 bags (sqlite3 / mcap storage) and MCAP; scans, odometry, IMU and static TF."""
+    from carto_cli.io.open import open_recording
+    from carto_cli.io.writers import format_for_output, write_recording
+    from carto_cli.progress import progress
+
+    out_format = format_for_output(out, fmt)
+    with open_recording(source, _read_options(min_z, max_z)) as rec:
+        topics = rec.topics()
+        chosen = []
+        for kind, wanted in (("scan", scan_topic), ("odometry", odom_topic), ("imu", imu_topic)):
+            if wanted is not None:
+                from carto_cli.io.topics import choose_topic
+
+                chosen.append(choose_topic(rec, topics, kind, wanted, True))
+            elif not any(w is not None for w in (scan_topic, odom_topic, imu_topic)):
+                chosen.extend(t.name for t in topics if t.kind == kind)
+        types = {t.name: t.msgtype for t in topics}
+        total = sum(t.count for t in topics if t.name in chosen)
+        with progress(f"converting {source.name}", total, state.quiet) as bar:
+            n = write_recording(
+                rec.records(chosen), out, out_format,
+                static_transforms=rec.static_transforms(), topics={t: types[t] for t in chosen},
+                on_record=bar.advance, overwrite=force,
+            )
+    if not state.quiet:
+        typer.echo(f"wrote {n} messages to {out} ({out_format})", err=True)
+
+
+def main() -> None:
+    app(prog_name="carto")

@@ -1,0 +1,1 @@
+"""Recording sources, writers and file formats."""

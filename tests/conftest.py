@@ -1,0 +1,23 @@
+import pytest
+
+from support import STATIC_TF, synthetic_records
+
+
+@pytest.fixture(scope="session")
+def written_recordings(tmp_path_factory):
+    """The same synthetic records written to every output format (built once per session)."""
+    from carto_cli.io.writers import write_recording
+
+    base = tmp_path_factory.mktemp("recordings")
+    records = synthetic_records()
+    paths = {
+        "ros1": base / "synthetic.bag",
+        "ros2-sqlite3": base / "synthetic_db3",
+        "ros2-mcap": base / "synthetic_mcap",
+        "mcap": base / "synthetic.mcap",
+    }
+    for fmt, path in paths.items():
+        write_recording(iter(records), path, fmt, static_transforms=STATIC_TF,
+                        topics={"/scan": "sensor_msgs/msg/LaserScan", "/odom": "nav_msgs/msg/Odometry",
+                                "/imu": "sensor_msgs/msg/Imu"})
+    return records, paths

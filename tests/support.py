@@ -1,0 +1,57 @@
+"""Helpers shared by the tests (importable as `support`: pytest puts tests/ on sys.path)."""
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from carto_cli.records import Imu, Odometry, Scan, Transform
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE_BAG = REPO / "data" / "ccny_laser_scan_matcher_demo.bag"
+
+
+def shared_path(*parts) -> Path:
+    """A file under ../shared/data; the test is skipped on machines without it."""
+    p = SHARED.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared data not available: {p}")
+    return p
+
+
+def synthetic_records(n_scans: int = 20, beams: int = 90, seed: int = 0) -> list:
+    """Interleaved scans (10 Hz), odometry (50 Hz) and IMU (100 Hz) with exact float values."""
+    rng = np.random.default_rng(seed)
+    records = []
+    t0 = 1000.0
+    inc = np.float32(2 * math.pi / beams)
+    for i in range(n_scans):
+        t = t0 + 0.1 * i
+        ranges = rng.uniform(0.5, 8.0, beams).astype(np.float32)
+        ranges[rng.integers(0, beams, 3)] = np.nan
+        ranges[rng.integers(0, beams, 2)] = np.inf
+        angles = (np.float32(-math.pi) + np.arange(beams, dtype=np.float32) * inc).astype(np.float32)
+        records.append(
+            Scan(time=t, ranges=ranges, angles=angles, frame="laser", topic="/scan", range_min=0.1,
+                 range_max=10.0, angle_min=float(np.float32(-math.pi)), angle_increment=float(inc),
+                 time_increment=0.0, scan_time=0.1)
+        )
+        for k in range(5):
+            tk = t + 0.02 * k + 0.001
+            records.append(Odometry(time=tk, x=0.1 * i + 0.02 * k, y=0.01 * i, yaw=0.05 * i, topic="/odom",
+                                    vx=0.2, vy=0.0, wz=0.05))
+        for k in range(10):
+            tk = t + 0.01 * k + 0.0005
+            records.append(Imu(time=tk, angular_velocity=np.array([0.0, 0.0, 0.05]),
+                               linear_acceleration=np.array([0.1, 0.0, 9.81]),
+                               orientation=np.array([0.0, 0.0, math.sin(0.025 * i), math.cos(0.025 * i)]),
+                               frame="imu", topic="/imu"))
+    records.sort(key=lambda r: r.time)
+    return records
+
+
+STATIC_TF = [Transform(parent="base_link", child="laser", translation=(0.2, 0.0, 0.3),
+                       rotation=(0.0, 0.0, math.sin(0.05), math.cos(0.05)))]
+
+

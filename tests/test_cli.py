@@ -1,0 +1,110 @@
+import json
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from carto_cli.cli import app
+from support import SAMPLE_BAG, shared_path
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def test_info_on_the_real_ccny_bag():
+    result = run("info", SAMPLE_BAG, "--json")
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.stdout)
+    assert info["format"] == "ros1"
+    (scan,) = [t for t in info["topics"] if t["kind"] == "scan"]
+    assert scan["name"] == "/scan" and scan["count"] == 360
+    assert scan["scan"]["beams_min"] == scan["scan"]["beams_max"] == 681
+    assert 9.5 < scan["rate_hz"] < 10.5
+    assert scan["scan"]["frames"] == ["/laser"]
+    assert abs(info["duration"] - 35.8) < 0.2
+    assert not info["has_odometry"] and not info["has_imu"]
+
+
+def test_info_text():
+    result = run("info", SAMPLE_BAG)
+    assert result.exit_code == 0
+    assert "681" in result.stdout and "360" in result.stdout and "Hz" in result.stdout
+
+
+def test_info_warns_about_invalid_ranges(written_recordings):
+    _, paths = written_recordings
+    result = run("info", paths["ros1"], "--json")
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.stdout)
+    assert any("NaN" in w for w in info["warnings"]) and any("Inf" in w for w in info["warnings"])
+    assert info["has_odometry"] and info["has_imu"]
+    assert info["static_transforms"][0]["child"] == "laser"
+
+
+def test_missing_file_is_one_line_exit_2(tmp_path):
+    result = run("info", tmp_path / "missing.bag")
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "missing.bag" in lines[0] and "no such file" in lines[0]
+    assert "Traceback" not in result.output
+
+
+def test_corrupt_real_bag_is_a_clean_error():
+    orig = shared_path("bags", "ccny_laser_scan_matcher_demo.orig.bag")
+    result = run("info", orig)
+    assert result.exit_code == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert "ccny_laser_scan_matcher_demo.orig.bag" in line
+
+
+def test_convert_round_trip(tmp_path):
+    out = tmp_path / "sample.mcap"
+    result = run("convert", SAMPLE_BAG, out)
+    assert result.exit_code == 0, result.output
+    back = tmp_path / "back.bag"
+    assert run("convert", out, back).exit_code == 0
+    from carto_cli.io.open import open_recording
+
+    with open_recording(SAMPLE_BAG) as a, open_recording(back) as b:
+        pairs = list(zip(a.records(), b.records(), strict=True))
+    assert len(pairs) == 360 and all(x.same_as(y) for x, y in pairs)
+
+
+def test_convert_refuses_to_overwrite_and_unknown_format(tmp_path):
+    out = tmp_path / "exists.bag"
+    out.write_bytes(b"keep me")
+    result = run("convert", SAMPLE_BAG, out)
+    assert result.exit_code == 2 and out.read_bytes() == b"keep me"
+    result = run("convert", SAMPLE_BAG, tmp_path / "x.bag", "--format", "rosbag9")
+    assert result.exit_code == 2 and not (tmp_path / "x.bag").exists()
+
+
+def test_convert_of_corrupt_input_leaves_no_output(tmp_path):
+    bad = tmp_path / "bad.bag"
+    bad.write_bytes(SAMPLE_BAG.read_bytes()[:300_000])
+    out = tmp_path / "out.mcap"
+    result = run("convert", bad, out)
+    assert result.exit_code == 2, result.output
+    assert not out.exists() and list(tmp_path.iterdir()) == [bad]
+
+
+def test_ambiguous_topic_through_the_cli(tmp_path, written_recordings):
+    _, paths = written_recordings
+    result = run("convert", paths["mcap"], tmp_path / "o.bag", "--scan-topic", "/nope")
+    assert result.exit_code == 2
+    assert "/nope" in result.stderr and "/scan" in result.stderr
+
+
+def test_real_subprocess_entry_point(tmp_path):
+    ok = subprocess.run([sys.executable, "-m", "carto_cli", "info", str(SAMPLE_BAG), "--json"],
+                        capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    assert json.loads(ok.stdout)["topics"][0]["count"] == 360
+    bad = subprocess.run([sys.executable, "-m", "carto_cli", "info", str(tmp_path / "nope.mcap")],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2
+    assert bad.stderr.count("\n") == 1 and "Traceback" not in bad.stderr
