@@ -1,0 +1,420 @@
+"""Named, nested stage timing per scan, and its reports.
+
+One ``StageTimer`` travels through the core; ``profile``, ``map --profile`` and
+``tune``'s cost term all read the same numbers::
+
+    timer = StageTimer()
+    for scan in stream:
+        with timer.scan():
+            with timer.stage("preprocess"):
+                with timer.stage("voxel"):
+                    ...
+            with timer.stage("matching"):
+                ...
+    with timer.stage("final_optimization"):   # outside any scan: recorded too
+        ...
+    timer.stop()
+    print(report_tree_text(timer))
+
+The tree's root is the wall time since the timer was created (until ``stop()``);
+its children are the ``scan`` pseudo-stage (all scans together) and the stages run
+outside scans. Every node with children gets an explicit ``(other)`` line for its
+self time, so each level adds up to its parent and the whole tree to the wall time.
+
+Stages are meant for pieces of work of tens of microseconds or more (one enter and
+exit costs about a microsecond); time inner loops with a sampling profiler instead.
+Not thread-safe: time background work in the thread that owns the timer.
+``NullTimer`` has the same interface and does nothing, for runs without profiling.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["StageTimer", "NullTimer", "StageStats", "Snapshot", "report_tree_text", "report_json",
+           "SCHEMA_VERSION", "SCAN_STAGE"]
+
+SCHEMA_VERSION = 1
+SCAN_STAGE = "scan"
+SEP = "/"
+
+
+class _Node:
+    __slots__ = ("name", "children", "total_ns", "count", "scan_ns", "scan_mark", "samples", "sample_scans")
+
+    def __init__(self, name: str):
+        self.name = name
+        self.children: dict[str, _Node] = {}
+        self.total_ns = 0
+        self.count = 0
+        self.scan_ns = 0          # accumulated within the current scan
+        self.scan_mark = -1       # index of the scan scan_ns belongs to
+        self.samples: list[int] = []       # per-scan sums, only for scans in which the stage ran
+        self.sample_scans: list[int] = []  # the matching scan indices
+
+    def child(self, name: str) -> "_Node":
+        node = self.children.get(name)
+        if node is None:
+            if not name or SEP in name:
+                raise ValueError(f"stage names must be non-empty and contain no '{SEP}': {name!r}")
+            node = self.children[name] = _Node(name)
+        return node
+
+
+class _Stage:
+    __slots__ = ("_timer", "_name")
+
+    def __init__(self, timer: "StageTimer", name: str):
+        self._timer = timer
+        self._name = name
+
+    def __enter__(self):
+        t = self._timer
+        t._stack.append(t._stack[-1].child(self._name))
+        t._starts.append(t._clock())
+        return self
+
+    def __exit__(self, *exc):
+        t = self._timer
+        end = t._clock()
+        node = t._stack.pop()
+        dt = end - t._starts.pop()
+        node.total_ns += dt
+        node.count += 1
+        if t._in_scan:
+            if node.scan_mark != t._num_scans:
+                node.scan_mark = t._num_scans
+                node.scan_ns = 0
+                t._touched.append(node)
+            node.scan_ns += dt
+        return False
+
+
+class _Scan:
+    __slots__ = ("_timer",)
+
+    def __init__(self, timer: "StageTimer"):
+        self._timer = timer
+
+    def __enter__(self):
+        self._timer.begin_scan()
+        return self
+
+    def __exit__(self, *exc):
+        self._timer.end_scan()
+        return False
+
+
+class StageTimer:
+    """Records nested stages, per scan and outside scans. See the module docstring."""
+
+    enabled = True
+
+    def __init__(self, clock: Callable[[], int] = time.perf_counter_ns):
+        self._clock = clock
+        self._root = _Node("total")
+        self._scan_node: _Node | None = None
+        self._stack: list[_Node] = [self._root]
+        self._starts: list[int] = []
+        self._in_scan = False
+        self._scan_start = 0
+        self._num_scans = 0
+        self._touched: list[_Node] = []
+        self._t0 = clock()
+        self._t_stop: int | None = None
+
+    # -- recording
+
+    def stage(self, name: str) -> _Stage:
+        """Context manager timing ``name`` as a child of the innermost open stage."""
+        return _Stage(self, name)
+
+    def scan(self) -> _Scan:
+        """Context manager delimiting one scan's sample."""
+        return _Scan(self)
+
+    def begin_scan(self) -> None:
+        if self._in_scan:
+            raise RuntimeError("begin_scan: a scan is already open")
+        if len(self._stack) != 1:
+            raise RuntimeError(f"begin_scan: stage '{self._stack[-1].name}' is still open")
+        if self._scan_node is None:
+            self._scan_node = self._root.child(SCAN_STAGE)
+        self._stack.append(self._scan_node)
+        self._in_scan = True
+        self._scan_start = self._clock()
+
+    def end_scan(self) -> None:
+        if not self._in_scan:
+            raise RuntimeError("end_scan: no scan is open")
+        if self._stack[-1] is not self._scan_node:
+            raise RuntimeError(f"end_scan: stage '{self._stack[-1].name}' is still open")
+        dt = self._clock() - self._scan_start
+        node = self._scan_node
+        node.total_ns += dt
+        node.count += 1
+        node.samples.append(dt)
+        node.sample_scans.append(self._num_scans)
+        for n in self._touched:
+            n.samples.append(n.scan_ns)
+            n.sample_scans.append(self._num_scans)
+        self._touched.clear()
+        self._stack.pop()
+        self._in_scan = False
+        self._num_scans += 1
+
+    def next_scan(self) -> None:
+        """End the open scan, if any, and begin the next (for loops that cannot use ``scan()``)."""
+        if self._in_scan:
+            self.end_scan()
+        self.begin_scan()
+
+    def stop(self) -> None:
+        """End the open scan, if any, and freeze the wall clock of the report."""
+        if self._in_scan:
+            self.end_scan()
+        if len(self._stack) != 1:
+            raise RuntimeError(f"stop: stage '{self._stack[-1].name}' is still open")
+        if self._t_stop is None:
+            self._t_stop = self._clock()
+
+    @property
+    def num_scans(self) -> int:
+        return self._num_scans
+
+    # -- reading
+
+    def snapshot(self) -> "Snapshot":
+        """An immutable copy of the tree. Open stages and an open scan count up to now."""
+        now = self._t_stop if self._t_stop is not None else self._clock()
+        open_ns: dict[int, int] = {}
+        # _stack[0] is the root; with a scan open, _stack[1] is the scan node.
+        starts = list(self._starts)
+        if self._in_scan:
+            starts.insert(0, self._scan_start)
+        for node, start in zip(self._stack[1:], starts):
+            open_ns[id(node)] = now - start
+        scans = self._num_scans + (1 if self._in_scan else 0)
+        wall = now - self._t0
+
+        def build(node: _Node, path: str, in_scan: bool) -> StageStats:
+            is_open = id(node) in open_ns
+            extra = open_ns.get(id(node), 0)
+            children = [build(c, f"{path}{SEP}{c.name}" if path else c.name,
+                              in_scan or c is self._scan_node)
+                        for c in node.children.values()]
+            if node is self._root:
+                total, count = wall, 1
+            else:
+                total, count = node.total_ns + extra, node.count + int(is_open)
+            return StageStats(
+                name=node.name, path=path, total_ns=total,
+                self_ns=total - sum(c.total_ns for c in children), count=count, in_scan=in_scan,
+                samples_ns=np.asarray(node.samples, dtype=np.int64),
+                sample_scans=np.asarray(node.sample_scans, dtype=np.int64),
+                children=children)
+
+        return Snapshot(wall_ns=wall, scans=scans, root=build(self._root, "", False))
+
+
+class _Null:
+    __slots__ = ()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+_NULL = _Null()
+
+
+class NullTimer:
+    """Same interface as StageTimer; records nothing."""
+
+    enabled = False
+    num_scans = 0
+
+    def stage(self, name: str) -> _Null:
+        return _NULL
+
+    def scan(self) -> _Null:
+        return _NULL
+
+    def begin_scan(self) -> None:
+        pass
+
+    def end_scan(self) -> None:
+        pass
+
+    def next_scan(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+    def snapshot(self) -> "Snapshot":
+        return Snapshot(wall_ns=0, scans=0, root=StageStats("total", "", 0, 0, 1, False), enabled=False)
+
+
+# --------------------------------------------------------------------------- snapshot
+
+
+@dataclass(frozen=True, eq=False)
+class StageStats:
+    name: str
+    path: str                      # 'scan/preprocess/voxel'; '' for the root
+    total_ns: int
+    self_ns: int                   # total minus the children's totals: the '(other)' line
+    count: int                     # times entered
+    in_scan: bool                  # inside the scan pseudo-stage (or that stage itself)
+    samples_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # per scan where it ran
+    sample_scans: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    children: list["StageStats"] = field(default_factory=list)
+
+    def percentile_ms(self, q: float) -> float | None:
+        if self.samples_ns.size == 0:
+            return None
+        return float(np.percentile(self.samples_ns, q)) / 1e6
+
+    def walk(self):
+        yield self
+        for c in self.children:
+            yield from c.walk()
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    wall_ns: int
+    scans: int
+    root: StageStats
+    enabled: bool = True
+
+    @property
+    def scan_stage(self) -> StageStats | None:
+        return self.find(SCAN_STAGE)
+
+    def find(self, path: str) -> StageStats | None:
+        """The stage at a '/'-separated path ('scan/matching'), or None."""
+        node = self.root
+        for part in path.split(SEP) if path else []:
+            node = next((c for c in node.children if c.name == part), None)
+            if node is None:
+                return None
+        return node
+
+
+# --------------------------------------------------------------------------- reports
+
+
+def _snap(timer) -> Snapshot:
+    return timer if isinstance(timer, Snapshot) else timer.snapshot()
+
+
+def report_json(timer: StageTimer | NullTimer | Snapshot) -> dict:
+    """The timing tree as JSON-ready data (milliseconds), with ``schema_version``.
+
+    Each node: total/self ms, shares of the wall total (``share``, ``self_share``)
+    and, inside scans, of the scan time (``share_of_scan``), calls, ms per scan and
+    per-scan percentiles over the scans in which the stage ran. ``stages`` repeats
+    every node's figures flat, keyed by path.
+    """
+    snap = _snap(timer)
+    wall = snap.wall_ns
+    scan_node = snap.scan_stage
+    scan_total = scan_node.total_ns if scan_node is not None else 0
+    flat: dict[str, dict] = {}
+
+    def ratio(a: int, b: int) -> float | None:
+        return a / b if b > 0 else None
+
+    def node(s: StageStats) -> dict:
+        d = {
+            "name": s.name,
+            "path": s.path,
+            "total_ms": s.total_ns / 1e6,
+            "self_ms": s.self_ns / 1e6,
+            "share": ratio(s.total_ns, wall),
+            "self_share": ratio(s.self_ns, wall),
+            "share_of_scan": ratio(s.total_ns, scan_total) if s.in_scan else None,
+            "calls": s.count,
+            "in_scan": s.in_scan,
+            "ms_per_scan": (s.total_ns / 1e6 / snap.scans) if s.in_scan and snap.scans else None,
+            "scans_with_stage": int(s.samples_ns.size) if s.in_scan else None,
+            "p50_ms": s.percentile_ms(50),
+            "p95_ms": s.percentile_ms(95),
+            "p99_ms": s.percentile_ms(99),
+            "max_ms": float(s.samples_ns.max()) / 1e6 if s.samples_ns.size else None,
+        }
+        flat[s.path or "total"] = dict(d)
+        d["children"] = [node(c) for c in s.children]
+        return d
+
+    tree = node(snap.root)
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "enabled": snap.enabled,
+        "clock": "time.perf_counter_ns",
+        "unit": "ms",
+        "wall_ms": wall / 1e6,
+        "scans": snap.scans,
+        "tree": tree,
+        "stages": flat,
+    }
+
+
+def _fmt(x: float | None, spec: str) -> str:
+    return "" if x is None else format(x, spec)
+
+
+def report_tree_text(timer: StageTimer | NullTimer | Snapshot) -> str:
+    """The timing tree as an aligned text table, every level summing to its parent."""
+    snap = _snap(timer)
+    if not snap.enabled:
+        return "timing: disabled\n"
+    wall = snap.wall_ns
+    scan_node = snap.scan_stage
+    scan_total = scan_node.total_ns if scan_node is not None else 0
+    rows: list[tuple[str, ...]] = []
+
+    def pct(a: int, b: int) -> str:
+        return f"{100.0 * a / b:.1f}%" if b > 0 else ""
+
+    def row(label: str, total: int, in_scan: bool, calls: str = "", p50=None, p95=None):
+        rows.append((
+            label,
+            f"{total / 1e6:.1f}",
+            _fmt(total / 1e6 / snap.scans, ".3f") if in_scan and snap.scans else "",
+            pct(total, wall),
+            pct(total, scan_total) if in_scan else "",
+            calls,
+            _fmt(p50, ".3f"),
+            _fmt(p95, ".3f"),
+        ))
+
+    def visit(s: StageStats, prefix: str, branch: str):
+        name = s.name if s.path else "total (wall)"
+        if s.path == SCAN_STAGE:
+            name = f"{SCAN_STAGE} ({snap.scans} scans)"
+        row(prefix + branch + name, s.total_ns, s.in_scan, str(s.count) if s.path else "",
+            s.percentile_ms(50), s.percentile_ms(95))
+        if not s.children:
+            return
+        child_prefix = prefix + ("" if not s.path else ("│  " if branch == "├─ " else "   "))
+        for c in s.children:
+            visit(c, child_prefix, "├─ ")
+        label = "(other)" if s.path else "(other: untimed)"
+        row(child_prefix + "└─ " + label, s.self_ns, s.in_scan)
+
+    visit(snap.root, "", "")
+    header = ("stage", "total ms", "ms/scan", "%total", "%scan", "calls", "p50 ms", "p95 ms")
+    widths = [max(len(r[i]) for r in rows + [header]) for i in range(len(header))]
+    lines = [f"timing: {snap.scans} scans, wall {wall / 1e9:.3f} s"]
+    for r in [header] + rows:
+        cells = [r[0].ljust(widths[0])] + [r[i].rjust(widths[i]) for i in range(1, len(r))]
+        lines.append("  ".join(cells).rstrip())
+    return "\n".join(lines) + "\n"
