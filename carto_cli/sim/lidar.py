@@ -1,0 +1,95 @@
+"""A 2D laser scanner: ray casting against wall segments, then a noise model.
+
+Invalid returns follow ROS REP 117, which is what carto's readers see from
+real drivers: nothing within ``max_range`` -> ``+inf``; a dropout (no echo
+from a dark or glancing surface) is also "no return" -> ``+inf`` by default
+(``dropout_value`` can make it ``nan`` or ``max_range``, as some drivers do);
+a hit closer than ``min_range`` -> ``-inf``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def _cast(poses, angles, segments, max_range):
+    """(m, n) distance along each beam to the nearest segment, inf beyond ``max_range``.
+
+    Ray o + t d against segment a + u e: with r = a - o,
+    t = (r x e) / (d x e) and u = (r x d) / (d x e).
+    """
+    m, n, k = poses.shape[0], angles.shape[0], segments.shape[0]
+    out = np.empty((m, n), dtype=np.float64)
+    for p in range(m):
+        ox, oy, oyaw = poses[p, 0], poses[p, 1], poses[p, 2]
+        for b in range(n):
+            a = oyaw + angles[b]
+            dx, dy = math.cos(a), math.sin(a)
+            best = np.inf
+            for s in range(k):
+                ax, ay = segments[s, 0], segments[s, 1]
+                ex, ey = segments[s, 2] - ax, segments[s, 3] - ay
+                den = dx * ey - dy * ex
+                if den == 0.0:
+                    continue  # parallel: a grazing ray does not hit
+                rx, ry = ax - ox, ay - oy
+                t = (rx * ey - ry * ex) / den
+                if t < 0.0 or t >= best:
+                    continue
+                u = (rx * dy - ry * dx) / den
+                if 0.0 <= u <= 1.0:
+                    best = t
+            out[p, b] = best if best <= max_range else np.inf
+    return out
+
+
+def cast(poses, angles, segments, max_range: float = np.inf) -> np.ndarray:
+    """Exact ranges from sensor ``poses`` ((m, 3) x y yaw, or one (3,)) along ``angles`` (sensor frame).
+
+    Returns (m, n) float64 (or (n,) for one pose); ``inf`` where no wall lies within ``max_range``.
+    """
+    p = np.ascontiguousarray(poses, dtype=np.float64)
+    single = p.ndim == 1
+    out = _cast(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64),
+                np.ascontiguousarray(segments, dtype=np.float64).reshape(-1, 4), float(max_range))
+    return out[0] if single else out
+
+
+@dataclass(frozen=True)
+class Lidar:
+    beams: int = 360
+    fov: float = 2 * math.pi * 0.75
+    max_range: float = 30.0
+    min_range: float = 0.05
+    noise: float = 0.01  # m, gaussian sigma
+    noise_per_metre: float = 0.0  # extra sigma per metre of range
+    dropout: float = 0.01  # probability that a beam returns nothing
+    dropout_value: float = math.inf
+
+    @property
+    def angle_increment(self) -> float:
+        # A full circle must not repeat its first beam; a partial fan includes both ends.
+        if self.fov >= 2 * math.pi - 1e-9:
+            return 2 * math.pi / self.beams
+        return self.fov / max(self.beams - 1, 1)
+
+    @property
+    def angle_min(self) -> float:
+        return -math.pi if self.fov >= 2 * math.pi - 1e-9 else -self.fov / 2
+
+    def angles(self) -> np.ndarray:
+        return self.angle_min + self.angle_increment * np.arange(self.beams)
+
+    def measure(self, poses, segments, rng: np.random.Generator) -> np.ndarray:
+        """Noisy float32 ranges (m, n) from sensor ``poses`` (m, 3)."""
+        true = cast(np.atleast_2d(poses), self.angles(), segments, self.max_range)
+        sigma = self.noise + self.noise_per_metre * np.where(np.isfinite(true), true, 0.0)
+        noisy = true + sigma * rng.standard_normal(true.shape)
+        noisy[noisy > self.max_range] = np.inf
+        noisy[noisy < self.min_range] = -np.inf
+        noisy[rng.random(true.shape) < self.dropout] = self.dropout_value
+        return noisy.astype(np.float32)
