@@ -1,0 +1,1 @@
+"""Grids, submaps, local SLAM, the pose graph and map assembly."""

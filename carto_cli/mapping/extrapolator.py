@@ -1,0 +1,133 @@
+"""Pose extrapolator: predicts where the tracking frame is at a scan's time.
+
+Translation: constant linear velocity, from wheel odometry when at least two
+odometry samples are known, otherwise from the recent matched poses.
+Rotation: the IMU's yaw rate integrated over the interval when IMU data is
+used, else the odometry yaw rate, else the yaw rate of the recent poses.
+
+Odometry velocity is measured in the body frame (displacement between the
+two retained odometry samples, seen from the newer one) and rotated into the
+local frame with the *estimated* heading, as Cartographer does: odometry's own
+heading drifts, its short-term body-frame motion is what it is good at.
+The IMU's z axis is assumed parallel to the tracking frame's (2D).
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from carto_cli import transform
+from carto_cli.transform import normalize_angle
+
+
+class PoseExtrapolator:
+    def __init__(self, *, pose_queue_duration: float = 0.001, use_imu_data: bool = False):
+        self.pose_queue_duration = float(pose_queue_duration)
+        self.use_imu_data = bool(use_imu_data)
+        self._poses: deque[tuple[float, np.ndarray]] = deque()
+        self._odometry: deque[tuple[float, np.ndarray]] = deque()
+        self._imu: deque[tuple[float, float]] = deque()
+        self._linear_velocity_from_poses = np.zeros(2)
+        self._angular_velocity_from_poses = 0.0
+
+    # --- inputs ---------------------------------------------------------------------------
+
+    def add_pose(self, time: float, pose) -> None:
+        """A matched pose of the tracking frame in the local frame."""
+        self._poses.append((float(time), np.asarray(pose, dtype=np.float64).copy()))
+        while len(self._poses) > 2 and self._poses[1][0] <= time - self.pose_queue_duration:
+            self._poses.popleft()
+        self._update_velocities_from_poses()
+        self._trim()
+
+    def add_odometry(self, odometry) -> None:
+        """A :class:`carto_cli.records.Odometry`; out-of-order samples are ignored."""
+        if self._odometry and odometry.time <= self._odometry[-1][0]:
+            return
+        self._odometry.append((float(odometry.time), np.array([odometry.x, odometry.y, odometry.yaw])))
+        self._trim()
+
+    def add_imu(self, imu) -> None:
+        """A :class:`carto_cli.records.Imu`; only its yaw rate is used, and only with ``use_imu_data``."""
+        if not self.use_imu_data or (self._imu and imu.time <= self._imu[-1][0]):
+            return
+        self._imu.append((float(imu.time), float(imu.angular_velocity[2])))
+        self._trim()
+
+    # --- outputs --------------------------------------------------------------------------
+
+    @property
+    def last_pose_time(self) -> float | None:
+        return self._poses[-1][0] if self._poses else None
+
+    def extrapolate(self, time: float) -> np.ndarray:
+        """Predicted (x, y, theta) at ``time``; identity before any pose was added."""
+        if not self._poses:
+            return np.zeros(3)
+        t0, last = self._poses[-1]
+        theta = last[2] + self._yaw_delta(t0, time)
+        if len(self._odometry) >= 2:
+            velocity = self._linear_velocity_from_odometry()
+        else:
+            velocity = self._linear_velocity_from_poses
+        xy = last[:2] + (time - t0) * velocity
+        return np.array([xy[0], xy[1], normalize_angle(theta)])
+
+    # --- internals ------------------------------------------------------------------------
+
+    def _update_velocities_from_poses(self) -> None:
+        if len(self._poses) < 2:
+            return
+        (t_old, p_old), (t_new, p_new) = self._poses[0], self._poses[-1]
+        dt = t_new - t_old
+        if dt < self.pose_queue_duration or dt <= 0.0:
+            return
+        self._linear_velocity_from_poses = (p_new[:2] - p_old[:2]) / dt
+        self._angular_velocity_from_poses = normalize_angle(p_new[2] - p_old[2]) / dt
+
+    def _trim(self) -> None:
+        if not self._poses:
+            # Only the latest samples can matter once the first pose arrives.
+            while len(self._odometry) > 2:
+                self._odometry.popleft()
+            while len(self._imu) > 1:
+                self._imu.popleft()
+            return
+        t_last = self._poses[-1][0]
+        # Keep the newest sample at or before the last pose: it still describes the motion after it.
+        while len(self._odometry) > 2 and self._odometry[1][0] <= t_last:
+            self._odometry.popleft()
+        while len(self._imu) > 1 and self._imu[1][0] <= t_last:
+            self._imu.popleft()
+
+    def _angular_velocity_without_imu(self) -> float:
+        if len(self._odometry) >= 2:
+            (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
+            return normalize_angle(p_new[2] - p_old[2]) / (t_new - t_old)
+        return self._angular_velocity_from_poses
+
+    def _linear_velocity_from_odometry(self) -> np.ndarray:
+        (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
+        body_velocity = -transform.relative(p_new, p_old)[:2] / (t_new - t_old)
+        t_pose, pose = self._poses[-1]
+        heading = pose[2] + self._yaw_delta(t_pose, t_new)
+        c, s = math.cos(heading), math.sin(heading)
+        return np.array([c * body_velocity[0] - s * body_velocity[1], s * body_velocity[0] + c * body_velocity[1]])
+
+    def _yaw_delta(self, t0: float, t1: float) -> float:
+        if t1 < t0:
+            return -self._yaw_delta(t1, t0)
+        fallback = self._angular_velocity_without_imu()
+        if not self._imu:
+            return fallback * (t1 - t0)
+        times = np.fromiter((t for t, _ in self._imu), dtype=np.float64, count=len(self._imu))
+        rates = np.fromiter((w for _, w in self._imu), dtype=np.float64, count=len(self._imu))
+        # Zero-order hold: each IMU rate holds from its sample until the next one;
+        # before the first sample the non-IMU estimate stands in.
+        inner = times[(times > t0) & (times < t1)]
+        bounds = np.concatenate([[t0], inner, [t1]])
+        which = np.searchsorted(times, bounds[:-1], side="right") - 1
+        seg_rates = np.where(which >= 0, rates[np.maximum(which, 0)], fallback)
+        return float(np.sum(seg_rates * np.diff(bounds)))

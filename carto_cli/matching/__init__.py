@@ -1,0 +1,1 @@
+"""Scan matchers: real-time correlative, least squares, branch and bound."""

@@ -1,0 +1,1 @@
+"""Local SLAM stages that touch points: range cropping and voxel filters."""

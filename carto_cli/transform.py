@@ -1,0 +1,61 @@
+"""Rigid 2D poses as (x, y, theta) float64 arrays.
+
+A pose maps points from its child frame into its parent frame:
+``apply(pose, p) = R(theta) @ p + (x, y)``. Every function accepts a single
+pose of shape (3,) or a stack of shape (n, 3) and broadcasts like numpy.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+IDENTITY = np.zeros(3)
+
+
+def as_pose(pose) -> np.ndarray:
+    return np.asarray(pose, dtype=np.float64)
+
+
+def normalize_angle(theta):
+    """Wrap to [-pi, pi). Works on scalars and arrays."""
+    wrapped = np.mod(np.asarray(theta, dtype=np.float64) + math.pi, 2.0 * math.pi) - math.pi
+    return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
+
+
+def compose(a, b) -> np.ndarray:
+    """a ∘ b: first b, then a (b expressed in a's child frame)."""
+    a = as_pose(a)
+    b = as_pose(b)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, normalize_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def inverse(a) -> np.ndarray:
+    a = as_pose(a)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = -(c * a[..., 0] + s * a[..., 1])
+    y = -(-s * a[..., 0] + c * a[..., 1])
+    return np.stack([x, y, normalize_angle(-a[..., 2])], axis=-1)
+
+
+def relative(a, b) -> np.ndarray:
+    """Pose of b in a's frame: inverse(a) ∘ b."""
+    return compose(inverse(a), b)
+
+
+def apply(pose, points) -> np.ndarray:
+    """Map (n, 2) points from the pose's child frame into its parent frame."""
+    pose = as_pose(pose)
+    points = np.asarray(points, dtype=np.float64)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    out = np.empty_like(points)
+    out[:, 0] = c * points[:, 0] - s * points[:, 1] + pose[0]
+    out[:, 1] = s * points[:, 0] + c * points[:, 1] + pose[1]
+    return out
+
+
+def rotate(theta: float, points) -> np.ndarray:
+    return apply((0.0, 0.0, theta), points)

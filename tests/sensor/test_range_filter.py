@@ -1,0 +1,45 @@
+import math
+
+import numpy as np
+import pytest
+
+from carto_cli import transform as tf
+from carto_cli.sensor.range_filter import RangeData, accumulate, crop_points, crop_polar
+
+
+def test_crop_polar_sorts_returns_misses_and_drops_invalid():
+    angles = np.array([0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, -1.0], dtype=np.float32)
+    ranges = np.array([1.0, np.nan, np.inf, -np.inf, 0.1, 40.0, 0.0, 30.0], dtype=np.float32)
+    rd = crop_polar(ranges, angles, min_range=0.2, max_range=30.0, missing_data_ray_length=5.0)
+    a = angles.astype(np.float64)
+    np.testing.assert_allclose(rd.returns, [[1.0, 0.0], [30 * math.cos(a[7]), 30 * math.sin(a[7])]], atol=1e-12)
+    # +inf and beyond max_range become misses at missing_data_ray_length along the beam.
+    np.testing.assert_allclose(rd.misses, [[5 * math.cos(a[2]), 5 * math.sin(a[2])],
+                                           [5 * math.cos(a[5]), 5 * math.sin(a[5])]], atol=1e-12)
+    np.testing.assert_array_equal(rd.origin, [0.0, 0.0])
+
+
+def test_crop_points_measures_from_origin():
+    origin = np.array([1.0, 2.0])
+    pts = np.array([[1.0, 2.05], [4.0, 2.0], [1.0, 12.0], [np.inf, 0.0], [np.nan, 1.0]])
+    rd = crop_points(pts, origin, min_range=0.1, max_range=5.0, missing_data_ray_length=2.0)
+    np.testing.assert_allclose(rd.returns, [[4.0, 2.0]])
+    np.testing.assert_allclose(rd.misses, [[1.0, 4.0]])
+
+
+def test_accumulate_expresses_everything_in_the_last_frame():
+    a = RangeData(np.zeros(2), np.array([[1.0, 0.0]]), np.array([[0.0, 5.0]]))
+    b = RangeData(np.zeros(2), np.array([[2.0, 0.0], [0.0, 1.0]]), np.empty((0, 2)))
+    pose_a = np.array([0.0, 0.0, 0.0])
+    pose_b = np.array([1.0, 0.0, math.pi / 2])
+    merged = accumulate([a, b], [pose_a, pose_b])
+    # The first scan's hit at world (1, 0) is the second sensor's own position.
+    np.testing.assert_allclose(merged.returns[0], [0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(merged.returns[1:], b.returns, atol=1e-12)
+    np.testing.assert_allclose(merged.misses, tf.apply(tf.inverse(pose_b), [[0.0, 5.0]]), atol=1e-12)
+    np.testing.assert_allclose(merged.origin, [0.0, 0.0], atol=1e-12)
+    world = accumulate([a, b], [pose_a, pose_b], frame=np.zeros(3))
+    np.testing.assert_allclose(world.returns, [[1.0, 0.0], [1.0, 2.0], [0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(world.origin, [1.0, 0.0], atol=1e-12)
+    with pytest.raises(ValueError):
+        accumulate([a], [pose_a, pose_b])
