@@ -155,5 +155,76 @@ def convert(
         typer.echo(f"wrote {n} messages to {out} ({out_format})", err=True)
 
 
+PROFILE = typer.Option(None, "--profile", "-p", help="Profile name (profiles/NAME.yaml) or path, layered over the default.")
+SET = typer.Option(None, "--set", "-s", help="Override an option: dotted.key=value (repeatable; angles in radians, or '20deg').")
+
+
+def _options(profile: Optional[str], overrides: Optional[list[str]]):
+    from carto_cli.options import load_options
+
+    return load_options(profile, overrides or [])
+
+
+@app.command("map")
+@handle_errors
+def map_(
+    recording: Path = typer.Argument(..., help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]."),
+    outdir: Optional[Path] = typer.Option(None, "--output", "-o", help="Output directory (default: RECORDING_map)."),
+    profile: Optional[str] = PROFILE,
+    overrides: Optional[list[str]] = SET,
+    scan_topic: Optional[str] = typer.Option(None, "--scan-topic"),
+    odom_topic: Optional[str] = typer.Option(None, "--odom-topic"),
+    imu_topic: Optional[str] = typer.Option(None, "--imu-topic"),
+    no_odometry: bool = typer.Option(False, "--no-odometry", help="Ignore odometry even when the recording has it."),
+    laser_pose: Optional[str] = typer.Option(
+        None, "--laser-pose", help="x,y,yaw of the laser on the robot (m, m, rad; 'deg' suffix for degrees). Default: static TF, else identity."
+    ),
+    timings: bool = typer.Option(False, "--timings", help="Print the per-stage timing tree."),
+):
+    """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum."""
+    from carto_cli.io.tf_tree import parse_pose
+    from carto_cli.map_job import run_map, summary_line
+    from carto_cli.progress import progress
+    from carto_cli.timing import StageTimer, report_tree_text
+
+    options = _options(profile, overrides)
+    mount = parse_pose(laser_pose, "--laser-pose") if laser_pose else None
+    if outdir is None:
+        outdir = recording.parent / f"{recording.name.split('.')[0]}_map"
+    timer = StageTimer()
+    with progress(f"mapping {recording.name}", None, state.quiet) as bar:
+        result, outputs = run_map(
+            recording, outdir, options, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
+            laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
+            on_total=lambda n: bar.set_total(n),
+        )
+    timer.stop()
+    if timings:
+        typer.echo(report_tree_text(timer))
+    typer.echo(f"{summary_line(result)} -> {outputs.yaml.parent}")
+
+
+@app.command("eval")
+@handle_errors
+def eval_(
+    trajectory: Path = typer.Argument(..., help="Trajectory to score: TUM (t x y z qx qy qz qw) or 't x y theta'."),
+    relations: Optional[Path] = typer.Option(None, "--relations", help="Relations file: t1 t2 dx dy dz droll dpitch dyaw."),
+    ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Reference trajectory (TUM or 't x y theta')."),
+    rpe_delta: float = typer.Option(1.0, "--rpe-delta", help="RPE step in seconds (with --ground-truth)."),
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+):
+    """Score a trajectory: relation error (Kuemmerle et al.) and/or ATE + RPE against a ground truth."""
+    from carto_cli.evaluate import evaluate, format_table, to_json
+
+    if relations is None and ground_truth is None:
+        raise CartoError("give --relations FILE and/or --ground-truth FILE")
+    result = evaluate(trajectory, relations=relations, groundtruth=ground_truth,
+                      rpe_delta=rpe_delta if ground_truth is not None else None)
+    if as_json:
+        typer.echo(json.dumps(to_json(result), indent=2))
+    else:
+        typer.echo(format_table(result))
+
+
 def main() -> None:
     app(prog_name="carto")

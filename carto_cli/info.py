@@ -225,12 +225,12 @@ def format_info(info: RecordingInfo) -> str:
     lines.append(f"odometry   {'yes' if info.has_odometry else 'no'}")
     lines.append(f"imu        {'yes' if info.has_imu else 'no'}")
     if info.static_transforms:
+        from carto_cli.io.tf_tree import format_tree
+        from carto_cli.records import Transform
+
         lines.append("static tf")
-        for tf in info.static_transforms:
-            x, y, z = tf["translation"]
-            lines.append(
-                f"  {tf['parent']} -> {tf['child']}: x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {math.degrees(tf['yaw']):.2f}°"
-            )
+        tfs = [Transform(t["parent"], t["child"], tuple(t["translation"]), tuple(t["rotation"])) for t in info.static_transforms]
+        lines.extend(f"  {line}" for line in format_tree(tfs))
     else:
         lines.append("static tf  none")
     if info.warnings:

@@ -29,6 +29,10 @@ class Progress:
         if self._bar is not None:
             self._bar.advance(self._task, n)
 
+    def set_total(self, total: int | None) -> None:
+        if self._bar is not None:
+            self._bar.update(self._task, total=total)
+
     def set_description(self, text: str) -> None:
         if self._bar is not None:
             self._bar.update(self._task, description=text)

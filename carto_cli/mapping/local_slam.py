@@ -1,0 +1,179 @@
+"""Cartographer's 2D local SLAM: scan → filtered range data → predicted pose → matched pose → submaps.
+
+One ``LocalSlam`` per trajectory. Scans arrive in the sensor frame together with the
+laser's mount on the robot; everything downstream works in the tracking frame
+(the robot body), which is what the extrapolator, odometry and the trajectory
+files describe.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from carto_cli import transform
+from carto_cli.mapping.extrapolator import PoseExtrapolator
+from carto_cli.mapping.motion_filter import MotionFilter
+from carto_cli.mapping.submaps import ActiveSubmaps, Submap
+from carto_cli.matching import correlative, least_squares
+from carto_cli.options import TrajectoryBuilder2D
+from carto_cli.records import Imu, Odometry, Scan
+from carto_cli.sensor.range_filter import RangeData, accumulate, crop_scan
+from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
+from carto_cli.timing import NullTimer
+
+
+@dataclass
+class InsertionResult:
+    """A scan the motion filter kept: it became a node and went into ``submaps``."""
+
+    node_index: int
+    submaps: list[Submap]
+    range_data_local: RangeData  # the inserted range data, local frame
+    loop_closure_points: np.ndarray  # (n, 2) tracking frame, for the constraint builder
+
+
+@dataclass
+class LocalSlamResult:
+    time: float
+    local_pose: np.ndarray  # tracking frame in the local SLAM frame
+    matching_points: np.ndarray  # (n, 2) tracking frame, adaptive-voxel filtered
+    score: float | None  # real-time correlative score when that matcher ran
+    ls_cost: float | None
+    insertion: InsertionResult | None = None
+
+
+@dataclass
+class LocalSlamStats:
+    scans: int = 0
+    empty_scans: int = 0
+    matched: int = 0
+    nodes: int = 0
+    ls_iterations: int = 0
+    finished_submaps: list = field(default_factory=list)
+
+
+class LocalSlam:
+    def __init__(self, options: TrajectoryBuilder2D, laser_pose=(0.0, 0.0, 0.0), timer=None):
+        self.options = options
+        self.laser_pose = transform.as_pose(laser_pose)
+        self.timer = timer or NullTimer()
+        o = options
+        self.extrapolator = PoseExtrapolator(
+            pose_queue_duration=o.pose_extrapolator.constant_velocity.pose_queue_duration,
+            use_imu_data=o.use_imu_data,
+        )
+        self.motion_filter = MotionFilter(
+            max_time_seconds=o.motion_filter.max_time_seconds,
+            max_distance_meters=o.motion_filter.max_distance_meters,
+            max_angle_radians=o.motion_filter.max_angle_radians,
+        )
+        ri = o.submaps.range_data_inserter
+        self.submaps = ActiveSubmaps(
+            num_range_data=o.submaps.num_range_data,
+            resolution=o.submaps.grid_options_2d.resolution,
+            hit_probability=ri.hit_probability,
+            miss_probability=ri.miss_probability,
+            insert_free_space=ri.insert_free_space,
+        )
+        self.stats = LocalSlamStats()
+        self._accumulated: list[RangeData] = []
+        self._accumulated_poses: list[np.ndarray] = []
+        self._has_odometry = False
+
+    def add_odometry(self, odometry: Odometry) -> None:
+        self._has_odometry = True
+        self.extrapolator.add_odometry(odometry)
+
+    def add_imu(self, imu: Imu) -> None:
+        self.extrapolator.add_imu(imu)
+
+    def add_scan(self, scan: Scan) -> LocalSlamResult | None:
+        """Process one scan; None while accumulating or when nothing usable was left after filtering."""
+        o = self.options
+        timer = self.timer
+        self.stats.scans += 1
+        with timer.stage("preprocess"):
+            with timer.stage("crop"):
+                data = crop_scan(scan, min_range=o.min_range, max_range=o.max_range,
+                                 missing_data_ray_length=o.missing_data_ray_length)
+                data = data.transformed(self.laser_pose)
+            if o.num_accumulated_range_data > 1:
+                self._accumulated.append(data)
+                self._accumulated_poses.append(self.extrapolator.extrapolate(scan.time))
+                if len(self._accumulated) < o.num_accumulated_range_data:
+                    return None
+            # Accumulated scans are expressed in the tracking frame at the newest one, placed by
+            # the poses predicted for each: that is how Cartographer de-skews a slow sensor.
+            if len(self._accumulated) > 1:
+                data = accumulate(self._accumulated, self._accumulated_poses)
+            self._accumulated = []
+            self._accumulated_poses = []
+            with timer.stage("voxel"):
+                data = RangeData(data.origin, voxel_filter(data.returns, o.voxel_filter_size),
+                                 voxel_filter(data.misses, o.voxel_filter_size))
+            with timer.stage("adaptive voxel"):
+                f = o.adaptive_voxel_filter
+                points = adaptive_voxel_filter(data.returns, max_length=f.max_length,
+                                               min_num_points=f.min_num_points, max_range=f.max_range)
+        if points.shape[0] == 0:
+            self.stats.empty_scans += 1
+            return None
+
+        with timer.stage("extrapolate"):
+            prediction = self.extrapolator.extrapolate(scan.time)
+
+        score = None
+        ls_cost = None
+        pose = prediction
+        matching = self.submaps.matching_submap
+        if matching is not None:
+            with timer.stage("match"):
+                initial = prediction
+                if o.use_online_correlative_scan_matching:
+                    with timer.stage("correlative"):
+                        c = o.real_time_correlative_scan_matcher
+                        result = correlative.match(
+                            matching.grid, points, prediction,
+                            linear_search_window=c.linear_search_window,
+                            angular_search_window=c.angular_search_window,
+                            translation_delta_cost_weight=c.translation_delta_cost_weight,
+                            rotation_delta_cost_weight=c.rotation_delta_cost_weight,
+                        )
+                        initial = result.pose
+                        score = result.score
+                with timer.stage("least squares"):
+                    c = o.ceres_scan_matcher
+                    ls = least_squares.match(
+                        matching.grid, points, initial, target_translation=prediction[:2],
+                        occupied_space_weight=c.occupied_space_weight,
+                        translation_weight=c.translation_weight,
+                        rotation_weight=c.rotation_weight,
+                        max_num_iterations=c.ceres_solver_options.max_num_iterations,
+                    )
+                    pose = ls.pose
+                    ls_cost = ls.cost
+                    self.stats.ls_iterations += ls.iterations
+            self.stats.matched += 1
+
+        with timer.stage("extrapolate"):
+            self.extrapolator.add_pose(scan.time, pose)
+
+        result = LocalSlamResult(scan.time, pose.copy(), points, score, ls_cost)
+        with timer.stage("motion filter"):
+            similar = self.motion_filter.is_similar(scan.time, pose)
+        if similar:
+            return result
+        with timer.stage("insert"):
+            local_data = data.transformed(pose)
+            inserted = self.submaps.insert(local_data)
+        with timer.stage("preprocess"):
+            with timer.stage("adaptive voxel"):
+                f = o.loop_closure_adaptive_voxel_filter
+                lc_points = adaptive_voxel_filter(data.returns, max_length=f.max_length,
+                                                  min_num_points=f.min_num_points, max_range=f.max_range)
+        result.insertion = InsertionResult(self.stats.nodes, inserted, local_data, lc_points)
+        self.stats.nodes += 1
+        if inserted[0].finished:
+            self.stats.finished_submaps.append(inserted[0].index)
+        return result

@@ -1,0 +1,136 @@
+"""The one pipeline every subcommand runs: recording → local SLAM → (pose graph) → MapResult."""
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from carto_cli import transform
+from carto_cli.errors import CartoError
+from carto_cli.io.map_writer import OccupancyImage
+from carto_cli.io.recording import Recording
+from carto_cli.io.tf_tree import laser_pose_from_tf
+from carto_cli.io.topics import TopicSelection, select_topics
+from carto_cli.mapping.local_slam import LocalSlam
+from carto_cli.mapping.map_assembly import assemble
+from carto_cli.mapping.submaps import Submap
+from carto_cli.options import Options
+from carto_cli.records import Imu, Odometry, Scan
+from carto_cli.timing import NullTimer
+
+
+@dataclass
+class MapResult:
+    times: np.ndarray  # (S,) every scan that got a pose
+    poses: np.ndarray  # (S, 3) tracking frame in the map frame
+    local_poses: np.ndarray  # (S, 3) the same scans in the local SLAM frame
+    node_scans: np.ndarray  # (N,) index into times/poses of every node
+    submaps: list[Submap]
+    submap_poses: np.ndarray  # (M, 3) global poses of the submaps' frames (local frame ↦ map frame)
+    image: OccupancyImage
+    laser_pose: np.ndarray
+    laser_pose_source: str
+    selection: TopicSelection
+    stats: dict = field(default_factory=dict)
+    loop_closures: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (K, 4) x1 y1 x2 y2 for drawing
+
+
+def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit) -> tuple[np.ndarray, str]:
+    """--laser-pose wins; else static TF; else the laser is at the tracking frame."""
+    if explicit is not None:
+        return transform.as_pose(explicit), "--laser-pose"
+    if scan_frame:
+        found = laser_pose_from_tf(recording.static_transforms(), scan_frame)
+        if found is not None:
+            pose, root = found
+            return np.asarray(pose, dtype=np.float64), f"static TF {root} -> {scan_frame}"
+    return np.zeros(3), "identity (no static TF for the laser)"
+
+
+def _first_scan_frame(recording: Recording, topic: str) -> str | None:
+    for record in recording.records([topic]):
+        if isinstance(record, Scan):
+            return record.frame
+    return None
+
+
+def build(
+    recording: Recording,
+    options: Options,
+    *,
+    selection: TopicSelection | None = None,
+    laser_pose=None,
+    timer=None,
+    on_scan: Callable[[int], None] | None = None,
+    use_odometry: bool = True,
+    use_imu: bool = True,
+    max_scans: int | None = None,
+) -> MapResult:
+    timer = timer or NullTimer()
+    wall0 = _time.perf_counter()
+    selection = selection or select_topics(recording)
+    scan_frame = _first_scan_frame(recording, selection.scan)
+    if scan_frame is None:
+        raise CartoError(f"no scans on {selection.scan}", recording.path)
+    mount, mount_source = resolve_laser_pose(recording, scan_frame, laser_pose)
+    tb = options.trajectory_builder_2d
+    local = LocalSlam(tb, laser_pose=mount, timer=timer)
+
+    topics = [selection.scan]
+    if use_odometry and selection.odometry:
+        topics.append(selection.odometry)
+    if use_imu and selection.imu and tb.use_imu_data:
+        topics.append(selection.imu)
+
+    times: list[float] = []
+    local_poses: list[np.ndarray] = []
+    node_scans: list[int] = []
+    all_submaps: dict[int, Submap] = {}
+    n_scans = 0
+    for record in recording.records(topics):
+        if isinstance(record, Scan):
+            if max_scans is not None and n_scans >= max_scans:
+                break
+            n_scans += 1
+            with timer.scan():
+                result = local.add_scan(record)
+            if on_scan is not None:
+                on_scan(1)
+            if result is None:
+                continue
+            times.append(result.time)
+            local_poses.append(result.local_pose)
+            if result.insertion is not None:
+                node_scans.append(len(times) - 1)
+                for sm in result.insertion.submaps:
+                    all_submaps[sm.index] = sm
+        elif isinstance(record, Odometry):
+            local.add_odometry(record)
+        elif isinstance(record, Imu):
+            local.add_imu(record)
+
+    if not times:
+        raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
+    submaps = [all_submaps[i] for i in sorted(all_submaps)]
+    local_arr = np.array(local_poses)
+    # Local-only mapping: the map frame is the local SLAM frame.
+    submap_poses = np.array([sm.local_pose for sm in submaps]) if submaps else np.zeros((0, 3))
+    with timer.stage("assemble map"):
+        image = assemble([sm.grid for sm in submaps], [np.zeros(3)] * len(submaps))
+    wall = _time.perf_counter() - wall0
+    stats = {
+        "scans": n_scans,
+        "poses": len(times),
+        "nodes": len(node_scans),
+        "submaps": len(submaps),
+        "wall_time_s": wall,
+        "scans_per_s": n_scans / wall if wall > 0 else float("nan"),
+        "empty_scans": local.stats.empty_scans,
+    }
+    return MapResult(
+        times=np.array(times), poses=local_arr.copy(), local_poses=local_arr, node_scans=np.array(node_scans, int),
+        submaps=submaps, submap_poses=submap_poses, image=image, laser_pose=mount,
+        laser_pose_source=mount_source, selection=selection, stats=stats,
+    )
