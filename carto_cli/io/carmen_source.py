@@ -516,6 +516,13 @@ class CarmenRecording(Recording):
         s = self._survey()
         return {topic: src for topic in TOPIC_SOURCES if (src := s.source(topic)) is not None}
 
+    def preferred_topic(self, kind: str) -> str | None:
+        # The pose in each laser line was logged with that scan, so it needs no interpolation; in
+        # corrected logs ODOM lines are often zeros while the laser lines carry the real pose.
+        if kind == "odometry":
+            return ODOM_LASER_TOPIC
+        return None
+
     def topics(self) -> list[TopicInfo]:
         s = self._survey()
         out = []

@@ -88,6 +88,10 @@ class Recording(ABC):
     def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
         """Scan / Odometry / Imu records of the given topics (all supported ones when None), in time order."""
 
+    def preferred_topic(self, kind: str) -> str | None:
+        """The topic a format designates for ``kind`` when it has several (CARMEN's scan-time odometry)."""
+        return None
+
     def close(self) -> None:
         pass
 

@@ -41,6 +41,9 @@ def choose_topic(recording: Recording, topics: list[TopicInfo], kind: str, wante
             raise TopicError(f"no laser scan topic (LaserScan, MultiEchoLaserScan or PointCloud2); found {others}", recording.path)
         return None
     if len(candidates) > 1:
+        preferred = recording.preferred_topic(kind)
+        if preferred is not None and any(t.name == preferred for t in candidates):
+            return preferred
         names = ", ".join(f"{t.name} ({t.count} msgs)" for t in candidates)
         raise TopicError(f"several {kind} topics, choose one with {_FLAGS[kind]}: {names}", recording.path)
     return candidates[0].name

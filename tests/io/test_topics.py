@@ -54,3 +54,14 @@ def test_missing_and_wrong_type():
         select_topics(rec, scan_topic="/chatter")
     with pytest.raises(TopicError, match="no laser scan topic"):
         select_topics(FakeRecording([("/chatter", "std_msgs/msg/String", 1)]))
+
+
+def test_format_preference_breaks_a_tie():
+    class Preferring(FakeRecording):
+        def preferred_topic(self, kind):
+            return "/odom_laser" if kind == "odometry" else None
+
+    rec = Preferring([("/scan", "sensor_msgs/msg/LaserScan", 10), ("/odom", "nav_msgs/msg/Odometry", 50),
+                      ("/odom_laser", "nav_msgs/msg/Odometry", 10)])
+    assert select_topics(rec).odometry == "/odom_laser"
+    assert select_topics(rec, odom_topic="/odom").odometry == "/odom"
