@@ -137,3 +137,9 @@ def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
 def strip_frame(frame: str) -> str:
     """ROS1 frames may carry a leading slash ('/laser'); tf2 names do not."""
     return frame[1:] if frame.startswith("/") else frame
+
+
+def beam_angles(angle_min: float, angle_increment: float, n: int) -> np.ndarray:
+    """Bearings of a LaserScan's beams, computed in float32 exactly as every reader computes them,
+    so that scans survive a write/read round trip bit for bit."""
+    return np.float32(angle_min) + np.arange(n, dtype=np.float32) * np.float32(angle_increment)

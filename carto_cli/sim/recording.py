@@ -17,7 +17,7 @@ import numpy as np
 
 from carto_cli.errors import TopicError
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
-from carto_cli.records import Imu, Odometry, Record, Scan, Transform, yaw_quaternion
+from carto_cli.records import Imu, Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
 from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.odometry import ImuModel, OdometryModel, gyro_and_accel, wheel_odometry
 from carto_cli.sim.trajectory import Trajectory, wrap_angle
@@ -113,7 +113,7 @@ class Simulation:
         scan_times = self.scan_times.tolist()
         odometry = self.odometry.tolist()
         imu_times = self.imu_times.tolist()
-        angles = self.lidar.angles().astype(np.float32)
+        angles = beam_angles(self.lidar.angle_min, self.lidar.angle_increment, self.lidar.beams)
         scan_period = 1.0 / self._rate(self.scan_times)
         lidar = self.lidar
         for j in order:
