@@ -24,10 +24,11 @@ def synthetic_records(n_scans: int = 20, beams: int = 90, seed: int = 0) -> list
     """Interleaved scans (10 Hz), odometry (50 Hz) and IMU (100 Hz) with exact float values."""
     rng = np.random.default_rng(seed)
     records = []
-    t0 = 1000.0
+    t0_ns = 1_000_000_000_000  # times built from whole nanoseconds: the resolution of every ROS format
     inc = np.float32(2 * math.pi / beams)
     for i in range(n_scans):
-        t = t0 + 0.1 * i
+        t_ns = t0_ns + 100_000_000 * i
+        t = t_ns / 1e9
         ranges = rng.uniform(0.5, 8.0, beams).astype(np.float32)
         ranges[rng.integers(0, beams, 3)] = np.nan
         ranges[rng.integers(0, beams, 2)] = np.inf
@@ -38,11 +39,11 @@ def synthetic_records(n_scans: int = 20, beams: int = 90, seed: int = 0) -> list
                  time_increment=0.0, scan_time=0.1)
         )
         for k in range(5):
-            tk = t + 0.02 * k + 0.001
+            tk = (t_ns + 20_000_000 * k + 1_000_000) / 1e9
             records.append(Odometry(time=tk, x=0.1 * i + 0.02 * k, y=0.01 * i, yaw=0.05 * i, topic="/odom",
                                     vx=0.2, vy=0.0, wz=0.05))
         for k in range(10):
-            tk = t + 0.01 * k + 0.0005
+            tk = (t_ns + 10_000_000 * k + 500_000) / 1e9
             records.append(Imu(time=tk, angular_velocity=np.array([0.0, 0.0, 0.05]),
                                linear_acceleration=np.array([0.1, 0.0, 9.81]),
                                orientation=np.array([0.0, 0.0, math.sin(0.025 * i), math.cos(0.025 * i)]),
