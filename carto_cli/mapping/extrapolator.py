@@ -18,25 +18,31 @@ from collections import deque
 
 import numpy as np
 
-from carto_cli import transform
-from carto_cli.transform import normalize_angle
+
+_TWO_PI = 2.0 * math.pi
+
+
+def _wrap(a: float) -> float:
+    """Scalar angle wrapped to [-pi, pi) (plain floats: this runs several times per scan)."""
+    return (a + math.pi) % _TWO_PI - math.pi
 
 
 class PoseExtrapolator:
     def __init__(self, *, pose_queue_duration: float = 0.001, use_imu_data: bool = False):
         self.pose_queue_duration = float(pose_queue_duration)
         self.use_imu_data = bool(use_imu_data)
-        self._poses: deque[tuple[float, np.ndarray]] = deque()
-        self._odometry: deque[tuple[float, np.ndarray]] = deque()
+        self._poses: deque[tuple[float, tuple[float, float, float]]] = deque()
+        self._odometry: deque[tuple[float, tuple[float, float, float]]] = deque()
         self._imu: deque[tuple[float, float]] = deque()
-        self._linear_velocity_from_poses = np.zeros(2)
+        self._linear_velocity_from_poses = (0.0, 0.0)
         self._angular_velocity_from_poses = 0.0
 
     # --- inputs ---------------------------------------------------------------------------
 
     def add_pose(self, time: float, pose) -> None:
         """A matched pose of the tracking frame in the local frame."""
-        self._poses.append((float(time), np.asarray(pose, dtype=np.float64).copy()))
+        x, y, theta = pose
+        self._poses.append((float(time), (float(x), float(y), float(theta))))
         while len(self._poses) > 2 and self._poses[1][0] <= time - self.pose_queue_duration:
             self._poses.popleft()
         self._update_velocities_from_poses()
@@ -46,7 +52,7 @@ class PoseExtrapolator:
         """A :class:`carto_cli.records.Odometry`; out-of-order samples are ignored."""
         if self._odometry and odometry.time <= self._odometry[-1][0]:
             return
-        self._odometry.append((float(odometry.time), np.array([odometry.x, odometry.y, odometry.yaw])))
+        self._odometry.append((float(odometry.time), (float(odometry.x), float(odometry.y), float(odometry.yaw))))
         self._trim()
 
     def add_imu(self, imu) -> None:
@@ -69,11 +75,33 @@ class PoseExtrapolator:
         t0, last = self._poses[-1]
         theta = last[2] + self._yaw_delta(t0, time)
         if len(self._odometry) >= 2:
-            velocity = self._linear_velocity_from_odometry()
+            vx, vy = self._linear_velocity_from_odometry()
         else:
-            velocity = self._linear_velocity_from_poses
-        xy = last[:2] + (time - t0) * velocity
-        return np.array([xy[0], xy[1], normalize_angle(theta)])
+            vx, vy = self._linear_velocity_from_poses
+        dt = time - t0
+        return np.array([last[0] + dt * vx, last[1] + dt * vy, _wrap(theta)])
+
+    def body_motion(self, time: float, duration: float = 0.0) -> tuple[float, float, float]:
+        """(vx, vy, yaw rate) of the tracking frame at ``time``, velocity in its own frame.
+
+        The motion ``extrapolate`` assumes: its linear velocity seen from the
+        predicted heading at ``time``, and the yaw rate averaged over
+        [time, time + duration] (what de-skewing a sweep of that duration needs).
+        Zero before any pose.
+        """
+        if not self._poses:
+            return 0.0, 0.0, 0.0
+        t0, last = self._poses[-1]
+        theta = last[2] + self._yaw_delta(t0, time)
+        if len(self._odometry) >= 2:
+            vx, vy = self._linear_velocity_from_odometry()
+        else:
+            vx, vy = self._linear_velocity_from_poses
+        c, s = math.cos(theta), math.sin(theta)
+        if duration == 0.0:
+            duration = 1e-3
+        w = self._yaw_delta(time, time + duration) / duration
+        return c * vx + s * vy, -s * vx + c * vy, w
 
     # --- internals ------------------------------------------------------------------------
 
@@ -84,8 +112,8 @@ class PoseExtrapolator:
         dt = t_new - t_old
         if dt < self.pose_queue_duration or dt <= 0.0:
             return
-        self._linear_velocity_from_poses = (p_new[:2] - p_old[:2]) / dt
-        self._angular_velocity_from_poses = normalize_angle(p_new[2] - p_old[2]) / dt
+        self._linear_velocity_from_poses = ((p_new[0] - p_old[0]) / dt, (p_new[1] - p_old[1]) / dt)
+        self._angular_velocity_from_poses = _wrap(p_new[2] - p_old[2]) / dt
 
     def _trim(self) -> None:
         if not self._poses:
@@ -105,16 +133,21 @@ class PoseExtrapolator:
     def _angular_velocity_without_imu(self) -> float:
         if len(self._odometry) >= 2:
             (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
-            return normalize_angle(p_new[2] - p_old[2]) / (t_new - t_old)
+            return _wrap(p_new[2] - p_old[2]) / (t_new - t_old)
         return self._angular_velocity_from_poses
 
-    def _linear_velocity_from_odometry(self) -> np.ndarray:
+    def _linear_velocity_from_odometry(self) -> tuple[float, float]:
         (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
-        body_velocity = -transform.relative(p_new, p_old)[:2] / (t_new - t_old)
+        dt = t_new - t_old
+        # The newer sample's displacement since the older one, in the newer sample's frame
+        # (Cartographer: -(pose_new⁻¹ · pose_old).translation / dt).
+        dx, dy = p_new[0] - p_old[0], p_new[1] - p_old[1]
+        c, s = math.cos(p_new[2]), math.sin(p_new[2])
+        bx, by = (c * dx + s * dy) / dt, (-s * dx + c * dy) / dt
         t_pose, pose = self._poses[-1]
         heading = pose[2] + self._yaw_delta(t_pose, t_new)
         c, s = math.cos(heading), math.sin(heading)
-        return np.array([c * body_velocity[0] - s * body_velocity[1], s * body_velocity[0] + c * body_velocity[1]])
+        return c * bx - s * by, s * bx + c * by
 
     def _yaw_delta(self, t0: float, t1: float) -> float:
         if t1 < t0:
@@ -122,12 +155,19 @@ class PoseExtrapolator:
         fallback = self._angular_velocity_without_imu()
         if not self._imu:
             return fallback * (t1 - t0)
-        times = np.fromiter((t for t, _ in self._imu), dtype=np.float64, count=len(self._imu))
-        rates = np.fromiter((w for _, w in self._imu), dtype=np.float64, count=len(self._imu))
         # Zero-order hold: each IMU rate holds from its sample until the next one;
-        # before the first sample the non-IMU estimate stands in.
-        inner = times[(times > t0) & (times < t1)]
-        bounds = np.concatenate([[t0], inner, [t1]])
-        which = np.searchsorted(times, bounds[:-1], side="right") - 1
-        seg_rates = np.where(which >= 0, rates[np.maximum(which, 0)], fallback)
-        return float(np.sum(seg_rates * np.diff(bounds)))
+        # before the first sample the non-IMU estimate stands in. (A plain loop: the
+        # queue holds only the samples since the last pose.)
+        total = 0.0
+        t = t0
+        rate = fallback
+        for ts, w in self._imu:
+            if ts <= t0:
+                rate = w
+                continue
+            if ts >= t1:
+                break
+            total += rate * (ts - t)
+            t = ts
+            rate = w
+        return total + rate * (t1 - t)

@@ -15,6 +15,7 @@ from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics
 from carto_cli.mapping.local_slam import LocalSlam
 from carto_cli.mapping.map_assembly import assemble
+from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options
 from carto_cli.records import Imu, Odometry, Scan
@@ -35,6 +36,7 @@ class MapResult:
     selection: TopicSelection
     stats: dict = field(default_factory=dict)
     loop_closures: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (K, 4) x1 y1 x2 y2 for drawing
+    graph: PoseGraph | None = None
 
 
 def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit) -> tuple[np.ndarray, str]:
@@ -67,6 +69,7 @@ def build(
     use_odometry: bool = True,
     use_imu: bool = True,
     max_scans: int | None = None,
+    loop_closure: bool = True,
 ) -> MapResult:
     timer = timer or NullTimer()
     wall0 = _time.perf_counter()
@@ -84,10 +87,12 @@ def build(
     if use_imu and selection.imu and tb.use_imu_data:
         topics.append(selection.imu)
 
+    graph = PoseGraph(options, timer=timer, loop_closure=loop_closure)
     times: list[float] = []
     local_poses: list[np.ndarray] = []
+    scan_node: list[int] = []  # latest node at or before each posed scan
     node_scans: list[int] = []
-    all_submaps: dict[int, Submap] = {}
+    last_odometry = None
     n_scans = 0
     for record in recording.records(topics):
         if isinstance(record, Scan):
@@ -100,25 +105,37 @@ def build(
                 on_scan(1)
             if result is None:
                 continue
+            if result.insertion is not None:
+                ins = result.insertion
+                odom_pose = None
+                if last_odometry is not None and abs(last_odometry.time - result.time) < 0.1:
+                    odom_pose = (last_odometry.x, last_odometry.y, last_odometry.yaw)
+                with timer.stage("global"):
+                    graph.add_node(result.time, result.local_pose, ins.loop_closure_points, ins.submaps, odom_pose)
+                node_scans.append(len(times))
+            if not node_scans:
+                continue  # nothing to anchor a scan to before the first node
             times.append(result.time)
             local_poses.append(result.local_pose)
-            if result.insertion is not None:
-                node_scans.append(len(times) - 1)
-                for sm in result.insertion.submaps:
-                    all_submaps[sm.index] = sm
+            scan_node.append(len(node_scans) - 1)
         elif isinstance(record, Odometry):
+            last_odometry = record
             local.add_odometry(record)
         elif isinstance(record, Imu):
             local.add_imu(record)
 
     if not times:
         raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
-    submaps = [all_submaps[i] for i in sorted(all_submaps)]
+    if loop_closure:
+        with timer.stage("global"):
+            graph.optimize(final=True)
+    submaps = [entry.submap for entry in graph.submaps]
     local_arr = np.array(local_poses)
-    # Local-only mapping: the map frame is the local SLAM frame.
-    submap_poses = np.array([sm.local_pose for sm in submaps]) if submaps else np.zeros((0, 3))
+    poses = graph.scan_poses(local_arr, np.asarray(scan_node))
+    submap_poses = graph.submap_global_poses
     with timer.stage("assemble map"):
-        image = assemble([sm.grid for sm in submaps], [np.zeros(3)] * len(submaps))
+        corrections = [graph.local_to_global(i) for i in range(len(graph.submaps))]
+        image = assemble([sm.grid for sm in submaps], corrections)
     wall = _time.perf_counter() - wall0
     stats = {
         "scans": n_scans,
@@ -128,9 +145,16 @@ def build(
         "wall_time_s": wall,
         "scans_per_s": n_scans / wall if wall > 0 else float("nan"),
         "empty_scans": local.stats.empty_scans,
+        "constraints": len(graph.constraints),
+        "loop_closures": graph.num_loop_closures,
+        "optimizations": graph.stats.optimizations,
+        "optimization_time_s": graph.stats.optimization_time_s,
+        "loop_closure_searches": graph.builder.stats.searched,
+        "precomputation_bytes": graph.builder.memory_bytes,
     }
     return MapResult(
-        times=np.array(times), poses=local_arr.copy(), local_poses=local_arr, node_scans=np.array(node_scans, int),
+        times=np.array(times), poses=poses, local_poses=local_arr, node_scans=np.array(node_scans, int),
         submaps=submaps, submap_poses=submap_poses, image=image, laser_pose=mount,
         laser_pose_source=mount_source, selection=selection, stats=stats,
+        loop_closures=graph.loop_closure_segments(), graph=graph,
     )

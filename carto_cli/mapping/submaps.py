@@ -23,6 +23,9 @@ class Submap:
 
     As in Cartographer the pose is a pure translation (the sensor position of
     the first scan inserted) and the grid is axis-aligned with the local frame.
+    Unlike Cartographer's, the grid's cells are snapped to the lattice of whole
+    multiples of ``resolution``, so the two active submaps share their cell
+    boundaries and one ray casting serves both (see ``ActiveSubmaps.insert``).
     """
 
     def __init__(self, origin, *, resolution: float = 0.05, index: int = 0,
@@ -30,7 +33,8 @@ class Submap:
         origin = np.asarray(origin, dtype=np.float64)[:2]
         self.index = index
         self.local_pose = np.array([origin[0], origin[1], 0.0])
-        self.grid = ProbabilityGrid.centered(origin, resolution, initial_size)
+        corner = np.floor(origin / resolution - 0.5 * initial_size) * resolution
+        self.grid = ProbabilityGrid(resolution, corner, (initial_size, initial_size))
         self.num_range_data = 0
         self.finished = False
 
@@ -73,16 +77,19 @@ class ActiveSubmaps:
         """The submap scans are matched against: the older active one."""
         return self.submaps[0] if self.submaps else None
 
-    def insert(self, range_data: RangeData) -> list[Submap]:
+    def insert(self, range_data: RangeData, timer=None) -> list[Submap]:
         """Insert range data (local frame) into every active submap; returns those submaps.
 
         The front submap of the returned list may have just been finished:
-        callers hand it to the pose graph when ``finished`` is set.
+        callers hand it to the pose graph when ``finished`` is set. Rays are
+        cast once for both submaps; ``timer`` gets the ``ray casting`` and
+        ``update`` stages.
         """
         if not self.submaps or self.submaps[-1].num_range_data == self.num_range_data:
             self._add_submap(range_data.origin)
+        self.inserter.insert_many(range_data, [submap.grid for submap in self.submaps], timer)
         for submap in self.submaps:
-            submap.insert(range_data, self.inserter)
+            submap.num_range_data += 1
         inserted = list(self.submaps)
         if self.submaps[0].num_range_data == 2 * self.num_range_data:
             self.submaps[0].finish()

@@ -7,6 +7,13 @@ offset: scoring is additions of table lookups, no trigonometry. The score is
 the mean probability under the points (unknown and outside cells count as
 0.1, Cartographer's GetProbability), damped by how far the candidate is from
 the initial estimate so that in ambiguous places the prediction wins.
+
+The damping is Cartographer's exactly: ``score · exp(−(w_t·|Δt| + w_r·|Δθ|)²)``
+with |Δt| the candidate's translation (m) and |Δθ| its rotation (rad) from the
+initial estimate. The weights keep Cartographer's names and defaults, so a
+value copied from a Lua configuration must mean the same thing here; a
+quadratic-per-term form would turn, e.g., ``translation_delta_cost_weight = 10``
+from a strong preference for the prediction into a mild one.
 """
 from __future__ import annotations
 
@@ -96,13 +103,14 @@ def _search(grid_cells, table, discrete, num_linear, num_angular, angular_step, 
                             sums[a, b] += unknown
                         else:
                             sums[a, b] += table[grid_cells[iy, ix]]
-        dtheta = (k - num_angular) * angular_step
+        rotation_cost = rotation_weight * abs((k - num_angular) * angular_step)
         for a in range(w):
             for b in range(w):
                 dx = (a - num_linear) * resolution
                 dy = (b - num_linear) * resolution
                 score = sums[a, b] / n if n > 0 else 0.0
-                score *= np.exp(-(translation_weight * (dx * dx + dy * dy) + rotation_weight * dtheta * dtheta))
+                cost = translation_weight * np.sqrt(dx * dx + dy * dy) + rotation_cost
+                score *= np.exp(-cost * cost)
                 if score > best_score:
                     best_score = score
                     best_k = k

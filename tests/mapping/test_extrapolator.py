@@ -61,3 +61,19 @@ def test_imu_yaw_rate_integrated():
     ignored.add_pose(0.0, (0.0, 0.0, 0.0))
     ignored.add_imu(Imu(time=0.0, angular_velocity=np.array([0.0, 0.0, 5.0]), linear_acceleration=np.zeros(3)))
     assert ignored.extrapolate(1.0)[2] == 0.0
+
+
+def test_body_motion_is_the_velocity_extrapolate_uses_seen_from_the_robot():
+    e = PoseExtrapolator()
+    assert e.body_motion(0.0) == (0.0, 0.0, 0.0)
+    # Driving along +y while turning left at 0.5 rad/s, heading +y (pi/2).
+    e.add_pose(1.0, (0.0, 0.0, math.pi / 2))
+    e.add_pose(1.1, (0.0, 0.1, math.pi / 2 + 0.05))
+    vx, vy, w = e.body_motion(1.1, 0.05)
+    assert w == pytest.approx(0.5)
+    # Local velocity (0, 1) seen from heading pi/2 + 0.05: mostly forward, a little to the right.
+    assert vx == pytest.approx(math.cos(0.05)) and vy == pytest.approx(-math.sin(0.05))
+    p0, p1 = e.extrapolate(1.1), e.extrapolate(1.2)
+    c, s = math.cos(p0[2]), math.sin(p0[2])
+    assert (p1[0] - p0[0]) / 0.1 == pytest.approx(c * vx - s * vy)
+    assert (p1[1] - p0[1]) / 0.1 == pytest.approx(s * vx + c * vy)

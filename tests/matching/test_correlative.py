@@ -42,3 +42,41 @@ def test_prefers_the_prediction_where_the_map_says_nothing():
     pose, score = match(grid, scan_points(TRUTH), (1.0, 2.0, 0.4))
     np.testing.assert_allclose(pose, [1.0, 2.0, 0.4], atol=1e-12)
     assert score == pytest.approx(0.1)  # unknown cells count as probability 0.1
+
+
+@pytest.mark.parametrize("weight, expected_dx", [(10.0, 0.0), (1.0, 0.1)])
+def test_delta_cost_is_cartographers_exp_of_squared_weighted_sum(weight, expected_dx):
+    """score · exp(−(w_t·|Δt| + w_r·|Δθ|)²): with w_t = 10 a candidate 0.1 m away keeps e⁻¹ of its score.
+
+    One point; the cell under the prediction reads 0.3 and the one two cells (0.1 m) to the
+    right 0.6. Cartographer's form keeps the prediction for w_t = 10 (0.6 e⁻¹ ≈ 0.22 < 0.3); a
+    quadratic-per-term form exp(−w_t |Δt|²) would have moved (0.6 e^−0.1 ≈ 0.54).
+    """
+    grid = ProbabilityGrid(0.05, (-1.0, -1.0), (40, 40))
+    start = np.array([0.025, 0.025, 0.0])  # centre of cell (20, 20)
+    grid.set_probability([[20, 20]], 0.3)
+    grid.set_probability([[22, 20]], 0.6)
+    pose, score = match(grid, np.zeros((1, 2)), start, linear_search_window=0.1, angular_search_window=0.0,
+                        translation_delta_cost_weight=weight, rotation_delta_cost_weight=0.0)
+    np.testing.assert_allclose(pose, start + [expected_dx, 0.0, 0.0], atol=1e-12)
+    raw = grid.probability([[22 if expected_dx else 20, 20]])[0]
+    assert score == pytest.approx(raw * math.exp(-(weight * expected_dx) ** 2), rel=1e-6)
+
+
+def test_rotation_delta_cost_uses_the_absolute_angle():
+    """Same form in rotation: w_r·|Δθ| inside the square, so the penalty for a step is exp(−(w_r·step)²)."""
+    grid = ProbabilityGrid(0.05, (-2.0, -2.0), (80, 80))
+    pts = np.array([[1.0, 0.0]])
+    step = search_parameters(pts, 0.05, 0.0, 0.1).angular_step
+    # The point lands in a 0.6 cell only when the scan is rotated by one step counter-clockwise.
+    rotated = np.array([math.cos(step), math.sin(step)])
+    grid.set_probability(grid.cell_index(pts), 0.3)
+    grid.set_probability(grid.cell_index(rotated[None, :]), 0.6)
+    assert not np.array_equal(grid.cell_index(pts), grid.cell_index(rotated[None, :]))
+    w_r = math.sqrt(math.log(2.0 + 1e-3)) / step  # exp(−(w_r·step)²) just under 1/2: 0.6 · that < 0.3
+    pose, _ = match(grid, pts, (0.0, 0.0, 0.0), linear_search_window=0.0, angular_search_window=0.1,
+                    translation_delta_cost_weight=0.0, rotation_delta_cost_weight=w_r)
+    assert pose[2] == pytest.approx(0.0, abs=1e-12)
+    pose, _ = match(grid, pts, (0.0, 0.0, 0.0), linear_search_window=0.0, angular_search_window=0.1,
+                    translation_delta_cost_weight=0.0, rotation_delta_cost_weight=0.9 * w_r)
+    assert pose[2] == pytest.approx(step, abs=1e-12)

@@ -1,0 +1,165 @@
+"""Loop-closure search: which node–submap pairs to try, branch and bound, refinement, acceptance.
+
+Cartographer's ConstraintBuilder2D, inline rather than on a thread pool: a pair is
+searched when the node is within ``max_constraint_distance`` of the submap and the
+submap's fixed-ratio sampler fires; nodes of a trajectory not yet linked to the
+submap's one get a whole-submap search at ``global_sampling_ratio``. The fast
+matcher's pose is refined by least squares, then kept only if the refined pose
+still scores (geometric check) and stayed near the fast matcher's answer
+(consistency check: a refinement that wanders has slid along a corridor).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from carto_cli import transform
+from carto_cli.matching import branch_and_bound, least_squares
+from carto_cli.matching.precomputation import PrecomputationGridStack
+from carto_cli.options import Options
+from carto_cli.timing import NullTimer
+
+if TYPE_CHECKING:
+    from carto_cli.mapping.pose_graph import PoseGraph
+
+# A refinement that moves the fast matcher's pose by more than this is not trusted.
+MAX_REFINEMENT_TRANSLATION = 0.3  # m
+MAX_REFINEMENT_ROTATION = math.radians(5.0)
+
+
+class FixedRatioSampler:
+    """Fires on a fixed share of pulses, spread evenly (Cartographer's FixedRatioSampler)."""
+
+    def __init__(self, ratio: float):
+        self.ratio = float(ratio)
+        self.pulses = 0
+        self.samples = 0
+
+    def pulse(self) -> bool:
+        self.pulses += 1
+        if self.samples < self.ratio * self.pulses:
+            self.samples += 1
+            return True
+        return False
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    node: int
+    submap: int
+    relative_pose: np.ndarray  # node in the submap frame
+    score: float
+    global_search: bool
+
+
+@dataclass
+class ConstraintBuilderStats:
+    candidates: int = 0
+    searched: int = 0
+    global_searches: int = 0
+    found: int = 0
+    rejected_refinement: int = 0
+    accepted: int = 0
+
+
+def score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
+    """Mean occupancy probability under ``points`` placed at ``pose`` (unknown cells count as 0.1)."""
+    if len(points) == 0:
+        return 0.0
+    cells = grid.cell_index(transform.apply(pose, points))
+    p = grid.probability(cells, unknown=0.1)
+    return float(np.mean(np.where(np.isnan(p), 0.1, p)))
+
+
+class ConstraintBuilder:
+    def __init__(self, options: Options, timer=None, seed: int = 0):
+        self.cb = options.pose_graph.constraint_builder
+        self.global_sampling_ratio = options.pose_graph.global_sampling_ratio
+        self.timer = timer or NullTimer()
+        self._samplers: dict[int, FixedRatioSampler] = {}
+        self._global_samplers: dict[int, FixedRatioSampler] = {}
+        self._stacks: dict[int, PrecomputationGridStack] = {}
+        self.stats = ConstraintBuilderStats()
+        self.connected: set[frozenset] = set()  # trajectory pairs linked by a loop closure
+
+    def stack(self, index: int, grid) -> PrecomputationGridStack:
+        """Precomputation grids are built once per finished submap and kept."""
+        stack = self._stacks.get(index)
+        if stack is None:
+            with self.timer.stage("precomputation"):
+                stack = PrecomputationGridStack(grid, self.cb.fast_correlative_scan_matcher.branch_and_bound_depth)
+            self._stacks[index] = stack
+        return stack
+
+    @property
+    def memory_bytes(self) -> int:
+        return sum(s.memory_bytes for s in self._stacks.values())
+
+    def maybe_add(self, graph: "PoseGraph", node: int, submap_index: int) -> LoopClosure | None:
+        entry = graph.submaps[submap_index]
+        node_trajectory = graph.node_trajectory[node]
+        linked = node_trajectory == entry.trajectory or \
+            frozenset((node_trajectory, entry.trajectory)) in self.connected
+        node_global = graph.global_poses[node]
+        with self.timer.stage("candidate selection"):
+            self.stats.candidates += 1
+            if linked:
+                distance = float(np.hypot(*(node_global[:2] - entry.global_pose[:2])))
+                if distance > self.cb.max_constraint_distance:
+                    return None
+                sampler = self._samplers.setdefault(submap_index, FixedRatioSampler(self.cb.sampling_ratio))
+                if not sampler.pulse():
+                    return None
+            else:
+                sampler = self._global_samplers.setdefault(submap_index,
+                                                           FixedRatioSampler(self.global_sampling_ratio))
+                if not sampler.pulse():
+                    return None
+        return self.search(graph, node, submap_index, global_search=not linked)
+
+    def search(self, graph: "PoseGraph", node: int, submap_index: int, global_search: bool = False) -> LoopClosure | None:
+        entry = graph.submaps[submap_index]
+        grid = entry.submap.grid
+        points = graph.node_points[node]
+        if len(points) == 0:
+            return None
+        stack = self.stack(submap_index, grid)
+        fc = self.cb.fast_correlative_scan_matcher
+        self.stats.searched += 1
+        with self.timer.stage("branch and bound"):
+            if global_search:
+                self.stats.global_searches += 1
+                result = branch_and_bound.match_full_submap(stack, points, min_score=self.cb.global_localization_min_score)
+            else:
+                # Where the graph currently believes the node is, in the submap's grid frame.
+                estimate = transform.compose(
+                    entry.local_pose,
+                    transform.compose(transform.inverse(entry.global_pose), graph.global_poses[node]))
+                result = branch_and_bound.match(stack, points, estimate,
+                                                linear_search_window=fc.linear_search_window,
+                                                angular_search_window=fc.angular_search_window,
+                                                min_score=self.cb.min_score)
+        if not result.found:
+            return None
+        self.stats.found += 1
+        with self.timer.stage("refinement"):
+            c = self.cb.ceres_scan_matcher
+            ls = least_squares.match(grid, points, result.pose, target_translation=result.pose[:2],
+                                     occupied_space_weight=c.occupied_space_weight,
+                                     translation_weight=c.translation_weight, rotation_weight=c.rotation_weight,
+                                     max_num_iterations=c.ceres_solver_options.max_num_iterations)
+            moved = transform.relative(result.pose, ls.pose)
+            min_score = self.cb.global_localization_min_score if global_search else self.cb.min_score
+            if (np.hypot(moved[0], moved[1]) > MAX_REFINEMENT_TRANSLATION
+                    or abs(moved[2]) > MAX_REFINEMENT_ROTATION
+                    or score_at(grid, points, ls.pose) < min_score):
+                self.stats.rejected_refinement += 1
+                return None
+        self.stats.accepted += 1
+        if global_search:
+            self.connected.add(frozenset((graph.node_trajectory[node], entry.trajectory)))
+        relative = transform.compose(transform.inverse(entry.local_pose), ls.pose)
+        return LoopClosure(node, submap_index, relative, result.score, global_search)

@@ -1,0 +1,253 @@
+"""Cartographer's 2D global SLAM: nodes and submaps, loop-closure search, periodic sparse optimization.
+
+Frames: every trajectory has its own *local* frame (where local SLAM lives) and
+all share the *global* (map) frame. A submap's grid is axis-aligned in its
+trajectory's local frame; its ``local_pose`` is a translation there and its
+``global_pose`` is where optimization puts that frame. A constraint is the
+pose of a node in the frame of a submap (``inverse(submap.local_pose) ∘ node``
+with both in the local frame of the submap's trajectory).
+
+Nodes added after an optimization follow it: their global pose is their local
+pose carried by the correction of the submap they were inserted into, so a
+correction is never lost between optimizations.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from carto_cli import transform
+from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure
+from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
+from carto_cli.mapping.optimization import NodePairs, OptimizationSummary, optimize
+from carto_cli.mapping.submaps import Submap
+from carto_cli.options import Options
+from carto_cli.timing import NullTimer
+
+
+@dataclass
+class SubmapEntry:
+    submap: Submap
+    trajectory: int
+    global_pose: np.ndarray
+    nodes: list[int] = field(default_factory=list)
+
+    @property
+    def local_pose(self) -> np.ndarray:
+        return self.submap.local_pose
+
+    @property
+    def finished(self) -> bool:
+        return self.submap.finished
+
+
+class _Growing:
+    """An (n, k) float array with amortised O(1) append."""
+
+    def __init__(self, width: int, capacity: int = 256):
+        self._data = np.empty((capacity, width))
+        self.n = 0
+
+    def append(self, row) -> int:
+        if self.n == len(self._data):
+            self._data = np.concatenate([self._data, np.empty_like(self._data)])
+        self._data[self.n] = row
+        self.n += 1
+        return self.n - 1
+
+    @property
+    def array(self) -> np.ndarray:
+        return self._data[: self.n]
+
+
+@dataclass
+class PoseGraphStats:
+    optimizations: int = 0
+    optimization_time_s: float = 0.0
+    last_summary: OptimizationSummary | None = None
+
+
+class PoseGraph:
+    def __init__(self, options: Options, timer=None, loop_closure: bool = True, seed: int = 0):
+        self.options = options
+        self.pg = options.pose_graph
+        self.timer = timer or NullTimer()
+        self.loop_closure = loop_closure
+        self.node_times: list[float] = []
+        self.node_trajectory: list[int] = []
+        self.node_points: list[np.ndarray] = []
+        self._local = _Growing(3)
+        self._global = _Growing(3)
+        self._odometry = _Growing(3)  # NaN rows where a node has no odometry
+        self.submaps: list[SubmapEntry] = []
+        self._submap_index: dict[tuple[int, int], int] = {}  # (trajectory, local submap index) → graph index
+        self.constraints = ConstraintSet()
+        self.builder = ConstraintBuilder(options, timer=self.timer, seed=seed)
+        self.stats = PoseGraphStats()
+        self._nodes_since_optimization = 0
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def num_nodes(self) -> int:
+        return self._local.n
+
+    @property
+    def local_poses(self) -> np.ndarray:
+        return self._local.array
+
+    @property
+    def global_poses(self) -> np.ndarray:
+        return self._global.array
+
+    @property
+    def submap_global_poses(self) -> np.ndarray:
+        if not self.submaps:
+            return np.zeros((0, 3))
+        return np.array([s.global_pose for s in self.submaps])
+
+    def local_to_global(self, submap_index: int) -> np.ndarray:
+        """The correction carrying the submap's trajectory-local frame into the map frame, via this submap."""
+        entry = self.submaps[submap_index]
+        return transform.compose(entry.global_pose, transform.inverse(entry.local_pose))
+
+    # ------------------------------------------------------------------ building
+
+    def _register_submap(self, submap: Submap, trajectory: int, correction: np.ndarray) -> int:
+        key = (trajectory, submap.index)
+        index = self._submap_index.get(key)
+        if index is None:
+            index = len(self.submaps)
+            self._submap_index[key] = index
+            self.submaps.append(SubmapEntry(submap, trajectory, transform.compose(correction, submap.local_pose)))
+        return index
+
+    def add_node(self, time: float, local_pose, points: np.ndarray, insertion_submaps: list[Submap],
+                 odometry_pose=None, trajectory: int = 0) -> int:
+        """A node local SLAM inserted into ``insertion_submaps`` (oldest first); returns its id."""
+        local_pose = transform.as_pose(local_pose)
+        front_key = (trajectory, insertion_submaps[0].index)
+        if front_key in self._submap_index:
+            correction = self.local_to_global(self._submap_index[front_key])
+        else:
+            correction = self._trajectory_correction(trajectory)
+        indices = [self._register_submap(s, trajectory, correction) for s in insertion_submaps]
+
+        node = self._local.append(local_pose)
+        self._global.append(transform.compose(correction, local_pose))
+        self._odometry.append(np.full(3, np.nan) if odometry_pose is None else transform.as_pose(odometry_pose))
+        self.node_times.append(float(time))
+        self.node_trajectory.append(trajectory)
+        self.node_points.append(points)
+
+        for index in indices:
+            entry = self.submaps[index]
+            entry.nodes.append(node)
+            rel = transform.compose(transform.inverse(entry.local_pose), local_pose)
+            self.constraints.add(index, node, rel, self.pg.matcher_translation_weight, self.pg.matcher_rotation_weight,
+                                 ConstraintKind.INTRA_SUBMAP)
+
+        if self.loop_closure:
+            with self.timer.stage("loop closure"):
+                front = self.submaps[indices[0]]
+                if front.finished and not getattr(front, "_searched", False):
+                    # A newly finished submap is searched by every earlier node not already in it.
+                    front._searched = True
+                    self._search_submap_against_nodes(indices[0])
+                self._search_node_against_submaps(node)
+
+        self._nodes_since_optimization += 1
+        n_every = self.pg.optimize_every_n_nodes
+        if n_every > 0 and self._nodes_since_optimization >= n_every:
+            self.optimize(final=False)
+        return node
+
+    def _trajectory_correction(self, trajectory: int) -> np.ndarray:
+        for entry in reversed(self.submaps):
+            if entry.trajectory == trajectory:
+                return transform.compose(entry.global_pose, transform.inverse(entry.local_pose))
+        return np.zeros(3)
+
+    # ------------------------------------------------------------------ loop closure
+
+    def _add_loop_closure(self, lc: LoopClosure) -> None:
+        cb = self.pg.constraint_builder
+        self.constraints.add(lc.submap, lc.node, lc.relative_pose, cb.loop_closure_translation_weight,
+                             cb.loop_closure_rotation_weight, ConstraintKind.INTER_SUBMAP)
+
+    def _search_node_against_submaps(self, node: int) -> None:
+        for index, entry in enumerate(self.submaps):
+            if not entry.finished or node in entry.nodes:
+                continue
+            lc = self.builder.maybe_add(self, node, index)
+            if lc is not None:
+                self._add_loop_closure(lc)
+
+    def _search_submap_against_nodes(self, index: int) -> None:
+        entry = self.submaps[index]
+        members = set(entry.nodes)
+        for node in range(self.num_nodes):
+            if node in members:
+                continue
+            lc = self.builder.maybe_add(self, node, index)
+            if lc is not None:
+                self._add_loop_closure(lc)
+
+    # ------------------------------------------------------------------ optimization
+
+    def optimize(self, final: bool = False) -> OptimizationSummary | None:
+        self._nodes_since_optimization = 0
+        if self.num_nodes == 0 or not self.submaps:
+            return None
+        op = self.pg.optimization_problem
+        with self.timer.stage("optimization"):
+            traj = np.asarray(self.node_trajectory)
+            local = NodePairs.consecutive(self.local_poses, traj,
+                                          translation_weight=op.local_slam_pose_translation_weight,
+                                          rotation_weight=op.local_slam_pose_rotation_weight)
+            odom = self._odometry.array
+            odometry = None
+            if np.isfinite(odom).any():
+                odometry = NodePairs.consecutive(odom, traj, translation_weight=op.odometry_translation_weight,
+                                                 rotation_weight=op.odometry_rotation_weight)
+            result = optimize(
+                self.global_poses, self.submap_global_poses, self.constraints, odometry, local,
+                huber_scale=op.huber_scale,
+                max_num_iterations=self.pg.max_num_final_iterations if final else op.ceres_solver_options.max_num_iterations,
+                fixed_submaps=(0,),
+            )
+        self._global.array[:] = result.node_poses
+        for entry, pose in zip(self.submaps, result.submap_poses):
+            entry.global_pose = pose
+        self.stats.optimizations += 1
+        self.stats.optimization_time_s += result.summary.time
+        self.stats.last_summary = result.summary
+        return result.summary
+
+    def loop_closure_segments(self) -> np.ndarray:
+        """(K, 4) node xy → submap origin xy in the map frame, for drawing."""
+        mask = self.constraints.is_loop_closure
+        if not mask.any():
+            return np.zeros((0, 4))
+        nodes = self.constraints.node[mask]
+        subs = self.constraints.submap[mask]
+        g = self.global_poses
+        sp = self.submap_global_poses
+        return np.concatenate([g[nodes, :2], sp[subs, :2]], axis=1)
+
+    def scan_poses(self, scan_local: np.ndarray, scan_node: np.ndarray) -> np.ndarray:
+        """Global poses of scans given their local poses and the latest node at or before each.
+
+        A scan between nodes takes the correction of the node before it, which is what
+        the robot would have reported at that moment had it known the optimized graph.
+        """
+        g = self.global_poses[scan_node]
+        l = self.local_poses[scan_node]
+        correction = transform.compose(g, transform.inverse(l))
+        return transform.compose(correction, scan_local)
+
+    @property
+    def num_loop_closures(self) -> int:
+        return int(self.constraints.num_loop_closures)
