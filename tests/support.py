@@ -7,7 +7,19 @@ import pytest
 
 from carto_cli.records import Imu, Odometry, Scan, Transform
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+def _find_shared() -> Path:
+    """The project's shared data: $CARTO_SHARED_DATA, else ../shared/data next to the checkout, else /work/shared/data."""
+    import os
+
+    candidates = [os.environ.get("CARTO_SHARED_DATA"), Path(__file__).resolve().parents[2] / "shared" / "data",
+                  "/work/shared/data"]
+    for c in candidates:
+        if c and Path(c).is_dir():
+            return Path(c)
+    return Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+SHARED = _find_shared()
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = REPO / "data" / "ccny_laser_scan_matcher_demo.bag"
 

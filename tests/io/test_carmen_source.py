@@ -13,7 +13,7 @@ from carto_cli.errors import CartoError, FormatError, TopicError
 from carto_cli.io.carmen_source import CarmenRecording, carmen_beam_geometry
 from carto_cli.records import Odometry, Scan
 
-DATA = Path("/work/shared/data")
+from support import SHARED as DATA
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="shared data not available")
 
 # Scan counts from `zcat FILE | grep -c '^FLASER'` (or '^ROBOTLASER1').

@@ -5,6 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from support import SHARED
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType, Writer as McapWriter
 from mcap_ros1._vendor.genpy import dynamic
@@ -17,7 +19,7 @@ from carto_cli.io.mcap_source import McapRecording
 from carto_cli.io.recording import ReadOptions
 from carto_cli.records import Imu, Odometry, Scan, Transform, yaw_quaternion
 
-STANDALONE = (Path(__file__).resolve().parents[3] / "shared" / "data" / "bags" / "ccny_laser_scan_matcher_demo_ros2_mcap"
+STANDALONE = (SHARED / "bags" / "ccny_laser_scan_matcher_demo_ros2_mcap"
               / "ccny_laser_scan_matcher_demo_ros2_mcap.mcap")
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
 NOETIC = get_typestore(Stores.ROS1_NOETIC)

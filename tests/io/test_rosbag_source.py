@@ -5,6 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from support import SHARED
 from rosbags.rosbag1 import Reader as Reader1, Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
@@ -16,7 +18,7 @@ from carto_cli.io.rosbag_source import RosbagRecording
 from carto_cli.io.writers import write_recording
 from carto_cli.records import Odometry, Scan, Transform
 
-BAGS = Path(__file__).resolve().parents[3] / "shared" / "data" / "bags"
+BAGS = SHARED / "bags"
 ROS1 = BAGS / "ccny_laser_scan_matcher_demo.bag"
 ORIG = BAGS / "ccny_laser_scan_matcher_demo.orig.bag"
 DB3 = BAGS / "ccny_laser_scan_matcher_demo_ros2_db3"
