@@ -180,6 +180,10 @@ def map_(
         None, "--laser-pose", help="x,y,yaw of the laser on the robot (m, m, rad; 'deg' suffix for degrees). Default: static TF, else identity."
     ),
     timings: bool = typer.Option(False, "--timings", help="Print the per-stage timing tree."),
+    no_loop_closure: bool = typer.Option(
+        False, "--no-loop-closure", help="Local SLAM only: no loop closure, no optimization (for tuning local SLAM)."
+    ),
+    no_state: bool = typer.Option(False, "--no-state", help="Do not write map.carto (the file relocalize loads)."),
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum."""
     from carto_cli.io.tf_tree import parse_pose
@@ -196,7 +200,7 @@ def map_(
         result, outputs = run_map(
             recording, outdir, options, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
             laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
-            on_total=lambda n: bar.set_total(n),
+            on_total=lambda n: bar.set_total(n), loop_closure=not no_loop_closure, state=not no_state,
         )
     timer.stop()
     if timings:
@@ -212,18 +216,94 @@ def eval_(
     ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Reference trajectory (TUM or 't x y theta')."),
     rpe_delta: float = typer.Option(1.0, "--rpe-delta", help="RPE step in seconds (with --ground-truth)."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+    max_trans_error: Optional[float] = typer.Option(
+        None, "--max-trans-error", help="Gate: exit 1 if the mean relation error (else ATE RMSE) exceeds M metres."),
+    max_rot_error: Optional[float] = typer.Option(
+        None, "--max-rot-error", help="Gate: exit 1 if the mean rotational error exceeds DEG degrees."),
+    junit: Optional[Path] = typer.Option(None, "--junit", help="Write the gates' outcome as JUnit XML."),
 ):
     """Score a trajectory: relation error (Kuemmerle et al.) and/or ATE + RPE against a ground truth."""
     from carto_cli.evaluate import evaluate, format_table, to_json
+    from carto_cli.gates import accuracy_gates, write_junit
 
     if relations is None and ground_truth is None:
         raise CartoError("give --relations FILE and/or --ground-truth FILE")
     result = evaluate(trajectory, relations=relations, groundtruth=ground_truth,
                       rpe_delta=rpe_delta if ground_truth is not None else None)
+    data = to_json(result)
     if as_json:
-        typer.echo(json.dumps(to_json(result), indent=2))
+        typer.echo(json.dumps(data, indent=2))
     else:
         typer.echo(format_table(result))
+    if max_trans_error is None and max_rot_error is None:
+        return
+    gates = accuracy_gates(data, max_trans_error, max_rot_error)
+    if junit is not None:
+        write_junit(junit, "carto.eval", gates)
+    failed = [g for g in gates if not g.passed]
+    for g in failed:
+        typer.echo(f"carto: gate failed: {g.message}", err=True)
+    if failed:
+        raise typer.Exit(1)
+
+
+@app.command("profile")
+@handle_errors
+def profile_(
+    recording: Path = typer.Argument(..., help="Recording to run the whole pipeline on."),
+    profile: Optional[str] = PROFILE,
+    overrides: Optional[list[str]] = SET,
+    scan_topic: Optional[str] = typer.Option(None, "--scan-topic"),
+    odom_topic: Optional[str] = typer.Option(None, "--odom-topic"),
+    as_json: bool = typer.Option(False, "--json", help="Print the report as JSON (schema carto.profile v1)."),
+    output: Optional[Path] = typer.Option(None, "--output", help="Also write the JSON report to this file."),
+    baseline: Optional[Path] = typer.Option(None, "--baseline", help="A previous --output to compare against."),
+    max_regression: float = typer.Option(0.20, "--max-regression", help="Allowed slow-down per stage (0.20 = 20%)."),
+    calibrate: bool = typer.Option(False, "--calibrate", help="Time a reference kernel first and compare normalized times."),
+    junit: Optional[Path] = typer.Option(None, "--junit", help="Write the gates' outcome as JUnit XML."),
+    max_scans: Optional[int] = typer.Option(None, "--max-scans", help="Profile only the first N scans."),
+):
+    """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates."""
+    from carto_cli.gates import compare_profiles, write_junit
+    from carto_cli.io.atomic import write_text_atomic
+    from carto_cli.io.open import open_recording
+    from carto_cli.io.recording import ReadOptions
+    from carto_cli.io.topics import select_topics
+    from carto_cli.mapping.map_builder import build
+    from carto_cli.profiling import build_report, calibrate as run_calibration, format_report
+    from carto_cli.progress import progress
+    from carto_cli.timing import StageTimer
+
+    options = _options(profile, overrides)
+    base = None
+    if baseline is not None:
+        try:
+            base = json.loads(baseline.read_text())
+        except (OSError, ValueError) as e:
+            raise CartoError(f"cannot read baseline: {e}", baseline) from None
+    calibration = run_calibration() if calibrate else None
+    tb = options.trajectory_builder_2d
+    timer = StageTimer()
+    with open_recording(recording, ReadOptions(min_z=tb.min_z, max_z=tb.max_z)) as rec:
+        selection = select_topics(rec, scan_topic, odom_topic)
+        total = next(t.count for t in rec.topics() if t.name == selection.scan)
+        with progress(f"profiling {recording.name}", min(total, max_scans or total), state.quiet) as bar:
+            result = build(rec, options, selection=selection, timer=timer, on_scan=bar.advance, max_scans=max_scans)
+    timer.stop()
+    report = build_report(result, timer, options, recording, calibration)
+    if output is not None:
+        write_text_atomic(output, json.dumps(report, indent=2) + "\n")
+    typer.echo(json.dumps(report, indent=2) if as_json else format_report(report))
+    if base is None:
+        return
+    gates = compare_profiles(report, base, max_regression)
+    if junit is not None:
+        write_junit(junit, "carto.profile", gates)
+    failed = [g for g in gates if not g.passed]
+    for g in failed:
+        typer.echo(f"carto: slower than baseline: {g.message}", err=True)
+    if failed:
+        raise typer.Exit(1)
 
 
 def main() -> None:

@@ -20,14 +20,21 @@ class MapOutputs:
     yaml: Path
     png: Path
     trajectory: Path
+    state: Path | None
 
 
-def write_outputs(result: MapResult, outdir: Path) -> MapOutputs:
+def write_outputs(result: MapResult, outdir: Path, options: Options | None = None, *, state: bool = True,
+                  recordings=()) -> MapOutputs:
     outdir = Path(outdir)
     pgm, yml = write_map(outdir, result.image)
     png = write_png(outdir / "map.png", render_png(result.image, result.poses, result.loop_closures))
     traj = write_trajectory(outdir / "trajectory.tum", Trajectory.from_poses(result.times, result.poses), fmt="tum")
-    return MapOutputs(pgm, yml, png, traj)
+    state_path = None
+    if state and options is not None and result.graph is not None:
+        from carto_cli.io.map_file import save_map
+
+        state_path = save_map(outdir / "map.carto", result, options, recordings=recordings)
+    return MapOutputs(pgm, yml, png, traj, state_path)
 
 
 def run_map(
@@ -43,6 +50,8 @@ def run_map(
     timer=None,
     on_scan: Callable[[int], None] | None = None,
     on_total: Callable[[int], None] | None = None,
+    loop_closure: bool = True,
+    state: bool = True,
 ) -> tuple[MapResult, MapOutputs]:
     tb = options.trajectory_builder_2d
     with open_recording(recording_path, ReadOptions(min_z=tb.min_z, max_z=tb.max_z)) as rec:
@@ -50,11 +59,12 @@ def run_map(
         if on_total is not None:
             on_total(next(t.count for t in rec.topics() if t.name == selection.scan))
         result = build(rec, options, selection=selection, laser_pose=laser_pose, timer=timer, on_scan=on_scan,
-                       use_odometry=use_odometry)
-    return result, write_outputs(result, outdir)
+                       use_odometry=use_odometry, loop_closure=loop_closure)
+    return result, write_outputs(result, outdir, options, state=state, recordings=[Path(recording_path).name])
 
 
 def summary_line(result: MapResult) -> str:
     s = result.stats
     return (f"{s['scans']} scans, {s['nodes']} nodes, {s['submaps']} submaps, "
+            f"{s.get('loop_closures', 0)} loop closures, "
             f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s")

@@ -92,34 +92,33 @@ def build(
     local_poses: list[np.ndarray] = []
     scan_node: list[int] = []  # latest node at or before each posed scan
     node_scans: list[int] = []
-    last_odometry = None
     n_scans = 0
     for record in recording.records(topics):
         if isinstance(record, Scan):
             if max_scans is not None and n_scans >= max_scans:
                 break
             n_scans += 1
+            # Global SLAM work a scan triggers counts in that scan, so per-scan percentiles show its spikes.
             with timer.scan():
                 result = local.add_scan(record)
+                if result is not None and result.insertion is not None:
+                    ins = result.insertion
+                    # The node's odometry is interpolated at its time from the samples around it
+                    # when the graph is optimized (Cartographer's InterpolateOdometry).
+                    with timer.stage("global"):
+                        graph.add_node(result.time, result.local_pose, ins.loop_closure_points, ins.submaps)
+                    node_scans.append(len(times))
             if on_scan is not None:
                 on_scan(1)
             if result is None:
                 continue
-            if result.insertion is not None:
-                ins = result.insertion
-                odom_pose = None
-                if last_odometry is not None and abs(last_odometry.time - result.time) < 0.1:
-                    odom_pose = (last_odometry.x, last_odometry.y, last_odometry.yaw)
-                with timer.stage("global"):
-                    graph.add_node(result.time, result.local_pose, ins.loop_closure_points, ins.submaps, odom_pose)
-                node_scans.append(len(times))
             if not node_scans:
                 continue  # nothing to anchor a scan to before the first node
             times.append(result.time)
             local_poses.append(result.local_pose)
             scan_node.append(len(node_scans) - 1)
         elif isinstance(record, Odometry):
-            last_odometry = record
+            graph.add_odometry(record.time, (record.x, record.y, record.yaw))
             local.add_odometry(record)
         elif isinstance(record, Imu):
             local.add_imu(record)
