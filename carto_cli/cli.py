@@ -184,6 +184,9 @@ def map_(
         False, "--no-loop-closure", help="Local SLAM only: no loop closure, no optimization (for tuning local SLAM)."
     ),
     no_state: bool = typer.Option(False, "--no-state", help="Do not write map.carto (the file relocalize loads)."),
+    load_state: Optional[Path] = typer.Option(
+        None, "--load-state", help="Continue mapping into this map.carto: the recording becomes a new trajectory."
+    ),
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum."""
     from carto_cli.io.tf_tree import parse_pose
@@ -201,6 +204,7 @@ def map_(
             recording, outdir, options, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
             laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
             on_total=lambda n: bar.set_total(n), loop_closure=not no_loop_closure, state=not no_state,
+            load_state=load_state,
         )
     timer.stop()
     if timings:

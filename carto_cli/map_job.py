@@ -52,15 +52,28 @@ def run_map(
     on_total: Callable[[int], None] | None = None,
     loop_closure: bool = True,
     state: bool = True,
+    load_state: Path | None = None,
 ) -> tuple[MapResult, MapOutputs]:
+    """Map a recording and write every output; with ``load_state`` continue an existing map.carto."""
+    graph = None
+    trajectory_id = 0
+    recordings = [Path(recording_path).name]
+    if load_state is not None:
+        from carto_cli.io.map_file import load_map
+
+        loaded = load_map(load_state)
+        graph = loaded.to_pose_graph(options, timer=timer, loop_closure=loop_closure)
+        trajectory_id = loaded.next_trajectory_id
+        recordings = list(loaded.metadata.recordings) + recordings
     tb = options.trajectory_builder_2d
     with open_recording(recording_path, ReadOptions(min_z=tb.min_z, max_z=tb.max_z)) as rec:
         selection = select_topics(rec, scan_topic, odom_topic, imu_topic)
         if on_total is not None:
             on_total(next(t.count for t in rec.topics() if t.name == selection.scan))
         result = build(rec, options, selection=selection, laser_pose=laser_pose, timer=timer, on_scan=on_scan,
-                       use_odometry=use_odometry, loop_closure=loop_closure)
-    return result, write_outputs(result, outdir, options, state=state, recordings=[Path(recording_path).name])
+                       use_odometry=use_odometry, loop_closure=loop_closure, graph=graph,
+                       trajectory_id=trajectory_id)
+    return result, write_outputs(result, outdir, options, state=state, recordings=recordings)
 
 
 def summary_line(result: MapResult) -> str:

@@ -708,6 +708,9 @@ def restore_pose_graph(graph: PoseGraph, loaded: LoadedMap) -> PoseGraph:
     graph.node_times.extend(float(t) for t in loaded.node_times)
     graph.node_trajectory.extend(int(t) for t in loaded.node_trajectories)
     graph.node_points.extend(p.copy() for p in loaded.node_points)
+    if hasattr(graph, "node_searches"):
+        # Restored nodes were searched when they were mapped; the new trajectory's nodes search them again.
+        graph.node_searches.extend([True] * len(loaded.node_times))
     for i, submap in enumerate(loaded.submaps):
         copy = _copy.copy(submap)
         copy.local_pose = submap.local_pose.copy()

@@ -36,14 +36,26 @@ class OccupancyImage:
         return np.stack([px, py], axis=1)
 
 
-def to_pgm_pixels(image: OccupancyImage) -> np.ndarray:
-    """uint8 image, row 0 at the top: free white (254), occupied black (0), unknown 205, as Cartographer writes it."""
+def to_pgm_pixels(image: OccupancyImage, trinary: bool = False) -> np.ndarray:
+    """uint8 image, row 0 at the top; unknown 205.
+
+    Continuous (for people): grey levels 255·(1 − p), as Cartographer paints submaps.
+    Trinary (for navigation): a cell with more hit than miss evidence is occupied (0),
+    one with more miss evidence free (254). With hit 0.55 / miss 0.49 a corridor seen
+    a handful of times stays near p = 0.4, which map_server's free_thresh (0.196) would
+    call unknown, leaving a planner nothing to drive on; the evidence balance is what
+    the grid actually knows.
+    """
     p = image.probability
     known = ~np.isnan(p)
     pixels = np.full(p.shape, UNKNOWN, dtype=np.uint8)
-    # map_server reads occupancy as (255 - value) / 255 with negate 0.
-    values = np.clip(np.rint(255.0 * (1.0 - np.where(known, p, 0.5))), 0, 254).astype(np.uint8)
-    pixels[known] = values[known]
+    if trinary:
+        pixels[known & (p > 0.5)] = 0
+        pixels[known & (p < 0.5)] = 254
+    else:
+        # map_server reads occupancy as (255 - value) / 255 with negate 0.
+        values = np.clip(np.rint(255.0 * (1.0 - np.where(known, p, 0.5))), 0, 254).astype(np.uint8)
+        pixels[known] = values[known]
     return np.ascontiguousarray(pixels[::-1])
 
 
@@ -73,7 +85,7 @@ def write_map(outdir: Path, image: OccupancyImage, stem: str = "map") -> tuple[P
     pgm = outdir / f"{stem}.pgm"
     yml = outdir / f"{stem}.yaml"
     with atomic_output(pgm) as tmp:
-        tmp.write_bytes(_pgm_bytes(to_pgm_pixels(image)))
+        tmp.write_bytes(_pgm_bytes(to_pgm_pixels(image, trinary=True)))
     write_text_atomic(yml, map_yaml(pgm.name, image))
     return pgm, yml
 

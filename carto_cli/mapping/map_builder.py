@@ -70,7 +70,12 @@ def build(
     use_imu: bool = True,
     max_scans: int | None = None,
     loop_closure: bool = True,
+    graph: PoseGraph | None = None,
+    trajectory_id: int = 0,
 ) -> MapResult:
+    """Map one recording. With ``graph`` (e.g. from a loaded map.carto) the recording becomes trajectory
+    ``trajectory_id`` of that graph, linked to the earlier ones by loop closures, as Cartographer's
+    offline node does with --load_state_filename."""
     timer = timer or NullTimer()
     wall0 = _time.perf_counter()
     selection = selection or select_topics(recording)
@@ -87,7 +92,9 @@ def build(
     if use_imu and selection.imu and tb.use_imu_data:
         topics.append(selection.imu)
 
-    graph = PoseGraph(options, timer=timer, loop_closure=loop_closure)
+    if graph is None:
+        graph = PoseGraph(options, timer=timer, loop_closure=loop_closure)
+    first_node = graph.num_nodes
     times: list[float] = []
     local_poses: list[np.ndarray] = []
     scan_node: list[int] = []  # latest node at or before each posed scan
@@ -106,7 +113,8 @@ def build(
                     # The node's odometry is interpolated at its time from the samples around it
                     # when the graph is optimized (Cartographer's InterpolateOdometry).
                     with timer.stage("global"):
-                        graph.add_node(result.time, result.local_pose, ins.loop_closure_points, ins.submaps)
+                        graph.add_node(result.time, result.local_pose, ins.loop_closure_points, ins.submaps,
+                                       trajectory=trajectory_id)
                     node_scans.append(len(times))
             if on_scan is not None:
                 on_scan(1)
@@ -118,7 +126,7 @@ def build(
             local_poses.append(result.local_pose)
             scan_node.append(len(node_scans) - 1)
         elif isinstance(record, Odometry):
-            graph.add_odometry(record.time, (record.x, record.y, record.yaw))
+            graph.add_odometry(record.time, (record.x, record.y, record.yaw), trajectory=trajectory_id)
             local.add_odometry(record)
         elif isinstance(record, Imu):
             local.add_imu(record)
@@ -130,7 +138,7 @@ def build(
             graph.optimize(final=True)
     submaps = [entry.submap for entry in graph.submaps]
     local_arr = np.array(local_poses)
-    poses = graph.scan_poses(local_arr, np.asarray(scan_node))
+    poses = graph.scan_poses(local_arr, np.asarray(scan_node) + first_node)
     submap_poses = graph.submap_global_poses
     with timer.stage("assemble map"):
         corrections = [graph.local_to_global(i) for i in range(len(graph.submaps))]
