@@ -266,7 +266,9 @@ def _node_arrays(graph: PoseGraph) -> dict[str, np.ndarray]:
         "node_trajectory": np.asarray(graph.node_trajectory, dtype=np.int64).reshape(n),
         "node_local_pose": graph.local_poses,
         "node_global_pose": graph.global_poses,
-        "node_odometry": graph._odometry.array,
+        # Interpolated per node: the raw odometry stream is not kept, and a restored graph must
+        # see the same odometry constraints the mapped one had.
+        "node_odometry": graph.node_odometry() if hasattr(graph, "node_odometry") else graph._odometry.array,
         "node_points_offset": _offsets([len(p) for p in points]),
         "node_points": np.concatenate(points).astype(dtype, copy=False) if points else np.zeros((0, 2), dtype),
     }

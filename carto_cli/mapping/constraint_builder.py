@@ -138,10 +138,11 @@ class ConstraintBuilder:
                 estimate = transform.compose(
                     entry.local_pose,
                     transform.compose(transform.inverse(entry.global_pose), graph.global_poses[node]))
-                result = branch_and_bound.match(stack, points, estimate,
-                                                linear_search_window=fc.linear_search_window,
-                                                angular_search_window=fc.angular_search_window,
-                                                min_score=self.cb.min_score)
+                matcher = branch_and_bound.match_multilevel if fc.multilevel else branch_and_bound.match
+                result = matcher(stack, points, estimate,
+                                 linear_search_window=fc.linear_search_window,
+                                 angular_search_window=fc.angular_search_window,
+                                 min_score=self.cb.min_score)
         if not result.found:
             return None
         self.stats.found += 1

@@ -21,7 +21,7 @@ import numpy as np
 from carto_cli import transform
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
-from carto_cli.mapping.optimization import NodePairs, OptimizationSummary, optimize
+from carto_cli.mapping.optimization import NodePairs, OptimizationSummary, optimize, residuals
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options
 from carto_cli.timing import NullTimer
@@ -80,7 +80,11 @@ class PoseGraph:
         self.node_points: list[np.ndarray] = []
         self._local = _Growing(3)
         self._global = _Growing(3)
-        self._odometry = _Growing(3)  # NaN rows where a node has no odometry
+        self._odometry = _Growing(3)  # explicit per-node odometry poses; NaN rows: interpolate
+        self._odometry_samples: dict[int, tuple[_Growing, _Growing]] = {}  # trajectory → (times, unwrapped poses)
+        self.node_searches: list[bool] = []  # whether a node is a loop-closure source (key-frame rule)
+        self._last_search_pose: dict[int, np.ndarray] = {}  # trajectory → local pose of its last key node
+        self.removed_loop_closures: list[tuple[int, int, float]] = []  # (node, submap, residual m)
         self.submaps: list[SubmapEntry] = []
         self._submap_index: dict[tuple[int, int], int] = {}  # (trajectory, local submap index) → graph index
         self.constraints = ConstraintSet()
@@ -115,6 +119,64 @@ class PoseGraph:
 
     # ------------------------------------------------------------------ building
 
+    def add_odometry(self, time: float, pose, trajectory: int = 0) -> None:
+        """An odometry sample (tracking frame in the odometry frame); nodes get it interpolated at their time."""
+        times, poses = self._odometry_samples.setdefault(trajectory, (_Growing(1), _Growing(3)))
+        pose = np.asarray(pose, dtype=np.float64).reshape(3).copy()
+        if times.n:
+            if time <= times.array[-1, 0]:
+                return  # out of order or duplicate: Cartographer drops these too
+            prev = poses.array[-1, 2]
+            pose[2] = prev + math.remainder(pose[2] - prev, 2 * math.pi)  # unwrap for interpolation
+        times.append((float(time),))
+        poses.append(pose)
+
+    def node_odometry(self) -> np.ndarray:
+        """(N, 3) odometry at every node: the explicit pose if one was given, else odometry interpolated
+        at the node's time (Cartographer's InterpolateOdometry), NaN outside the odometry's time range."""
+        odom = self._odometry.array.copy()
+        if not self._odometry_samples:
+            return odom
+        node_times = np.asarray(self.node_times)
+        node_traj = np.asarray(self.node_trajectory)
+        for trajectory, (times, poses) in self._odometry_samples.items():
+            if times.n < 1:
+                continue
+            t = times.array[:, 0]
+            p = poses.array
+            want = np.flatnonzero((node_traj == trajectory) & np.isnan(odom[:, 0]))
+            if not len(want):
+                continue
+            nt = node_times[want]
+            inside = (nt >= t[0]) & (nt <= t[-1])
+            want, nt = want[inside], nt[inside]
+            if not len(want):
+                continue
+            if len(t) == 1:
+                odom[want] = p[0]
+                continue
+            hi = np.clip(np.searchsorted(t, nt, side="left"), 1, len(t) - 1)
+            lo = hi - 1
+            f = ((nt - t[lo]) / (t[hi] - t[lo]))[:, None]
+            out = p[lo] + f * (p[hi] - p[lo])
+            out[:, 2] = np.remainder(out[:, 2] + np.pi, 2 * np.pi) - np.pi
+            odom[want] = out
+        return odom
+
+    def _is_key_node(self, local_pose: np.ndarray, trajectory: int) -> bool:
+        cb = self.pg.constraint_builder
+        if cb.min_search_distance <= 0 and cb.min_search_angle <= 0:
+            return True
+        last = self._last_search_pose.get(trajectory)
+        if last is not None:
+            moved = transform.relative(last, local_pose)
+            far = cb.min_search_distance > 0 and math.hypot(moved[0], moved[1]) >= cb.min_search_distance
+            turned = cb.min_search_angle > 0 and abs(moved[2]) >= cb.min_search_angle
+            if not (far or turned):
+                return False
+        self._last_search_pose[trajectory] = local_pose
+        return True
+
     def _register_submap(self, submap: Submap, trajectory: int, correction: np.ndarray) -> int:
         key = (trajectory, submap.index)
         index = self._submap_index.get(key)
@@ -141,6 +203,7 @@ class PoseGraph:
         self.node_times.append(float(time))
         self.node_trajectory.append(trajectory)
         self.node_points.append(points)
+        self.node_searches.append(self._is_key_node(local_pose, trajectory))
 
         for index in indices:
             entry = self.submaps[index]
@@ -156,7 +219,8 @@ class PoseGraph:
                     # A newly finished submap is searched by every earlier node not already in it.
                     front._searched = True
                     self._search_submap_against_nodes(indices[0])
-                self._search_node_against_submaps(node)
+                if self.node_searches[node]:
+                    self._search_node_against_submaps(node)
 
         self._nodes_since_optimization += 1
         n_every = self.pg.optimize_every_n_nodes
@@ -189,7 +253,7 @@ class PoseGraph:
         entry = self.submaps[index]
         members = set(entry.nodes)
         for node in range(self.num_nodes):
-            if node in members:
+            if node in members or not self.node_searches[node]:
                 continue
             lc = self.builder.maybe_add(self, node, index)
             if lc is not None:
@@ -198,6 +262,38 @@ class PoseGraph:
     # ------------------------------------------------------------------ optimization
 
     def optimize(self, final: bool = False) -> OptimizationSummary | None:
+        summary = self._optimize(final)
+        limit = self.pg.constraint_builder.max_loop_closure_residual
+        if final and summary is not None and limit > 0 and self.remove_bad_loop_closures(limit):
+            summary = self._optimize(final)
+        return summary
+
+    def loop_closure_residuals(self) -> np.ndarray:
+        """(K,) translation residual (m) of every loop closure at the current poses, in constraint order."""
+        mask = self.constraints.is_loop_closure
+        if not mask.any():
+            return np.zeros(0)
+        err = residuals(self.global_poses, self.submap_global_poses, self.constraints.select(mask))
+        return np.hypot(err[:, 0], err[:, 1])
+
+    def remove_bad_loop_closures(self, max_residual: float) -> int:
+        """Drop loop closures the optimized graph disagrees with by more than ``max_residual`` metres."""
+        mask = self.constraints.is_loop_closure
+        if not mask.any():
+            return 0
+        res = self.loop_closure_residuals()
+        bad_lc = res > max_residual
+        if not bad_lc.any():
+            return 0
+        idx = np.flatnonzero(mask)[bad_lc]
+        for i in idx:
+            c = self.constraints[int(i)]
+            self.removed_loop_closures.append((c.node, c.submap, float(res[np.searchsorted(np.flatnonzero(mask), i)])))
+        drop = np.zeros(len(self.constraints), dtype=bool)
+        drop[idx] = True
+        return self.constraints.remove(drop)
+
+    def _optimize(self, final: bool = False) -> OptimizationSummary | None:
         self._nodes_since_optimization = 0
         if self.num_nodes == 0 or not self.submaps:
             return None
@@ -207,7 +303,7 @@ class PoseGraph:
             local = NodePairs.consecutive(self.local_poses, traj,
                                           translation_weight=op.local_slam_pose_translation_weight,
                                           rotation_weight=op.local_slam_pose_rotation_weight)
-            odom = self._odometry.array
+            odom = self.node_odometry()
             odometry = None
             if np.isfinite(odom).any():
                 odometry = NodePairs.consecutive(odom, traj, translation_weight=op.odometry_translation_weight,

@@ -246,30 +246,31 @@ class ProbabilityGridRangeDataInserter:
         returns = np.ascontiguousarray(range_data.returns, dtype=np.float64).reshape(-1, 2)
         misses = np.ascontiguousarray(range_data.misses, dtype=np.float64).reshape(-1, 2)
         counts = []
-        cast = None  # (lattice origin, resolution, hits, free, box) of the last ray casting
+        cast = None  # lattice origin x, y, resolution, hits, free, box (array, list) of the last ray casting
         for grid in grids:
             res = grid.resolution
+            gx, gy = float(grid.origin[0]), float(grid.origin[1])
             off = None
-            if cast is not None and cast[1] == res:
-                shift = (cast[0] - grid.origin) / res
-                rounded = np.round(shift)
-                if np.abs(shift - rounded).max() < 1e-6:
-                    off = rounded.astype(np.int64)
+            if cast is not None and cast[2] == res:
+                sx, sy = (cast[0] - gx) / res, (cast[1] - gy) / res
+                if abs(sx - round(sx)) < 1e-6 and abs(sy - round(sy)) < 1e-6:
+                    off = (round(sx), round(sy))
             if off is None:
                 with timer.stage("ray casting"):
-                    lattice = grid.origin.copy()
-                    hits, free, box = _cast_rays(lattice[0], lattice[1], res, origin[0], origin[1], returns,
-                                                 misses, self.insert_free_space)
-                    cast = (lattice, res, hits, free, box)
-                off = np.zeros(2, dtype=np.int64)
-            _, _, hits, free, box = cast
+                    hits, free, box = _cast_rays(gx, gy, res, origin[0], origin[1], returns, misses,
+                                                 self.insert_free_space)
+                    cast = (gx, gy, res, hits, free, box, box.tolist())
+                off = (0, 0)
+            lx, ly, _, hits, free, box, (b0, b1, b2, b3) = cast
             with timer.stage("update"):
-                if box[0] <= box[2]:
+                ny, nx = grid.cells.shape
+                if b0 <= b2 and (b0 + off[0] < 0 or b1 + off[1] < 0 or b2 + off[0] >= nx or b3 + off[1] >= ny):
                     # Grow so the box's corner cells exist; growing moves the origin by whole cells.
-                    corners = cast[0] + (np.array([[box[0], box[1]], [box[2], box[3]]]) + 0.5) * res
-                    if grid.grow_to_include(corners):
-                        off = np.round((cast[0] - grid.origin) / res).astype(np.int64)
-                n = _apply_updates(grid.cells, grid.known_box, int(off[0]), int(off[1]), hits, free, box,
+                    corners = np.array([[lx + (b0 + 0.5) * res, ly + (b1 + 0.5) * res],
+                                        [lx + (b2 + 0.5) * res, ly + (b3 + 0.5) * res]])
+                    grid.grow_to_include(corners)
+                    off = (round((lx - grid.origin[0]) / res), round((ly - grid.origin[1]) / res))
+                n = _apply_updates(grid.cells, grid.known_box, off[0], off[1], hits, free, box,
                                    self.hit_table, self.miss_table)
                 grid.version += 1
             counts.append(int(n))

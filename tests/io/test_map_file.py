@@ -69,7 +69,7 @@ def assert_graph_state_equal(graph: PoseGraph, loaded: LoadedMap):
     assert np.array_equal(loaded.node_trajectories, np.asarray(graph.node_trajectory))
     assert np.array_equal(loaded.node_local_poses, graph.local_poses)
     assert np.array_equal(loaded.node_global_poses, graph.global_poses)
-    assert np.array_equal(loaded.node_odometry, graph._odometry.array, equal_nan=True)
+    assert np.array_equal(loaded.node_odometry, graph.node_odometry(), equal_nan=True)
     assert len(loaded.node_points) == graph.num_nodes
     for a, b in zip(loaded.node_points, graph.node_points):
         assert a.dtype == b.dtype and np.array_equal(a, b)

@@ -148,3 +148,31 @@ def test_insert_grows_grid_and_keeps_old_cells():
     assert g.contains(g.cell_index([[-3.0, 1.0], [1.0, 6.0]])).all()
     np.testing.assert_allclose(g.probability(g.cell_index([[1.52, 1.0]])), before[:1])
     np.testing.assert_allclose(g.probability(g.cell_index([[-3.0, 1.0], [1.0, 6.0]])), P_HIT)
+
+
+def test_insert_many_casts_once_per_lattice_and_matches_separate_insertions():
+    from carto_cli.timing import StageTimer, report_json
+
+    rng = np.random.default_rng(5)
+    angles = np.linspace(-2.3, 2.3, 300)
+    r = rng.uniform(0.5, 6.0, angles.size)
+    origin = np.array([0.3, -0.2])
+    rd = RangeData(origin, origin + np.c_[r * np.cos(angles), r * np.sin(angles)],
+                   origin + 5.0 * np.c_[np.cos(angles[::7] + 0.01), np.sin(angles[::7] + 0.01)])
+    # Two grids on one lattice (origins whole cells apart), one off it; all must grow.
+    grids = [ProbabilityGrid(0.05, (-1.0, -1.0), (20, 20)), ProbabilityGrid(0.05, (0.5, 0.25), (30, 10)),
+             ProbabilityGrid(0.05, (0.012, 0.031), (10, 10))]
+    separate = [g.copy() for g in grids]
+    timer = StageTimer()
+    ins = ProbabilityGridRangeDataInserter()
+    counts = ins.insert_many(rd, grids, timer)
+    for g, counted in zip(separate, counts):
+        assert ins.insert(rd, g) == counted > 0
+    for g, s in zip(grids, separate):
+        np.testing.assert_array_equal(g.cells, s.cells)
+        np.testing.assert_array_equal(g.origin, s.origin)
+        np.testing.assert_array_equal(g.known_box, s.known_box)
+        assert (g.cells < UPDATE_MARKER).all()
+    stages = report_json(timer)["stages"]
+    assert stages["ray casting"]["calls"] == 2  # the third grid is off the lattice
+    assert stages["update"]["calls"] == 3
