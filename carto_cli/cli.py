@@ -310,5 +310,115 @@ def profile_(
         raise typer.Exit(1)
 
 
+@app.command("relocalize")
+@handle_errors
+def relocalize_(
+    map_file: Path = typer.Argument(..., help="map.carto written by `carto map`."),
+    recording: Path = typer.Argument(..., help="Recording holding the scan(s) to relocalize."),
+    initial_pose: Optional[str] = typer.Option(
+        None, "--initial-pose", help="Prior x,y,yaw in the map frame (m, m, rad; 'deg' suffix for degrees)."),
+    at: Optional[float] = typer.Option(None, "--at", help="Relocalize the scan nearest this time (s)."),
+    scan_index: Optional[int] = typer.Option(None, "--scan-index", help="Relocalize the N-th scan (from 0)."),
+    sigma_xy: Optional[float] = typer.Option(None, "--sigma-xy", help="Prior position uncertainty (m)."),
+    sigma_yaw: Optional[float] = typer.Option(None, "--sigma-yaw", help="Prior heading uncertainty (degrees)."),
+    corridor: bool = typer.Option(False, "--corridor", help="Keep submaps in a sector along the prior's heading."),
+    global_: bool = typer.Option(False, "--global", help="No prior: search every submap."),
+    queries: Optional[Path] = typer.Option(
+        None, "--queries", help="Batch: lines 't|index x y yaw [sigma_xy sigma_yaw]'; writes a CSV."),
+    csv_out: Optional[Path] = typer.Option(None, "--csv", help="Batch results CSV (default: QUERIES.results.csv)."),
+    scan_topic: Optional[str] = typer.Option(None, "--scan-topic"),
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+):
+    """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search."""
+    import math
+
+    from carto_cli.io.map_file import load_map
+    from carto_cli.io.open import open_recording
+    from carto_cli.progress import progress
+    from carto_cli.relocalize import Relocalizer, parse_pose, read_queries, relocalize_many, scan_at, write_results_csv
+
+    if queries is None and not global_ and initial_pose is None:
+        raise CartoError("give --initial-pose x,y,yaw, or --global, or --queries FILE")
+    if global_ and initial_pose is not None:
+        raise CartoError("--global and --initial-pose exclude each other")
+    if at is not None and scan_index is not None:
+        raise CartoError("--at and --scan-index exclude each other")
+    loaded = load_map(map_file)
+    relocalizer = Relocalizer(loaded)
+    with open_recording(recording) as rec:
+        if queries is not None:
+            qs = read_queries(queries)
+            with progress("relocalizing", len(qs), state.quiet) as bar:
+                results, summary = relocalize_many(relocalizer, rec, qs, scan_topic=scan_topic, corridor=corridor,
+                                                   on_query=bar.advance)
+            out = csv_out or queries.with_suffix(".results.csv")
+            write_results_csv(out, results)
+            if as_json:
+                typer.echo(json.dumps(summary.to_dict(), indent=2))
+            else:
+                s = summary
+                typer.echo(f"{s.successes}/{s.queries} relocalized ({100 * s.success_rate:.1f}%), "
+                           f"p50 {s.p50_ms:.1f} ms, p95 {s.p95_ms:.1f} ms, p99 {s.p99_ms:.1f} ms -> {out}")
+            return
+        index, scan = scan_at(rec, time=at, index=scan_index, scan_topic=scan_topic)
+    prior = None if global_ else parse_pose(initial_pose)
+    result = relocalizer.relocalize(scan, prior, sigma_xy=sigma_xy,
+                                    sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw),
+                                    corridor=corridor)
+    data = result.to_dict()
+    data["scan_index"] = index
+    data["scan_time"] = scan.time
+    if as_json:
+        typer.echo(json.dumps(data, indent=2))
+        return
+    x, y, yaw = result.pose
+    t = result.timings
+    typer.echo(f"scan {index} at {scan.time:.3f}: pose {x:.3f} {y:.3f} {math.degrees(yaw):.2f}° "
+               f"score {result.score:.3f} ({'ok' if result.success else 'UNRELIABLE'}) via {result.path}, "
+               f"{len(result.submaps_considered)} submaps")
+    typer.echo("timing " + ", ".join(f"{k} {v:.1f} ms" for k, v in t.items()) + f", total {result.total_ms:.1f} ms")
+    if not result.success:
+        raise typer.Exit(1)
+
+
+profiles_app = typer.Typer(help="Environment profiles: list them, show the effective options.", no_args_is_help=True)
+app.add_typer(profiles_app, name="profiles")
+
+
+@profiles_app.command("list")
+@handle_errors
+def profiles_list():
+    """Profiles shipped with carto (layered over default.yaml by --profile NAME)."""
+    from carto_cli.options import list_profiles, profiles_dir
+
+    for name in list_profiles():
+        first = ""
+        text = (profiles_dir() / f"{name}.yaml").read_text().splitlines()
+        for line in text:
+            if line.startswith("#"):
+                first = line.lstrip("# ").strip()
+                break
+        typer.echo(f"{name:<12} {first}")
+
+
+@profiles_app.command("show")
+@handle_errors
+def profiles_show(
+    name: str = typer.Argument(..., help="Profile name or path."),
+    overrides: Optional[list[str]] = SET,
+    changed: bool = typer.Option(False, "--changed", help="Only the options that differ from the default."),
+):
+    """The merged, effective options of a profile (default + profile + --set), as YAML."""
+    import yaml as _yaml
+
+    from carto_cli.options import changed_options, dump_options_yaml
+
+    options = _options(name, overrides)
+    if changed:
+        typer.echo(_yaml.safe_dump(changed_options(options), sort_keys=False).rstrip())
+    else:
+        typer.echo(dump_options_yaml(options).rstrip())
+
+
 def main() -> None:
     app(prog_name="carto")

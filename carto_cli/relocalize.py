@@ -1,0 +1,828 @@
+"""Relocalization: a scan's pose in a saved map, from a prior pose or from nothing.
+
+A :class:`Relocalizer` holds a loaded map's submaps at their global poses and
+answers :meth:`Relocalizer.relocalize` queries, Cartographer-style:
+
+1. The scan is preprocessed as local SLAM does it (crop to min/max range in the
+   tracking frame through the laser mount, voxel filter, then the loop-closure
+   adaptive voxel filter for the search and the finer matching one for the
+   refinement).
+2. Submap filtering. Around a prior, the submaps whose grid's known bounding
+   box (not just its origin) lies within a radius of the prior, the radius
+   growing as the prior gets less certain (high / medium / low confidence);
+   with ``corridor=True``, the submaps whose box meets a rectangle along the
+   prior's heading (± forward range ahead/behind, ± side range across).
+3. Search. A reliable prior (sigma_xy <= 1.2 m and sigma_yaw <= 15° by
+   default) gets a windowed branch and bound around it in each filtered
+   submap (windows 3 sigma, clamped), nearest submap first, each search only
+   looking for something *better* than the best so far (its ``min_score`` is
+   raised to it, so later submaps are mostly pruned at the top level). An
+   unreliable prior, or a window that found nothing above ``min_score``, falls
+   back to whole-submap searches of the filtered submaps, then of every
+   submap. No prior: whole-submap searches of every submap (coarse to fine,
+   ``match_multilevel``, unless ``multilevel_global_search`` is off).
+4. The best candidate is refined by least squares, re-scored on the submap
+   (``score_at``) and accepted (``success``) only when that score reaches the
+   threshold and the refinement stayed near the search's answer (a wandering
+   refinement has slid along a corridor).
+
+Poses are (x, y, yaw) of the tracking frame in the map frame. A submap's grid
+lives in its trajectory's local frame; a map pose P is at
+``local_pose ∘ inverse(global_pose) ∘ P`` in the grid (as in the constraint builder).
+
+Precomputation stacks are built on first use and kept in an LRU cache under a
+memory budget (:class:`StackCache`).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from carto_cli import transform
+from carto_cli.errors import CartoError
+from carto_cli.io.atomic import atomic_output
+from carto_cli.matching import branch_and_bound, least_squares
+from carto_cli.matching.precomputation import PrecomputationGridStack
+from carto_cli.options import Options
+from carto_cli.records import Scan
+from carto_cli.sensor.range_filter import crop_scan
+from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
+
+__all__ = [
+    "Relocalizer", "RelocalizationResult", "StackCache", "Query", "QueryResult", "BatchSummary",
+    "PATHS", "TIMING_BUCKETS", "read_queries", "parse_pose", "scan_at", "relocalize_many",
+    "write_results_csv", "summarize", "CSV_COLUMNS",
+]
+
+PATHS = ("windowed", "fallback-filtered", "fallback-all", "global")
+TIMING_BUCKETS = ("submap preparation", "pose search", "scan scoring", "other")
+
+
+# ----------------------------------------------------------------------------------- results
+
+
+@dataclass
+class RelocalizationResult:
+    pose: np.ndarray  # (x, y, yaw) tracking frame in the map frame (refined when the refinement was trusted)
+    score: float  # score_at of ``pose`` on ``submap`` (mean probability, 0.1..0.9); 0 when nothing was found
+    path: str  # 'windowed' | 'fallback-filtered' | 'fallback-all' | 'global'
+    success: bool  # found, score >= the path's threshold, refinement consistent
+    submaps_considered: list[int]  # every submap searched, in search order
+    timings: dict[str, float]  # ms per TIMING_BUCKETS
+    total_ms: float
+    submap: int | None = None  # the submap the pose was found in
+    search_score: float = 0.0  # branch-and-bound score before refinement
+    reason: str = ""  # why it fell back / failed, '' on a clean windowed success
+    threshold: float = 0.0  # the score ``success`` was judged against
+
+    def to_dict(self) -> dict:
+        """JSON-ready (``carto relocalize --json``)."""
+        return {
+            "pose": {"x": float(self.pose[0]), "y": float(self.pose[1]), "yaw": float(self.pose[2])},
+            "score": round(float(self.score), 6),
+            "search_score": round(float(self.search_score), 6),
+            "threshold": float(self.threshold),
+            "path": self.path,
+            "success": bool(self.success),
+            "submap": self.submap,
+            "submaps_considered": [int(i) for i in self.submaps_considered],
+            "reason": self.reason,
+            "timings_ms": {k: round(float(v), 3) for k, v in self.timings.items()},
+            "total_ms": round(float(self.total_ms), 3),
+        }
+
+
+@dataclass
+class _Candidate:
+    submap: int
+    grid_pose: np.ndarray  # B&B pose in the submap's grid frame
+    score: float
+
+
+class _Timings:
+    """The four buckets; 'other' is whatever the three named ones leave of the total."""
+
+    def __init__(self):
+        self.t0 = time.perf_counter()
+        self.ms = {k: 0.0 for k in TIMING_BUCKETS[:3]}
+
+    def add(self, bucket: str, t_start: float) -> float:
+        now = time.perf_counter()
+        self.ms[bucket] += (now - t_start) * 1e3
+        return now
+
+    def finish(self) -> tuple[dict[str, float], float]:
+        total = (time.perf_counter() - self.t0) * 1e3
+        out = dict(self.ms)
+        out["other"] = max(0.0, total - sum(self.ms.values()))
+        return out, total
+
+
+# ----------------------------------------------------------------------------------- stack cache
+
+
+class StackCache:
+    """Precomputation stacks by submap id, least recently used dropped beyond ``budget_bytes``.
+
+    The stack just built or used is always kept, even alone above the budget.
+    """
+
+    def __init__(self, budget_bytes: int, depth: int):
+        self.budget_bytes = int(budget_bytes)
+        self.depth = int(depth)
+        self._stacks: OrderedDict[int, PrecomputationGridStack] = OrderedDict()
+        self.bytes = 0
+        self.hits = 0
+        self.misses = 0
+        self.evictions = 0
+        self.build_ms = 0.0
+
+    def get(self, index: int, grid) -> PrecomputationGridStack:
+        stack = self._stacks.get(index)
+        if stack is not None:
+            self._stacks.move_to_end(index)
+            self.hits += 1
+            return stack
+        self.misses += 1
+        t0 = time.perf_counter()
+        stack = PrecomputationGridStack(grid, self.depth)
+        self.build_ms += (time.perf_counter() - t0) * 1e3
+        self._stacks[index] = stack
+        self.bytes += stack.memory_bytes
+        while self.bytes > self.budget_bytes and len(self._stacks) > 1:
+            _, old = self._stacks.popitem(last=False)
+            self.bytes -= old.memory_bytes
+            self.evictions += 1
+        return stack
+
+    def __contains__(self, index: int) -> bool:
+        return index in self._stacks
+
+    def __len__(self) -> int:
+        return len(self._stacks)
+
+    def stats(self) -> dict:
+        return {"stacks": len(self._stacks), "bytes": self.bytes, "budget_bytes": self.budget_bytes,
+                "hits": self.hits, "misses": self.misses, "evictions": self.evictions,
+                "build_ms": round(self.build_ms, 3)}
+
+
+# ----------------------------------------------------------------------------------- relocalizer
+
+
+def _clamp(v: float, lo: float, hi: float) -> float:
+    return min(max(v, lo), hi)
+
+
+class Relocalizer:
+    """Answers relocalization queries against one loaded map (see the module docstring).
+
+    ``options`` defaults to the map's own; its ``relocalization`` section drives the search,
+    ``trajectory_builder_2d`` the scan preprocessing and ``pose_graph.constraint_builder.
+    ceres_scan_matcher`` the refinement. ``cache_budget_bytes`` defaults to
+    ``relocalization.cache_budget_mb``.
+    """
+
+    def __init__(self, loaded_map, options: Options | None = None, *, cache_budget_bytes: int | None = None):
+        self.map = loaded_map
+        self.options = loaded_map.options if options is None else options
+        self.ro = self.options.relocalization
+        if loaded_map.num_submaps == 0:
+            raise CartoError("the map has no submaps to relocalize in", getattr(loaded_map, "path", None))
+        budget = int(self.ro.cache_budget_mb * 1e6) if cache_budget_bytes is None else int(cache_budget_bytes)
+        self.cache = StackCache(budget, self.ro.branch_and_bound_depth)
+        self.laser_pose = (np.zeros(3) if loaded_map.laser_pose is None
+                           else np.asarray(loaded_map.laser_pose, dtype=np.float64).reshape(3))
+
+        m = loaded_map.num_submaps
+        self.grids = [s.grid for s in loaded_map.submaps]
+        # map -> grid frame of each submap: local_pose ∘ inverse(global_pose)
+        self.map_to_grid = np.array([
+            transform.compose(s.local_pose, transform.inverse(loaded_map.submap_global_poses[i]))
+            for i, s in enumerate(loaded_map.submaps)]).reshape(m, 3)
+        self.grid_to_map = transform.inverse(self.map_to_grid).reshape(m, 3)
+        # Known bounding box of each grid, in its grid frame: (x0, y0, x1, y1); NaN when empty.
+        self.boxes = np.full((m, 4), np.nan)
+        for i, g in enumerate(self.grids):
+            kb = g.known_bounds
+            if kb is not None:
+                lo = g.origin + np.array(kb[:2], dtype=np.float64) * g.resolution
+                hi = g.origin + (np.array(kb[2:], dtype=np.float64) + 1.0) * g.resolution
+                self.boxes[i] = [lo[0], lo[1], hi[0], hi[1]]
+        self.searchable = [i for i in range(m) if not np.isnan(self.boxes[i, 0])]
+        if not self.searchable:
+            raise CartoError("every submap of the map is empty", getattr(loaded_map, "path", None))
+        # Where the robot was while building each submap (its nodes), to order the search.
+        self.node_xy = [np.asarray(loaded_map.node_global_poses, dtype=np.float64)[
+            np.asarray(nodes, dtype=np.int64), :2] if len(nodes) else
+            transform.apply(self.grid_to_map[i], self.map.submaps[i].local_pose[None, :2])
+            for i, nodes in enumerate(loaded_map.submap_nodes)]
+        self.covering = self._covering_submaps()
+        self._track_xy = np.concatenate(self.node_xy).reshape(-1, 2)
+        self._track_submap = np.concatenate([np.full(len(p), i) for i, p in enumerate(self.node_xy)]).astype(np.int64)
+
+    def _covering_submaps(self) -> list[int]:
+        """A small set of submaps holding every node (greedy set cover, biggest first).
+
+        Consecutive submaps overlap by half (every scan goes into two), so about half of them
+        already hold every place the robot was: whole-map searches visit only those.
+        """
+        sets = {i: set(int(n) for n in self.map.submap_nodes[i]) for i in self.searchable}
+        uncovered = set().union(*sets.values()) if sets else set()
+        chosen: list[int] = []
+        while uncovered:
+            i = max(sets, key=lambda j: (len(sets[j] & uncovered), -j))
+            gain = sets[i] & uncovered
+            if not gain:
+                break
+            chosen.append(i)
+            uncovered -= gain
+        # Submaps without nodes (hand-made maps) are searched too.
+        chosen += [i for i in self.searchable if not sets[i]]
+        return sorted(chosen)
+
+    # ------------------------------------------------------------------ scan preprocessing
+
+    def preprocess(self, scan: Scan, laser_pose=None) -> tuple[np.ndarray, np.ndarray]:
+        """(search points, refinement points), both (n, 2) in the tracking frame."""
+        tb = self.options.trajectory_builder_2d
+        mount = self.laser_pose if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
+        data = crop_scan(scan, mount=mount, min_range=tb.min_range, max_range=tb.max_range,
+                         missing_data_ray_length=tb.missing_data_ray_length)
+        returns = voxel_filter(data.returns, tb.voxel_filter_size) if len(data.returns) else data.returns
+        f = tb.loop_closure_adaptive_voxel_filter
+        search = adaptive_voxel_filter(returns, max_length=f.max_length, min_num_points=f.min_num_points,
+                                       max_range=f.max_range)
+        f = tb.adaptive_voxel_filter
+        fine = adaptive_voxel_filter(returns, max_length=f.max_length, min_num_points=f.min_num_points,
+                                     max_range=f.max_range)
+        return np.ascontiguousarray(search, dtype=np.float64), np.ascontiguousarray(fine, dtype=np.float64)
+
+    # ------------------------------------------------------------------ submap filtering
+
+    def box_distances(self, xy) -> np.ndarray:
+        """Distance (m) from map point ``xy`` to every submap's known box; inf for empty submaps."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(2)
+        g = self.map_to_grid
+        c, s = np.cos(g[:, 2]), np.sin(g[:, 2])
+        px = c * xy[0] - s * xy[1] + g[:, 0]
+        py = s * xy[0] + c * xy[1] + g[:, 1]
+        b = self.boxes
+        with np.errstate(invalid="ignore"):
+            dx = np.maximum(np.maximum(b[:, 0] - px, px - b[:, 2]), 0.0)
+            dy = np.maximum(np.maximum(b[:, 1] - py, py - b[:, 3]), 0.0)
+        out = np.hypot(dx, dy)
+        out[np.isnan(out)] = np.inf
+        return out
+
+    def radius_for(self, sigma_xy: float, reliable: bool) -> float:
+        """Search radius from the prior's confidence: high (sigma small), medium (reliable), low."""
+        if not reliable:
+            return self.ro.low_confidence_radius
+        if sigma_xy <= self.ro.high_confidence_sigma_xy:
+            return self.ro.high_confidence_radius
+        return self.ro.medium_confidence_radius
+
+    def filter_by_distance(self, prior, radius: float) -> list[int]:
+        """Submaps whose known box is within ``radius`` of the prior, nearest track first."""
+        d = self.box_distances(np.asarray(prior, dtype=np.float64)[:2])
+        return self._order([i for i in self.searchable if d[i] <= radius], prior)
+
+    def filter_corridor(self, prior, forward_range: float | None = None, side_range: float | None = None) -> list[int]:
+        """Submaps whose known box meets the rectangle ±forward_range along the prior's heading, ±side_range across.
+
+        Separating-axis test of two oriented rectangles (the submap box is axis-aligned in its grid frame).
+        """
+        fr = self.ro.corridor_forward_range if forward_range is None else float(forward_range)
+        sr = self.ro.corridor_side_range if side_range is None else float(side_range)
+        prior = transform.as_pose(prior).reshape(3)
+        keep = []
+        for i in self.searchable:
+            # The corridor rectangle in the submap's grid frame.
+            centre = transform.compose(self.map_to_grid[i], prior)
+            c, s = math.cos(centre[2]), math.sin(centre[2])
+            axes_r = np.array([[c, s], [-s, c]])  # rectangle's axes (rows)
+            half_r = np.array([fr, sr])
+            x0, y0, x1, y1 = self.boxes[i]
+            box_c = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+            half_b = np.array([(x1 - x0) / 2, (y1 - y0) / 2])
+            d = box_c - centre[:2]
+            separated = False
+            # Box axes (x, y).
+            for k in range(2):
+                proj_r = abs(axes_r[0, k]) * half_r[0] + abs(axes_r[1, k]) * half_r[1]
+                if abs(d[k]) > half_b[k] + proj_r:
+                    separated = True
+                    break
+            if not separated:
+                for k in range(2):
+                    a = axes_r[k]
+                    proj_b = abs(a[0]) * half_b[0] + abs(a[1]) * half_b[1]
+                    if abs(d @ a) > half_r[k] + proj_b:
+                        separated = True
+                        break
+            if not separated:
+                keep.append(i)
+        return self._order(keep, prior)
+
+    def track_distances(self, xy) -> np.ndarray:
+        """Distance (m) from map point ``xy`` to the nearest node of every submap (where its scans were taken)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(2)
+        d = np.hypot(self._track_xy[:, 0] - xy[0], self._track_xy[:, 1] - xy[1])
+        out = np.full(self.map.num_submaps, np.inf)
+        np.minimum.at(out, self._track_submap, d)
+        return out
+
+    def _order(self, indices: Sequence[int], prior) -> list[int]:
+        """Nearest first, by the distance from the prior to the submap's nodes."""
+        key = self.track_distances(np.asarray(prior, dtype=np.float64)[:2])
+        return sorted(indices, key=lambda i: (key[i], i))
+
+    def check_prior(self, prior) -> float:
+        """Distance to the nearest submap; CartoError beyond ``max_prior_distance``."""
+        prior = transform.as_pose(prior).reshape(3)
+        if not np.all(np.isfinite(prior)):
+            raise CartoError(f"initial pose must be finite numbers, got {prior[0]:g},{prior[1]:g},{prior[2]:g}")
+        d = float(np.min(self.box_distances(prior[:2])))
+        if d > self.ro.max_prior_distance:
+            raise CartoError(f"initial pose {prior[0]:g},{prior[1]:g} is {d:.1f} m from the nearest submap "
+                             f"(more than relocalization.max_prior_distance = {self.ro.max_prior_distance:g} m)",
+                             getattr(self.map, "path", None))
+        return d
+
+    # ------------------------------------------------------------------ searches
+
+    def windows(self, sigma_xy: float, sigma_yaw: float) -> tuple[float, float]:
+        r = self.ro
+        lin = _clamp(r.window_sigmas * sigma_xy, r.min_linear_search_window, r.max_linear_search_window)
+        ang = _clamp(r.window_sigmas * sigma_yaw, r.min_angular_search_window, r.max_angular_search_window)
+        return lin, ang
+
+    def _windowed(self, points, prior, submaps, lin, ang, min_score, tm: _Timings) -> _Candidate | None:
+        best: _Candidate | None = None
+        for i in submaps:
+            t = time.perf_counter()
+            stack = self.cache.get(i, self.grids[i])
+            estimate = transform.compose(self.map_to_grid[i], prior)
+            t = tm.add("submap preparation", t)
+            floor = min_score if best is None else max(min_score, best.score)
+            r = branch_and_bound.match(stack, points, estimate, linear_search_window=lin,
+                                       angular_search_window=ang, min_score=floor)
+            tm.add("pose search", t)
+            if r.found and (best is None or r.score > best.score):
+                best = _Candidate(i, r.pose, r.score)
+        return best
+
+    def _whole(self, points, submaps, min_score, tm: _Timings) -> _Candidate | None:
+        best: _Candidate | None = None
+        for i in submaps:
+            t = time.perf_counter()
+            stack = self.cache.get(i, self.grids[i])
+            t = tm.add("submap preparation", t)
+            floor = min_score if best is None else max(min_score, best.score)
+            if self.ro.multilevel_global_search:
+                nx, ny = stack.num_cells
+                r = branch_and_bound.match_multilevel(
+                    stack, points, branch_and_bound.full_submap_center(stack),
+                    linear_search_window=(nx + ny) * stack.resolution, angular_search_window=math.pi,
+                    min_score=floor, coarse_min_score=min_score, levels=_global_levels(stack.depth))
+            else:
+                r = branch_and_bound.match_full_submap(stack, points, min_score=floor)
+            tm.add("pose search", t)
+            if r.found and (best is None or r.score > best.score):
+                best = _Candidate(i, r.pose, r.score)
+        return best
+
+    def _refine(self, fine_points, cand: _Candidate, threshold: float, tm: _Timings):
+        """(map pose, score, consistent, reason)."""
+        t = time.perf_counter()
+        grid = self.grids[cand.submap]
+        c = self.options.pose_graph.constraint_builder.ceres_scan_matcher
+        ls = least_squares.match(grid, fine_points, cand.grid_pose, target_translation=cand.grid_pose[:2],
+                                 occupied_space_weight=c.occupied_space_weight,
+                                 translation_weight=c.translation_weight, rotation_weight=c.rotation_weight,
+                                 max_num_iterations=c.ceres_solver_options.max_num_iterations)
+        moved = transform.relative(cand.grid_pose, ls.pose)
+        consistent = (math.hypot(moved[0], moved[1]) <= self.ro.max_refinement_translation
+                      and abs(moved[2]) <= self.ro.max_refinement_rotation)
+        reason = ""
+        if consistent:
+            grid_pose = ls.pose
+        else:
+            grid_pose = cand.grid_pose
+            reason = (f"refinement moved {math.hypot(moved[0], moved[1]):.2f} m / "
+                      f"{math.degrees(abs(moved[2])):.1f} deg from the search's pose")
+        score = _score_at(grid, fine_points, grid_pose)
+        tm.add("scan scoring", t)
+        if consistent and score < threshold:
+            reason = f"refined score {score:.3f} below {threshold:g}"
+        return transform.compose(self.grid_to_map[cand.submap], grid_pose), score, consistent and score >= threshold, reason
+
+    # ------------------------------------------------------------------ the query
+
+    def relocalize(self, scan: Scan, prior=None, *, sigma_xy: float | None = None, sigma_yaw: float | None = None,
+                   corridor: bool = False, laser_pose=None) -> RelocalizationResult:
+        """Pose of ``scan`` in the map; ``prior`` (x, y, yaw) in the map frame or None for a global search.
+
+        ``sigma_xy`` (m) / ``sigma_yaw`` (rad) default to ``relocalization.default_sigma_*``;
+        ``laser_pose`` (laser in the tracking frame) defaults to the one stored in the map.
+        Raises CartoError for a prior farther than ``max_prior_distance`` from every submap.
+        """
+        tm = _Timings()
+        ro = self.ro
+        search_pts, fine_pts = self.preprocess(scan, laser_pose)
+        if len(search_pts) == 0:
+            raise CartoError(f"the scan at t={scan.time:.3f} has no returns within "
+                             f"{self.options.trajectory_builder_2d.min_range:g}..{self.options.trajectory_builder_2d.max_range:g} m")
+        considered: list[int] = []
+        reasons: list[str] = []
+
+        def finish(cand: _Candidate | None, path: str, threshold: float, fallback_pose) -> RelocalizationResult:
+            if cand is None:
+                timings, total = tm.finish()
+                return RelocalizationResult(np.asarray(fallback_pose, dtype=np.float64), 0.0, path, False,
+                                            considered, timings, total, None, 0.0,
+                                            "; ".join(reasons + ["no match above the threshold"]), threshold)
+            pose, score, ok, reason = self._refine(fine_pts, cand, threshold, tm)
+            if reason:
+                reasons.append(reason)
+            timings, total = tm.finish()
+            return RelocalizationResult(pose, score, path, ok, considered, timings, total, cand.submap, cand.score,
+                                        "; ".join(reasons), threshold)
+
+        if prior is None:
+            t = time.perf_counter()
+            submaps = list(self.covering)
+            considered.extend(submaps)
+            tm.add("submap preparation", t)
+            cand = self._whole(search_pts, submaps, ro.global_min_score, tm)
+            return finish(cand, "global", ro.global_min_score, np.zeros(3))
+
+        t = time.perf_counter()
+        prior = transform.as_pose(prior).astype(np.float64).reshape(3).copy()
+        self.check_prior(prior)
+        sxy = ro.default_sigma_xy if sigma_xy is None else float(sigma_xy)
+        syaw = ro.default_sigma_yaw if sigma_yaw is None else float(sigma_yaw)
+        if not (sxy > 0 and syaw > 0 and math.isfinite(sxy) and math.isfinite(syaw)):
+            raise CartoError(f"sigmas must be positive, got sigma_xy={sxy:g} m, sigma_yaw={syaw:g} rad")
+        reliable = sxy <= ro.max_reliable_sigma_xy and syaw <= ro.max_reliable_sigma_yaw
+        if corridor:
+            filtered = self.filter_corridor(prior)
+        else:
+            filtered = self.filter_by_distance(prior, self.radius_for(sxy, reliable))
+        tm.add("submap preparation", t)
+
+        if reliable and filtered:
+            lin, ang = self.windows(sxy, syaw)
+            nearest = filtered[:ro.max_windowed_submaps]
+            considered.extend(nearest)
+            cand = self._windowed(search_pts, prior, nearest, lin, ang, ro.min_score, tm)
+            if cand is not None:
+                res = finish(cand, "windowed", ro.min_score, prior)
+                if res.success:
+                    return res
+                reasons.append(f"windowed search: {res.reason}")
+            else:
+                reasons.append(f"windowed search found nothing above {ro.min_score:g}")
+        elif not reliable:
+            reasons.append(f"prior unreliable (sigma_xy {sxy:g} m, sigma_yaw {math.degrees(syaw):.1f} deg)")
+        else:
+            reasons.append("no submap near the prior")
+
+        # Fallback 1: whole submaps near the prior (at the low-confidence radius when the prior was reliable
+        # but wrong: the windows already covered the near ones).
+        t = time.perf_counter()
+        if corridor:
+            near = filtered
+        else:
+            near = self.filter_by_distance(prior, max(self.radius_for(sxy, reliable), ro.low_confidence_radius)
+                                           if reliable else self.radius_for(sxy, False))
+        tm.add("submap preparation", t)
+        if near:
+            considered.extend(i for i in near if i not in considered)
+            cand = self._whole(search_pts, near, ro.global_min_score, tm)
+            if cand is not None:
+                res = finish(cand, "fallback-filtered", ro.global_min_score, prior)
+                if res.success:
+                    return res
+                reasons.append(f"fallback over {len(near)} nearby submaps: {res.reason}")
+            else:
+                reasons.append(f"fallback over {len(near)} nearby submaps found nothing above {ro.global_min_score:g}")
+        # Fallback 2: every submap not searched whole yet.
+        rest = [i for i in self._order(self.covering, prior) if i not in near]
+        if not rest:
+            rest = self._order(self.covering, prior)
+        considered.extend(i for i in rest if i not in considered)
+        cand = self._whole(search_pts, rest, ro.global_min_score, tm)
+        return finish(cand, "fallback-all", ro.global_min_score, prior)
+
+    # ------------------------------------------------------------------ batch
+
+    def relocalize_many(self, recording, queries: Sequence["Query"], *, scan_topic: str | None = None,
+                        laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
+                        on_query=None) -> tuple[list["QueryResult"], "BatchSummary"]:
+        return relocalize_many(self, recording, queries, scan_topic=scan_topic, laser_pose=laser_pose,
+                               corridor=corridor, max_time_offset=max_time_offset, on_query=on_query)
+
+    def stats(self) -> dict:
+        return {"submaps": self.map.num_submaps, "searchable": len(self.searchable), "cache": self.cache.stats()}
+
+
+def _global_levels(depth: int) -> tuple[tuple[float, int], ...]:
+    """Stages of a whole-submap search: 16-cell lattice (0.8 m at 0.05 m) over everything, then 4, then 1.
+
+    Measured on the loop-building map (19 submaps, ~105 points a scan), per query over all
+    submaps: (8, 1) 480 ms, (16, 1) 223 ms, (16, 4, 1) 174 ms, (32, 4, 1) 154 ms; over the
+    covering submaps (10) with coarse stages rejecting at the plain threshold, (16, 4, 1) 127 ms
+    against 2.2 s for the exact whole-submap search, with 5 against 4 wrong answers out of 32
+    (the exact search's wrong answers are ambiguous places, not search misses). The fine stage
+    only has to beat the best submap so far.
+    """
+    if depth >= 5:
+        return ((1.0, 4), (0.0, 2), (0.0, 0))
+    return branch_and_bound.default_levels(depth)
+
+
+def _score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
+    """Mean occupancy probability under ``points`` at ``pose`` (unknown counts as 0.1), as the constraint builder's."""
+    from carto_cli.mapping.constraint_builder import score_at
+
+    return score_at(grid, points, pose)
+
+
+# ----------------------------------------------------------------------------------- queries
+
+
+@dataclass(frozen=True)
+class Query:
+    """One line of a queries file: which scan (by time or index) and the prior (None: global)."""
+
+    time: float | None
+    index: int | None
+    prior: tuple[float, float, float] | None
+    sigma_xy: float | None = None
+    sigma_yaw: float | None = None
+    line: int = 0
+
+
+_NUM = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
+_ANGLE = re.compile(rf"^({_NUM})(deg)?$")
+_KEYS = {"t": "time", "time": "time", "stamp": "time", "index": "index", "scan": "index", "scan_index": "index",
+         "i": "index"}
+_NONE = {"-", "none", "null", "?"}
+
+
+def _number(text: str, what: str, fail) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise fail(f"{what} must be a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise fail(f"{what} must be finite, got {text!r}")
+    return v
+
+
+def _angle(text: str, what: str, fail) -> float:
+    m = _ANGLE.match(text.strip().lower())
+    if not m:
+        raise fail(f"{what} must be a number of radians (or degrees with a 'deg' suffix), got {text!r}")
+    v = float(m.group(1))
+    return math.radians(v) if m.group(2) else v
+
+
+def parse_pose(text: str) -> tuple[float, float, float]:
+    """'x,y,yaw' (yaw in radians, or degrees with a 'deg' suffix) -> (x, y, yaw), for ``--initial-pose``."""
+    def fail(msg):
+        return CartoError(f"--initial-pose: {msg}")
+    parts = [p for p in re.split(r"[,\s]+", text.strip()) if p]
+    if len(parts) != 3:
+        raise fail(f"expected x,y,yaw, got {text!r}")
+    return (_number(parts[0], "x", fail), _number(parts[1], "y", fail), _angle(parts[2], "yaw", fail))
+
+
+def read_queries(path: str | Path) -> list[Query]:
+    """Queries from a text file, one per line::
+
+        # comments and blank lines are ignored; fields split on whitespace and/or commas
+        t x y yaw [sigma_xy sigma_yaw]      <- optional header; 'index x y yaw ...' selects scans by index
+        1012.5  3.2  1.0  1.57
+        1013.0  3.2  1.0  90deg  0.3  5deg  <- per-query sigmas (m, rad or 'deg')
+        1020.0  -    -    -                 <- no prior: global search
+
+    Without a header the first column is a time (s, the recording's clock). Angles are
+    radians unless suffixed 'deg'. Errors name the line.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CartoError("no such queries file", path) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise CartoError(f"cannot read queries: {e}", path) from None
+    key = "time"
+    out: list[Query] = []
+    seen_data = False
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+
+        def fail(msg, n=n):
+            return CartoError(f"line {n}: {msg}", path)
+        fields = [f for f in re.split(r"[,\s]+", line) if f]
+        head = fields[0].lower()
+        if head in _KEYS or not re.match(rf"^{_NUM}$", head):
+            if seen_data:
+                raise fail(f"expected a query (time or index, x, y, yaw), got {raw.strip()!r}")
+            if head not in _KEYS:
+                raise fail(f"the first column must be a time or a scan index; a header names it 't' or 'index', "
+                           f"got {fields[0]!r}")
+            key = _KEYS[head]
+            names = [f.lower() for f in fields[1:]]
+            if names[:3] != ["x", "y", "yaw"] or any(f not in ("sigma_xy", "sigma_yaw") for f in names[3:]):
+                raise fail("header must be 't x y yaw [sigma_xy sigma_yaw]' or 'index x y yaw [sigma_xy sigma_yaw]'")
+            seen_data = True  # one header at most, and before the data
+            continue
+        seen_data = True
+        if len(fields) not in (4, 6):
+            raise fail(f"expected 4 fields (time or index, x, y, yaw) or 6 (+ sigma_xy sigma_yaw), got {len(fields)}")
+        if key == "time":
+            t, idx = _number(fields[0], "time", fail), None
+        else:
+            try:
+                idx, t = int(fields[0]), None
+            except ValueError:
+                raise fail(f"scan index must be a whole number, got {fields[0]!r}") from None
+            if idx < 0:
+                raise fail(f"scan index must be >= 0, got {idx}")
+        pose_fields = [f.lower() for f in fields[1:4]]
+        if all(f in _NONE for f in pose_fields):
+            prior = None
+        elif any(f in _NONE for f in pose_fields):
+            raise fail("give all of x, y, yaw or none of them ('-' for a global search)")
+        else:
+            prior = (_number(fields[1], "x", fail), _number(fields[2], "y", fail), _angle(fields[3], "yaw", fail))
+        sxy = syaw = None
+        if len(fields) == 6:
+            sxy = _number(fields[4], "sigma_xy", fail)
+            syaw = _angle(fields[5], "sigma_yaw", fail)
+            if sxy <= 0 or syaw <= 0:
+                raise fail("sigmas must be positive")
+        out.append(Query(t, idx, prior, sxy, syaw, n))
+    if not out:
+        raise CartoError("no queries in the file", path)
+    return out
+
+
+# ----------------------------------------------------------------------------------- scans
+
+
+def _scan_topic(recording, scan_topic):
+    from carto_cli.io.topics import select_topics
+
+    return select_topics(recording, scan_topic=scan_topic).scan
+
+
+def _scans_for(recording, queries: Sequence[Query], scan_topic=None, max_time_offset: float = 1.0):
+    """{query position: (scan index, Scan)} in one pass over the recording's scans."""
+    topic = _scan_topic(recording, scan_topic)
+    by_index: dict[int, list[int]] = {}
+    timed = sorted(((q.time, k) for k, q in enumerate(queries) if q.time is not None))
+    for k, q in enumerate(queries):
+        if q.index is not None:
+            by_index.setdefault(q.index, []).append(k)
+    found: dict[int, tuple[int, Scan]] = {}
+    j = 0
+    prev: tuple[int, Scan] | None = None
+    count = 0
+    last = None
+    for record in recording.records([topic]):
+        if not isinstance(record, Scan):
+            continue
+        i = count
+        count += 1
+        for k in by_index.get(i, ()):
+            found[k] = (i, record)
+        while j < len(timed) and record.time >= timed[j][0]:
+            t, k = timed[j]
+            if prev is not None and abs(prev[1].time - t) <= abs(record.time - t):
+                found[k] = prev
+            else:
+                found[k] = (i, record)
+            j += 1
+        prev = (i, record)
+        last = prev
+    if count == 0:
+        raise CartoError(f"the recording has no scans on {topic}", getattr(recording, "path", None))
+    while j < len(timed):
+        found[timed[j][1]] = last
+        j += 1
+    for k, q in enumerate(queries):
+        where = f"line {q.line}: " if q.line else ""
+        if q.index is not None and k not in found:
+            raise CartoError(f"{where}scan index {q.index} is beyond the recording's {count} scans",
+                             getattr(recording, "path", None))
+        if q.time is not None:
+            dt = abs(found[k][1].time - q.time)
+            if dt > max_time_offset:
+                raise CartoError(f"{where}no scan within {max_time_offset:g} s of t={q.time:.3f} "
+                                 f"(nearest is {dt:.3f} s away)", getattr(recording, "path", None))
+    return found
+
+
+def scan_at(recording, *, time: float | None = None, index: int | None = None, scan_topic: str | None = None,
+            max_time_offset: float = 1.0) -> tuple[int, Scan]:
+    """(index, scan) of the scan nearest ``time`` or at ``index`` (default: the first scan)."""
+    if time is not None and index is not None:
+        raise CartoError("give a time or a scan index, not both")
+    if index is not None and index < 0:
+        raise CartoError(f"scan index must be >= 0, got {index}")
+    q = Query(time, index if index is not None or time is not None else 0, None)
+    return _scans_for(recording, [q], scan_topic, max_time_offset)[0]
+
+
+# ----------------------------------------------------------------------------------- batch
+
+
+@dataclass
+class QueryResult:
+    query: Query
+    scan_index: int
+    scan_time: float
+    result: RelocalizationResult
+
+    def row(self) -> dict:
+        r = self.result
+        return {"t": f"{self.scan_time:.6f}", "scan_index": self.scan_index,
+                "x": f"{r.pose[0]:.4f}", "y": f"{r.pose[1]:.4f}", "yaw": f"{r.pose[2]:.5f}",
+                "score": f"{r.score:.4f}", "path": r.path, "ms": f"{r.total_ms:.2f}",
+                "success": int(bool(r.success)), "submap": "" if r.submap is None else r.submap}
+
+
+CSV_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "score", "path", "ms", "success", "submap")
+
+
+@dataclass
+class BatchSummary:
+    queries: int
+    successes: int
+    success_rate: float
+    p50_ms: float
+    p95_ms: float
+    p99_ms: float
+    max_ms: float
+    paths: dict[str, int] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)  # mean per bucket
+
+    def to_dict(self) -> dict:
+        return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+
+
+def summarize(results: Sequence[QueryResult]) -> BatchSummary:
+    ms = np.array([q.result.total_ms for q in results], dtype=np.float64)
+    ok = sum(bool(q.result.success) for q in results)
+    paths = {p: sum(q.result.path == p for q in results) for p in PATHS}
+    buckets = {b: float(np.mean([q.result.timings[b] for q in results])) if results else 0.0 for b in TIMING_BUCKETS}
+    pct = (lambda p: float(np.percentile(ms, p))) if len(ms) else (lambda p: 0.0)
+    return BatchSummary(len(results), ok, ok / len(results) if results else 0.0, pct(50), pct(95), pct(99),
+                        float(ms.max()) if len(ms) else 0.0, paths, buckets)
+
+
+def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query], *, scan_topic: str | None = None,
+                    laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
+                    on_query=None) -> tuple[list[QueryResult], BatchSummary]:
+    """Run every query against its scan (nearest to its time, or at its index), in file order."""
+    if not queries:
+        raise CartoError("no queries")
+    scans = _scans_for(recording, queries, scan_topic, max_time_offset)
+    results = []
+    for k, q in enumerate(queries):
+        i, scan = scans[k]
+        r = relocalizer.relocalize(scan, q.prior, sigma_xy=q.sigma_xy, sigma_yaw=q.sigma_yaw, corridor=corridor,
+                                   laser_pose=laser_pose)
+        results.append(QueryResult(q, i, scan.time, r))
+        if on_query is not None:
+            on_query(1)
+    return results, summarize(results)
+
+
+def write_results_csv(path: str | Path, results: Iterable[QueryResult]) -> Path:
+    """The rows as CSV (CSV_COLUMNS), written atomically."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(CSV_COLUMNS), lineterminator="\n")
+    w.writeheader()
+    for q in results:
+        w.writerow(q.row())
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        tmp.write_text(buf.getvalue(), encoding="utf-8")
+    return path

@@ -1,0 +1,164 @@
+"""Global SLAM: the pose graph's odometry interpolation, key-frame rule, loop-closure pruning,
+and the whole pipeline on a simulated building with loops against exact ground truth."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from carto_cli import transform
+from carto_cli.evaluate import ate
+from carto_cli.io.trajectory import Trajectory
+from carto_cli.mapping.constraints import ConstraintKind
+from carto_cli.mapping.map_builder import build
+from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping.submaps import Submap
+from carto_cli.options import load_options
+from carto_cli.sim import loop_building, loop_trajectory, simulate
+
+CB = "pose_graph.constraint_builder."
+
+
+class _FakeSubmap:
+    """Just what PoseGraph.add_node reads from a submap."""
+
+    def __init__(self, index: int, local_pose=(0.0, 0.0, 0.0), finished: bool = False):
+        self.index = index
+        self.local_pose = np.asarray(local_pose, dtype=np.float64)
+        self.finished = finished
+
+
+def _graph(*overrides, loop_closure=False) -> PoseGraph:
+    return PoseGraph(load_options(None, list(overrides)), loop_closure=loop_closure)
+
+
+# --------------------------------------------------------------------------- odometry at node times
+
+
+def test_odometry_is_interpolated_at_node_times_including_samples_after_the_node():
+    g = _graph()
+    sm = _FakeSubmap(0)
+    g.add_odometry(0.0, (0.0, 0.0, 0.0))
+    g.add_odometry(1.0, (1.0, 0.0, math.radians(10)))
+    g.add_node(0.25, (0.0, 0.0, 0.0), np.zeros((0, 2)), [sm])
+    g.add_node(0.5, (0.5, 0.0, 0.0), np.zeros((0, 2)), [sm])
+    g.add_node(2.5, (2.0, 0.0, 0.0), np.zeros((0, 2)), [sm])  # after the last sample so far
+    odom = g.node_odometry()
+    np.testing.assert_allclose(odom[0], [0.25, 0.0, math.radians(2.5)], atol=1e-12)
+    np.testing.assert_allclose(odom[1], [0.5, 0.0, math.radians(5)], atol=1e-12)
+    assert np.isnan(odom[2]).all()  # outside the odometry's time range: no odometry constraint
+    g.add_odometry(3.0, (3.0, 0.0, math.radians(10)))  # arrives after the node
+    np.testing.assert_allclose(g.node_odometry()[2], [2.5, 0.0, math.radians(10)], atol=1e-12)
+
+
+def test_odometry_interpolation_unwraps_yaw_across_pi():
+    g = _graph()
+    sm = _FakeSubmap(0)
+    g.add_odometry(0.0, (0.0, 0.0, math.radians(170)))
+    g.add_odometry(1.0, (0.0, 0.0, math.radians(-170)))
+    g.add_node(0.5, (0.0, 0.0, 0.0), np.zeros((0, 2)), [sm])
+    assert abs(abs(g.node_odometry()[0, 2]) - math.pi) < 1e-9
+
+
+def test_explicit_node_odometry_wins_over_interpolation():
+    g = _graph()
+    sm = _FakeSubmap(0)
+    g.add_odometry(0.0, (0.0, 0.0, 0.0))
+    g.add_odometry(1.0, (1.0, 0.0, 0.0))
+    g.add_node(0.5, (0.0, 0.0, 0.0), np.zeros((0, 2)), [sm], odometry_pose=(7.0, 0.0, 0.0))
+    np.testing.assert_allclose(g.node_odometry()[0], [7.0, 0.0, 0.0])
+
+
+# --------------------------------------------------------------------------- key-frame rule
+
+
+def test_key_frame_rule_only_lets_nodes_that_moved_search():
+    g = _graph(CB + "min_search_distance=0.5", CB + "min_search_angle=0.2")
+    sm = _FakeSubmap(0)
+    xs = [0.0, 0.2, 0.4, 0.6, 0.7, 1.2]
+    for i, x in enumerate(xs):
+        g.add_node(float(i), (x, 0.0, 0.0), np.zeros((0, 2)), [sm])
+    g.add_node(6.0, (1.2, 0.0, 0.3), np.zeros((0, 2)), [sm])  # turned in place
+    assert g.node_searches == [True, False, False, True, False, True, True]
+
+
+def test_key_frame_rule_off_by_default():
+    g = _graph()
+    sm = _FakeSubmap(0)
+    for i in range(5):
+        g.add_node(float(i), (0.01 * i, 0.0, 0.0), np.zeros((0, 2)), [sm])
+    assert all(g.node_searches)
+
+
+# --------------------------------------------------------------------------- pruning loop closures
+
+
+def test_loop_closures_the_optimized_graph_disagrees_with_are_removed():
+    g = _graph()
+    sm0, sm1 = _FakeSubmap(0), _FakeSubmap(1, (5.0, 0.0, 0.0))
+    for i in range(10):
+        g.add_node(float(i), (0.5 * i, 0.0, 0.0), np.zeros((0, 2)), [sm0] if i < 5 else [sm1])
+    w = (1.1e4, 1e5)
+    # node 9 at x=4.5 seen in submap 0: truth, and a wild one 3 m off.
+    g.constraints.add(0, 9, np.array([4.5, 0.0, 0.0]), *w, ConstraintKind.INTER_SUBMAP)
+    g.constraints.add(0, 8, np.array([4.0, 3.0, 0.0]), *w, ConstraintKind.INTER_SUBMAP)
+    g.optimize(final=True)
+    res = g.loop_closure_residuals()
+    assert res[0] < 0.1 and res[1] > 1.0
+    assert g.remove_bad_loop_closures(0.5) == 1
+    assert g.num_loop_closures == 1
+    assert g.removed_loop_closures[0][:2] == (8, 0)
+
+
+# --------------------------------------------------------------------------- end to end with loops
+
+
+def _traj(times, poses) -> Trajectory:
+    poses = np.asarray(poses, dtype=np.float64)
+    return Trajectory(np.asarray(times, dtype=np.float64), poses[:, :2].copy(), poses[:, 2].copy())
+
+
+@pytest.fixture(scope="module")
+def two_laps():
+    """Two laps of loop_building's ring corridor at 5 Hz with drifting 50 Hz odometry."""
+    world = loop_building()
+    sim = simulate(world, loop_trajectory(world, laps=2), scan_rate=5.0, seed=0)
+    options = load_options(None, [CB + "fast_correlative_scan_matcher.multilevel=true"])
+    local = build(sim.recording(), options, loop_closure=False)
+    mapped = build(sim.recording(), options)
+    return sim, local, mapped
+
+
+def test_loop_closure_removes_most_of_the_local_drift(two_laps):
+    sim, local, mapped = two_laps
+    gt = sim.ground_truth
+    truth = _traj(gt[:, 0], gt[:, 1:])
+    local_err = ate(_traj(local.times, local.poses), truth)
+    mapped_err = ate(_traj(mapped.times, mapped.poses), truth)
+    assert mapped.stats["loop_closures"] > 20
+    assert mapped_err.translation.mean < local_err.translation.mean / 4
+    assert mapped_err.translation.mean < 0.25
+    assert mapped_err.rotation.mean < local_err.rotation.mean
+
+
+def test_loop_closures_are_mostly_correct(two_laps):
+    sim, _, mapped = two_laps
+    g = mapped.graph
+    gt = sim.ground_truth
+    node_truth = gt[np.searchsorted(gt[:, 0], np.asarray(g.node_times))][:, 1:]
+    errors = []
+    for k in np.flatnonzero(g.constraints.is_loop_closure):
+        c = g.constraints[int(k)]
+        ref = g.submaps[c.submap].nodes[0]  # the submap's first node stands in for its frame
+        ref_in_submap = transform.relative(g.submaps[c.submap].local_pose, g.local_poses[ref])
+        measured = transform.relative(ref_in_submap, c.relative_pose)
+        true = transform.relative(node_truth[ref], node_truth[c.node])
+        errors.append(math.hypot(*(measured[:2] - true[:2])))
+    errors = np.array(errors)
+    assert len(errors) > 20
+    # Measured (seed 0): 262 loop closures, median error a few cm, 66 % within 0.3 m; the rest
+    # are mostly false matches between the building's identical rooms, which the Huber loss
+    # keeps from bending the map (see test_loop_closure_removes_most_of_the_local_drift).
+    assert np.median(errors) < 0.1
+    assert np.mean(errors < 0.3) > 0.55

@@ -1,0 +1,366 @@
+"""Relocalization in a saved map: windowed search around priors, fallbacks, global search, filters, batch, errors.
+
+The map is built from a simulated pass along the bottom and right stretches of the loop
+building; queries are scans of a second pass (other noise seed) at the same times, so the
+reference pose of each is the map's own pose of the first pass's scan at that time. (The
+world frame is not a good reference: local SLAM's small rotation bias bends the map by up
+to ~1 m over the loop, so a pose that fits the map perfectly is off from the world's.)
+"""
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from carto_cli import transform
+from carto_cli.errors import CartoError, FormatError
+from carto_cli.io.map_file import load_map, save_map
+from carto_cli.mapping.submaps import Submap
+from carto_cli.options import Options, load_options
+from carto_cli.relocalize import (CSV_COLUMNS, Query, Relocalizer, StackCache, parse_pose, read_queries,
+                                  relocalize_many, scan_at, write_results_csv)
+
+SCAN_RATE = 5.0
+DURATION = 70.0  # bottom stretch, corner, right stretch
+# The map's own poses of its first scans are matched against a submap still being started, and are
+# off by up to 0.2 m from what the finished submaps say: they are no reference.
+FIRST_QUERY = 1015.0
+OVERRIDES = ["pose_graph.optimize_every_n_nodes=0", "trajectory_builder_2d.submaps.num_range_data=15"]
+
+
+@pytest.fixture(scope="module")
+def world():
+    from carto_cli.sim import loop_building, loop_trajectory
+
+    w = loop_building()
+    return w, loop_trajectory(w)
+
+
+@pytest.fixture(scope="module")
+def mapped(world, tmp_path_factory):
+    from carto_cli.mapping.map_builder import build
+    from carto_cli.sim import simulate
+
+    w, tr = world
+    options = load_options(None, OVERRIDES)
+    result = build(simulate(w, tr, duration=DURATION, scan_rate=SCAN_RATE).recording(), options)
+    path = save_map(tmp_path_factory.mktemp("map") / "map.carto", result, options)
+    return load_map(path)
+
+
+@pytest.fixture(scope="module")
+def queries(world, mapped):
+    """(scan, reference pose in the map frame) of a second pass, every 7th scan from FIRST_QUERY."""
+    from carto_cli.sim import simulate
+
+    w, tr = world
+    sim = simulate(w, tr, duration=DURATION, scan_rate=SCAN_RATE, seed=7)
+    ref = {round(t, 6): p for t, p in zip(mapped.trajectory.t, mapped.trajectory.poses)}
+    out = [(s, ref[round(s.time, 6)]) for k, s in enumerate(sim.records(["/scan"]))
+           if k % 7 == 4 and round(s.time, 6) in ref and s.time >= FIRST_QUERY]
+    assert len(out) >= 30
+    return sim, out
+
+
+@pytest.fixture(scope="module")
+def relocalizer(mapped):
+    return Relocalizer(mapped)
+
+
+def pose_error(a, b):
+    d = np.asarray(a, float) - np.asarray(b, float)
+    return math.hypot(d[0], d[1]), abs(math.degrees(transform.normalize_angle(d[2])))
+
+
+# ------------------------------------------------------------------------------------------ searches
+
+
+def test_perturbed_priors_are_found_within_10cm_and_1deg(relocalizer, queries):
+    _, qs = queries
+    rng = np.random.default_rng(1)
+    for scan, truth in qs[::2]:
+        direction = rng.uniform(0, 2 * math.pi)
+        offset = rng.uniform(0, 1.5)
+        prior = truth + np.array([offset * math.cos(direction), offset * math.sin(direction),
+                                  math.radians(rng.uniform(-15, 15))])
+        r = relocalizer.relocalize(scan, prior, sigma_xy=0.5, sigma_yaw=math.radians(5))
+        assert r.success, r.reason
+        assert r.path == "windowed"
+        dxy, dyaw = pose_error(r.pose, truth)
+        assert dxy < 0.1 and dyaw < 1.0, (prior, r)
+        assert r.score >= relocalizer.ro.min_score
+        assert set(r.timings) == {"submap preparation", "pose search", "scan scoring", "other"}
+        assert r.total_ms >= sum(r.timings.values()) - 1e-6
+        assert 1 <= len(r.submaps_considered) <= relocalizer.ro.max_windowed_submaps
+
+
+def test_prior_in_the_wrong_place_is_detected_and_the_fallback_recovers(relocalizer, queries):
+    _, qs = queries
+    for scan, truth in (qs[3], qs[len(qs) - 4]):
+        # Across the building (bottom stretch <-> right stretch), true heading, confident sigma.
+        wrong = np.array([21.5, 9.0, truth[2]]) if truth[1] < 4 else np.array([8.0, 0.0, truth[2]])
+        r = relocalizer.relocalize(scan, wrong, sigma_xy=0.1, sigma_yaw=math.radians(2))
+        assert r.path in ("fallback-filtered", "fallback-all")
+        assert "windowed" in r.reason
+        assert r.success
+        dxy, dyaw = pose_error(r.pose, truth)
+        assert dxy < 0.1 and dyaw < 1.0
+
+
+def test_unreliable_prior_skips_the_window(relocalizer, queries):
+    _, qs = queries
+    scan, truth = qs[10]
+    r = relocalizer.relocalize(scan, truth + [1.0, -1.0, 0.3], sigma_xy=2.0, sigma_yaw=math.radians(10))
+    assert r.path == "fallback-filtered" and "unreliable" in r.reason
+    assert r.success
+    dxy, dyaw = pose_error(r.pose, truth)
+    assert dxy < 0.1 and dyaw < 1.0
+    r = relocalizer.relocalize(scan, truth, sigma_xy=0.2, sigma_yaw=math.radians(20))  # yaw too uncertain
+    assert r.path == "fallback-filtered"
+
+
+def test_global_search_without_prior(relocalizer, queries):
+    _, qs = queries
+    for scan, truth in (qs[5], qs[20]):
+        r = relocalizer.relocalize(scan, None)
+        assert r.path == "global" and r.success
+        assert sorted(r.submaps_considered) == relocalizer.covering
+        dxy, dyaw = pose_error(r.pose, truth)
+        assert dxy < 0.1 and dyaw < 1.0
+
+
+def test_covering_submaps_hold_every_node(relocalizer, mapped):
+    nodes = set()
+    for i in relocalizer.covering:
+        nodes |= set(mapped.submap_nodes[i].tolist())
+    assert nodes == set(range(mapped.num_nodes))
+    assert len(relocalizer.covering) < mapped.num_submaps
+
+
+def test_explicit_laser_pose_is_used(relocalizer, queries):
+    _, qs = queries
+    scan, truth = qs[8]
+    # A laser mounted 0.3 m ahead: the tracking frame sits 0.3 m behind where the laser is.
+    r = relocalizer.relocalize(scan, truth, sigma_xy=0.3, sigma_yaw=0.05, laser_pose=(0.3, 0.0, 0.0))
+    assert r.success
+    expected = transform.compose(truth, (-0.3, 0.0, 0.0))
+    assert pose_error(r.pose, expected)[0] < 0.1
+
+
+# ------------------------------------------------------------------------------------------ filters
+
+
+def _fake_map(boxes, global_poses=None):
+    """A map of empty submaps whose known boxes are ``boxes`` (x0, y0, x1, y1) in their grid frames."""
+    submaps = []
+    for i, (x0, y0, x1, y1) in enumerate(boxes):
+        sm = Submap((x0, y0), index=i, resolution=0.1, initial_size=4)
+        sm.grid.grow_to_include(np.array([[x0, y0], [x1, y1]]))
+        cells = sm.grid.cell_index(np.array([[x0 + 0.01, y0 + 0.01], [x1 - 0.01, y1 - 0.01]]))
+        sm.grid.set_probability(cells, [0.9, 0.9])
+        sm.local_pose = np.zeros(3)
+        submaps.append(sm)
+    m = len(boxes)
+    return SimpleNamespace(
+        path=None, options=Options(), laser_pose=None, num_submaps=m, submaps=submaps,
+        submap_global_poses=np.zeros((m, 3)) if global_poses is None else np.asarray(global_poses, float),
+        submap_nodes=[np.zeros(0, np.int64)] * m, node_global_poses=np.zeros((0, 3)))
+
+
+def test_distance_filter_uses_the_submap_box_not_its_origin():
+    # Submap 0: a long strip from x=0 to 20 (origin at 0); the prior at x=18 is inside it.
+    rel = Relocalizer(_fake_map([(0, 0, 20, 2), (30, 0, 32, 2), (18, 6, 20, 8)]))
+    assert rel.filter_by_distance((18.0, 1.0, 0.0), 3.0) == [0]
+    assert sorted(rel.filter_by_distance((18.0, 1.0, 0.0), 5.2)) == [0, 2]
+    assert np.allclose(rel.box_distances((18.0, 1.0))[:3], [0.0, 12.0, 5.0], atol=0.11)
+    # The box moves with the submap's global pose: submap 1 turned by 90 deg about the origin.
+    rel = Relocalizer(_fake_map([(0, 0, 20, 2), (30, 0, 32, 2)], [(0, 0, 0), (0, 0, math.pi / 2)]))
+    assert rel.box_distances((-1.0, 31.0))[1] < 0.11
+
+
+def test_radius_follows_the_priors_confidence(relocalizer):
+    ro = relocalizer.ro
+    assert relocalizer.radius_for(0.1, True) == ro.high_confidence_radius
+    assert relocalizer.radius_for(1.0, True) == ro.medium_confidence_radius
+    assert relocalizer.radius_for(2.0, False) == ro.low_confidence_radius
+    assert relocalizer.windows(0.1, math.radians(1)) == (pytest.approx(ro.min_linear_search_window),
+                                                         pytest.approx(ro.min_angular_search_window))
+    assert relocalizer.windows(0.5, math.radians(5)) == (pytest.approx(1.5), pytest.approx(math.radians(15)))
+    assert relocalizer.windows(5.0, 1.0)[0] == ro.max_linear_search_window
+
+
+def test_corridor_filter_keeps_submaps_along_the_heading():
+    # A corridor along x: boxes ahead, behind, beside (out of the side range) and far ahead.
+    boxes = [(0, -1, 4, 1), (6, -1, 10, 1), (-8, -1, -5, 1), (0, 5, 4, 7), (25, -1, 30, 1)]
+    rel = Relocalizer(_fake_map(boxes))
+    kept = rel.filter_corridor((2.0, 0.0, 0.0), forward_range=10.0, side_range=2.0)
+    assert sorted(kept) == [0, 1, 2]
+    # Heading along y instead: the side box is now ahead, the ones along x are beside.
+    kept = rel.filter_corridor((2.0, 0.0, math.pi / 2), forward_range=10.0, side_range=1.5)
+    assert sorted(kept) == [0, 3]
+    # A diagonal heading: the rectangle is oriented, not the prior's axis-aligned hull.
+    kept = rel.filter_corridor((0.0, 0.0, math.pi / 4), forward_range=12.0, side_range=0.5)
+    assert 3 not in kept and 4 not in kept and 0 in kept
+
+
+def test_corridor_mode_on_the_real_map(relocalizer, queries):
+    _, qs = queries
+    scan, truth = qs[6]  # bottom stretch, heading +x
+    assert abs(truth[2]) < 0.2
+    kept = relocalizer.filter_corridor(truth, forward_range=4.0, side_range=0.5)
+    near = relocalizer.filter_by_distance(truth, 0.0)
+    assert set(kept) <= set(relocalizer.searchable) and set(near) <= set(kept)
+    r = relocalizer.relocalize(scan, truth + [0.3, 0.2, 0.05], corridor=True)
+    assert r.success and pose_error(r.pose, truth)[0] < 0.1
+
+
+# ------------------------------------------------------------------------------------------ cache
+
+
+def test_stack_cache_is_lru_under_its_budget(mapped):
+    grids = [s.grid for s in mapped.submaps[:4]]
+    size = [StackCache(1 << 40, 7).get(i, g).memory_bytes for i, g in enumerate(grids[:3])]
+    cache = StackCache(size[0] + max(size[1], size[2]), 7)
+    cache.get(0, grids[0])
+    cache.get(1, grids[1])
+    assert cache.get(0, grids[0]) is cache.get(0, grids[0])  # hits
+    cache.get(2, grids[2])  # evicts 1, the least recently used
+    assert 0 in cache and 2 in cache and 1 not in cache
+    assert cache.evictions == 1 and cache.bytes <= cache.budget_bytes
+    tiny = StackCache(1, 7)
+    tiny.get(0, grids[0])
+    tiny.get(1, grids[1])
+    assert len(tiny) == 1 and 1 in tiny  # the one in use is always kept
+
+
+def test_relocalizer_reuses_stacks_across_queries(mapped, queries):
+    _, qs = queries
+    rel = Relocalizer(mapped)
+    scan, truth = qs[2]
+    rel.relocalize(scan, truth)
+    built = rel.cache.misses
+    rel.relocalize(scan, truth)
+    assert rel.cache.misses == built and rel.cache.hits > 0
+
+
+# ------------------------------------------------------------------------------------------ errors
+
+
+def test_prior_outside_the_map_is_an_error(relocalizer, queries):
+    scan, _ = queries[1][0]
+    with pytest.raises(CartoError, match=r"initial pose 200,-50 is \d+\.\d m from the nearest submap"):
+        relocalizer.relocalize(scan, (200.0, -50.0, 0.0))
+    with pytest.raises(CartoError, match="finite"):
+        relocalizer.relocalize(scan, (math.nan, 0.0, 0.0))
+    with pytest.raises(CartoError, match="sigma"):
+        relocalizer.relocalize(scan, (1.0, 1.0, 0.0), sigma_xy=-1.0)
+
+
+def test_corrupt_map_is_a_format_error(mapped, tmp_path):
+    data = bytearray(mapped.path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    bad = tmp_path / "bad.carto"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(FormatError):
+        load_map(bad)
+
+
+class _NoScans:
+    path = "empty.bag"
+
+    def topics(self):
+        from carto_cli.io.recording import TopicInfo
+
+        return [TopicInfo("/scan", "sensor_msgs/msg/LaserScan", 0)]
+
+    def preferred_topic(self, kind):
+        return None
+
+    def records(self, topics=None):
+        return iter(())
+
+
+def test_recording_without_scans_is_an_error(relocalizer):
+    with pytest.raises(CartoError, match="no scans|no laser scan topic"):
+        scan_at(_NoScans(), time=1.0)
+    with pytest.raises(CartoError, match="no scans|no laser scan topic"):
+        relocalize_many(relocalizer, _NoScans(), [Query(1.0, None, None)])
+
+
+def test_scan_at(queries):
+    sim, _ = queries
+    rec = sim.recording()
+    i, scan = scan_at(rec, time=1010.07)
+    assert i == 50 and scan.time == pytest.approx(1010.0)
+    i, scan = scan_at(rec, index=3)
+    assert i == 3 and scan.time == pytest.approx(1000.6)
+    with pytest.raises(CartoError, match="beyond the recording's 350 scans"):
+        scan_at(rec, index=10_000)
+    with pytest.raises(CartoError, match="no scan within"):
+        scan_at(rec, time=5000.0)
+
+
+# ------------------------------------------------------------------------------------------ queries + batch
+
+
+def test_parse_pose():
+    assert parse_pose("1.5,-2,90deg") == pytest.approx((1.5, -2.0, math.pi / 2))
+    assert parse_pose("1 2 0.5") == (1.0, 2.0, 0.5)
+    for bad in ("1,2", "a,2,3", "1,2,3rad", "1,2,inf"):
+        with pytest.raises(CartoError, match="--initial-pose"):
+            parse_pose(bad)
+
+
+def test_read_queries_formats_and_errors(tmp_path):
+    p = tmp_path / "q.txt"
+    p.write_text("# header comment\n\n1000.5 1 2 0.5\n1001.0, 3, 4, 90deg, 0.3, 5deg  # sigmas\n1002 - - -\n")
+    q = read_queries(p)
+    assert [x.time for x in q] == [1000.5, 1001.0, 1002.0] and all(x.index is None for x in q)
+    assert q[1].prior == pytest.approx((3, 4, math.pi / 2)) and q[1].sigma_xy == 0.3
+    assert q[1].sigma_yaw == pytest.approx(math.radians(5)) and q[2].prior is None and q[2].line == 5
+    p.write_text("index x y yaw\n7 1 2 0.5\n")
+    q = read_queries(p)
+    assert q[0].index == 7 and q[0].time is None
+    cases = {
+        "": "no queries",
+        "1 2 3\n": "line 1: expected 4 fields",
+        "1 2 3 4 5\n": "line 1: expected 4 fields",
+        "1 a 3 4\n": "line 1: x must be a number",
+        "1 2 - 4\n": "line 1: give all of x, y, yaw",
+        "1 2 3 4\nt x y yaw\n": "line 2: expected a query",
+        "foo x y yaw\n": "line 1: the first column",
+        "t a b c\n": "line 1: header must be",
+        "index x y yaw\n1.5 1 2 3\n": "line 2: scan index must be a whole number",
+        "1 2 3 4 -1 5\n": "line 1: sigmas must be positive",
+        "1 2 3 4deg2\n": "line 1: yaw must be",
+    }
+    for text, message in cases.items():
+        p.write_text(text)
+        with pytest.raises(CartoError, match=message):
+            read_queries(p)
+    with pytest.raises(CartoError, match="no such queries file"):
+        read_queries(tmp_path / "missing.txt")
+
+
+def test_relocalize_many_writes_a_csv_and_summarises(relocalizer, queries, tmp_path):
+    sim, qs = queries
+    (s0, t0), (s1, t1), (s2, t2) = qs[4], qs[12], qs[25]
+    p = tmp_path / "q.txt"
+    p.write_text(f"t x y yaw\n{s0.time + 0.04} {t0[0] + 0.5} {t0[1]} {t0[2]}\n"
+                 f"{s1.time} {t1[0]} {t1[1] - 0.4} {t1[2] + 0.1} 0.2 5deg\n"
+                 f"{s2.time} {t2[0]} {t2[1]} {t2[2]}\n")
+    results, summary = relocalize_many(relocalizer, sim.recording(), read_queries(p))
+    assert [r.scan_time for r in results] == pytest.approx([s0.time, s1.time, s2.time])
+    for r, truth in zip(results, (t0, t1, t2)):
+        assert r.result.success and pose_error(r.result.pose, truth)[0] < 0.1
+    assert summary.queries == 3 and summary.success_rate == 1.0
+    assert summary.p50_ms <= summary.p95_ms <= summary.p99_ms <= summary.max_ms
+    assert summary.paths["windowed"] == 3
+    out = write_results_csv(tmp_path / "out" / "results.csv", results)
+    lines = out.read_text().splitlines()
+    assert lines[0].split(",") == list(CSV_COLUMNS) and len(lines) == 4
+    assert lines[1].split(",")[CSV_COLUMNS.index("path")] == "windowed"
+    assert not [f for f in out.parent.iterdir() if f.name.startswith(".")]  # no temporary left behind
+    d = results[0].result.to_dict()
+    assert d["path"] == "windowed" and set(d["timings_ms"]) == {"submap preparation", "pose search",
+                                                                "scan scoring", "other"}
