@@ -24,7 +24,6 @@ import numpy as np
 from numba import njit
 
 from carto_cli.mapping.grid import VALUE_TO_PROBABILITY
-from carto_cli.transform import normalize_angle
 
 
 class CorrelativeResult(NamedTuple):
@@ -136,5 +135,5 @@ def match(grid, points, initial_pose, *, linear_search_window: float = 0.1,
                                params.num_angular_perturbations, params.angular_step, grid.resolution,
                                float(translation_delta_cost_weight), float(rotation_delta_cost_weight))
     dtheta = (k - params.num_angular_perturbations) * params.angular_step
-    pose = np.array([x0 + dx * grid.resolution, y0 + dy * grid.resolution, normalize_angle(th0 + dtheta)])
+    pose = np.array([x0 + dx * grid.resolution, y0 + dy * grid.resolution, (th0 + dtheta + math.pi) % (2.0 * math.pi) - math.pi])
     return CorrelativeResult(pose, float(score))

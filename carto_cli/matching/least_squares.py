@@ -23,7 +23,6 @@ import numpy as np
 from numba import njit
 
 from carto_cli.mapping.grid import VALUE_TO_CORRESPONDENCE_COST
-from carto_cli.transform import normalize_angle
 from carto_cli.matching.interpolation import cost_and_gradient
 
 
@@ -185,7 +184,7 @@ def match(grid, points, initial_pose, target_translation=None, *, occupied_space
         grid.cells, VALUE_TO_CORRESPONDENCE_COST, grid.origin[0], grid.origin[1], 1.0 / grid.resolution, pts,
         x0, y0, th0, tx, ty, s_occ, float(translation_weight), float(rotation_weight), int(max_num_iterations),
         float(function_tolerance), float(gradient_tolerance), float(parameter_tolerance))
-    pose[2] = normalize_angle(pose[2])
+    pose[2] = (pose[2] + math.pi) % (2.0 * math.pi) - math.pi  # normalize_angle, minus numpy's scalar overhead
     return LeastSquaresResult(pose, float(cost), int(iterations), bool(converged), float(initial_cost))
 
 

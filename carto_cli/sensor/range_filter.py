@@ -14,6 +14,7 @@ scan's own time: de-skewing.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -36,12 +37,27 @@ class RangeData:
         return RangeData(np.zeros(2), np.empty((0, 2)), np.empty((0, 2)))
 
     def transformed(self, pose) -> "RangeData":
-        pose = transform.as_pose(pose)
+        x, y, theta = (float(v) for v in pose)
+        c, s = math.cos(theta), math.sin(theta)
+        ox, oy = float(self.origin[0]), float(self.origin[1])
         return RangeData(
-            transform.apply(pose, self.origin.reshape(1, 2))[0],
-            transform.apply(pose, self.returns),
-            transform.apply(pose, self.misses),
+            np.array([c * ox - s * oy + x, s * ox + c * oy + y]),
+            _transform_points(np.ascontiguousarray(self.returns, dtype=np.float64), x, y, c, s),
+            _transform_points(np.ascontiguousarray(self.misses, dtype=np.float64), x, y, c, s),
         )
+
+
+@njit(cache=True)
+def _transform_points(points, x, y, c, s):
+    """(n, 2) points mapped by the rigid transform (x, y, rotation with cos c, sin s); runs per node."""
+    n = points.shape[0]
+    out = np.empty((n, 2))
+    for i in range(n):
+        px = points[i, 0]
+        py = points[i, 1]
+        out[i, 0] = c * px - s * py + x
+        out[i, 1] = s * px + c * py + y
+    return out
 
 
 @njit(cache=True)
