@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import functools
 import json
-import sys
 from pathlib import Path
 from typing import Optional
 
@@ -212,6 +211,19 @@ def map_(
     typer.echo(f"{summary_line(result)} -> {outputs.yaml.parent}")
 
 
+def _finish_gates(gates, junit: Optional[Path], suite: str, label: str) -> None:
+    """JUnit output if asked, one stderr line per failed gate, exit 1 if any failed."""
+    from carto_cli.gates import write_junit
+
+    if junit is not None:
+        write_junit(junit, suite, gates)
+    failed = [g for g in gates if not g.passed]
+    for g in failed:
+        typer.echo(f"carto: {label}: {g.message}", err=True)
+    if failed:
+        raise typer.Exit(1)
+
+
 @app.command("eval")
 @handle_errors
 def eval_(
@@ -228,7 +240,7 @@ def eval_(
 ):
     """Score a trajectory: relation error (Kuemmerle et al.) and/or ATE + RPE against a ground truth."""
     from carto_cli.evaluate import evaluate, format_table, to_json
-    from carto_cli.gates import accuracy_gates, write_junit
+    from carto_cli.gates import accuracy_gates
 
     if relations is None and ground_truth is None:
         raise CartoError("give --relations FILE and/or --ground-truth FILE")
@@ -241,14 +253,7 @@ def eval_(
         typer.echo(format_table(result))
     if max_trans_error is None and max_rot_error is None:
         return
-    gates = accuracy_gates(data, max_trans_error, max_rot_error)
-    if junit is not None:
-        write_junit(junit, "carto.eval", gates)
-    failed = [g for g in gates if not g.passed]
-    for g in failed:
-        typer.echo(f"carto: gate failed: {g.message}", err=True)
-    if failed:
-        raise typer.Exit(1)
+    _finish_gates(accuracy_gates(data, max_trans_error, max_rot_error), junit, "carto.eval", "gate failed")
 
 
 @app.command("profile")
@@ -268,7 +273,7 @@ def profile_(
     max_scans: Optional[int] = typer.Option(None, "--max-scans", help="Profile only the first N scans."),
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates."""
-    from carto_cli.gates import compare_profiles, write_junit
+    from carto_cli.gates import compare_profiles
     from carto_cli.io.atomic import write_text_atomic
     from carto_cli.io.open import open_recording
     from carto_cli.io.recording import ReadOptions
@@ -300,14 +305,7 @@ def profile_(
     typer.echo(json.dumps(report, indent=2) if as_json else format_report(report))
     if base is None:
         return
-    gates = compare_profiles(report, base, max_regression)
-    if junit is not None:
-        write_junit(junit, "carto.profile", gates)
-    failed = [g for g in gates if not g.passed]
-    for g in failed:
-        typer.echo(f"carto: slower than baseline: {g.message}", err=True)
-    if failed:
-        raise typer.Exit(1)
+    _finish_gates(compare_profiles(report, base, max_regression), junit, "carto.profile", "slower than baseline")
 
 
 @app.command("relocalize")

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from carto_cli.errors import CartoError, FormatError
+from carto_cli.errors import CartoError
 from carto_cli.io.trajectory import Trajectory, parse_table, read_trajectory
 
 __all__ = [

@@ -8,7 +8,7 @@ from typing import Callable
 import numpy as np
 
 from carto_cli.io.recording import Recording
-from carto_cli.records import Imu, Odometry, Scan, Transform
+from carto_cli.records import Scan, Transform
 
 GAP_FACTOR = 3.0  # a gap is a period longer than this many median periods
 

@@ -138,8 +138,6 @@ def build_report(result, timer: StageTimer, options: Options, recording: str | P
 
 
 def format_report(report: dict) -> str:
-    from carto_cli.timing import report_tree_text  # noqa: F401  (the tree is rebuilt from JSON below)
-
     c = report["counts"]
     lines = [
         f"recording   {report['recording']}",

@@ -5,7 +5,7 @@ radians. Arrays are numpy and never shared with the decoder's buffers.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import math
 
 import numpy as np

@@ -10,7 +10,7 @@ from typing import Iterable, Iterator
 from carto_cli.errors import CartoError, FormatError, TopicError
 from carto_cli.io import messages
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
-from carto_cli.io.rosbag_source import describe_exception, with_path
+from carto_cli.io.decode_errors import translate_errors
 from carto_cli.records import Record, Transform
 
 _MAGIC = b"\x89MCAP0\r\n"
@@ -31,16 +31,8 @@ class McapRecording(Recording):
 
     # -- errors and plumbing ----------------------------------------------------
 
-    @contextlib.contextmanager
     def _translate_errors(self):
-        try:
-            yield
-        except CartoError as e:
-            if e.path is not None:
-                raise
-            raise with_path(e, self.path) from e
-        except Exception as e:  # noqa: BLE001 - mcap fails in many ways on bad input
-            raise FormatError(f"corrupt or truncated MCAP file: {describe_exception(e)}", self.path) from e
+        return translate_errors(self.path, "MCAP file")
 
     @contextlib.contextmanager
     def _open(self):

@@ -13,7 +13,7 @@ import numpy as np
 
 from carto_cli.errors import TopicError
 from carto_cli.io.recording import ReadOptions, kind_of, normalise_type
-from carto_cli.records import Imu, Odometry, Record, Scan, Transform, quaternion_yaw
+from carto_cli.records import Imu, Odometry, Record, Scan, Transform, beam_angles, quaternion_yaw
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 MULTI_ECHO = "sensor_msgs/msg/MultiEchoLaserScan"
@@ -78,10 +78,6 @@ def _vec3(v: Any) -> np.ndarray:
 
 
 # --- scans ------------------------------------------------------------------
-
-def beam_angles(angle_min: float, angle_increment: float, n: int) -> np.ndarray:
-    """Bearings of an evenly spaced scan, computed in float32 like the sensor drivers do."""
-    return np.float32(angle_min) + np.arange(n, dtype=np.float32) * np.float32(angle_increment)
 
 
 def scan_from_laserscan(msg: Any, topic: str = "") -> Scan:

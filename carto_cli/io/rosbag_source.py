@@ -2,35 +2,14 @@
 from __future__ import annotations
 
 import contextlib
-import traceback
 from pathlib import Path
 from typing import Iterable, Iterator
 
 from carto_cli.errors import CartoError, FormatError, TopicError
 from carto_cli.io import messages
+from carto_cli.io.decode_errors import translate_errors
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
 from carto_cli.records import Record, Transform
-
-
-def describe_exception(e: BaseException) -> str:
-    """A one-line account of a library failure; bare asserts get the failing source line."""
-    text = str(e).strip()
-    if isinstance(e, KeyError) and e.args:
-        text = f"unknown key {e.args[0]!r}"
-    if text:
-        return text.splitlines()[0]
-    frames = traceback.extract_tb(e.__traceback__)
-    if frames:
-        last = frames[-1]
-        line = (last.line or "").strip()
-        what = "consistency check failed" if isinstance(e, AssertionError) else type(e).__name__
-        return f"{what} in {last.name}: {line}" if line else f"{what} in {last.name}"
-    return type(e).__name__
-
-
-def with_path(e: CartoError, path: Path) -> CartoError:
-    """The same error naming ``path`` (messages.py cannot know which file a message came from)."""
-    return type(e)(e.message, path)
 
 
 def _check_sqlite_size(db: Path) -> None:
@@ -116,16 +95,8 @@ class RosbagRecording(Recording):
 
     # -- errors ---------------------------------------------------------------
 
-    @contextlib.contextmanager
     def _translate_errors(self):
-        try:
-            yield
-        except CartoError as e:
-            if e.path is not None:
-                raise
-            raise with_path(e, self.path) from e
-        except Exception as e:  # noqa: BLE001 - rosbags fails in many ways on bad input
-            raise FormatError(f"corrupt or truncated {self._what}: {describe_exception(e)}", self.path) from e
+        return translate_errors(self.path, self._what)
 
     # -- Recording --------------------------------------------------------------
 
