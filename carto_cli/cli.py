@@ -271,6 +271,8 @@ def profile_(
     calibrate: bool = typer.Option(False, "--calibrate", help="Time a reference kernel first and compare normalized times."),
     junit: Optional[Path] = typer.Option(None, "--junit", help="Write the gates' outcome as JUnit XML."),
     max_scans: Optional[int] = typer.Option(None, "--max-scans", help="Profile only the first N scans."),
+    relocalize_map: Optional[Path] = typer.Option(
+        None, "--relocalize", help="Also profile relocalizing every 10th scan of RECORDING in this map.carto."),
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates."""
     from carto_cli.gates import compare_profiles
@@ -300,9 +302,19 @@ def profile_(
             result = build(rec, options, selection=selection, timer=timer, on_scan=bar.advance, max_scans=max_scans)
     timer.stop()
     report = build_report(result, timer, options, recording, calibration)
+    if relocalize_map is not None:
+        from carto_cli.io.map_file import load_map
+        from carto_cli.profiling import profile_relocalization
+
+        with open_recording(recording, ReadOptions(min_z=tb.min_z, max_z=tb.max_z)) as rec:
+            report["relocalization"] = profile_relocalization(load_map(relocalize_map), rec, scan_topic=scan_topic)
     if output is not None:
         write_text_atomic(output, json.dumps(report, indent=2) + "\n")
     typer.echo(json.dumps(report, indent=2) if as_json else format_report(report))
+    if not as_json and "relocalization" in report:
+        from carto_cli.profiling import format_relocalization
+
+        typer.echo("\n" + format_relocalization(report["relocalization"]))
     if base is None:
         return
     _finish_gates(compare_profiles(report, base, max_regression), junit, "carto.profile", "slower than baseline")

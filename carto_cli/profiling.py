@@ -189,3 +189,75 @@ def _tree_text(timing: dict) -> str:
     for r in [header] + rows:
         out.append("  ".join([r[0].ljust(widths[0])] + [r[i].rjust(widths[i]) for i in range(1, len(r))]).rstrip())
     return "\n".join(out)
+
+
+def profile_relocalization(loaded_map, recording, *, every: int = 10, max_queries: int = 200,
+                           perturb_xy: float = 0.5, perturb_yaw: float = math.radians(5.0), seed: int = 0,
+                           scan_topic: str | None = None) -> dict:
+    """Relocalize every ``every``-th scan of ``recording`` in ``loaded_map`` and time the buckets.
+
+    Priors are the map's own trajectory at the scan's time, perturbed uniformly by up to
+    ``perturb_xy`` / ``perturb_yaw``, so the recording should be (a drive through) the mapped
+    one; scans outside the mapped time span get a global search. The first query pays for
+    building precomputation grids and loading kernels; it is reported apart.
+    """
+    from carto_cli.errors import CartoError
+    from carto_cli.evaluate import interpolate_poses
+    from carto_cli.relocalize import TIMING_BUCKETS, Relocalizer
+    from carto_cli.io.topics import select_topics
+
+    relocalizer = Relocalizer(loaded_map)
+    topic = select_topics(recording, scan_topic=scan_topic).scan
+    rng = np.random.default_rng(seed)
+    traj = loaded_map.trajectory
+    results = []
+    for i, record in enumerate(recording.records([topic])):
+        if i % every:
+            continue
+        prior = None
+        if traj is not None:
+            xy, th, valid = interpolate_poses(traj, np.array([record.time]))
+            if valid[0]:
+                dx, dy = rng.uniform(-perturb_xy, perturb_xy, 2)
+                prior = (xy[0, 0] + dx, xy[0, 1] + dy, th[0] + rng.uniform(-perturb_yaw, perturb_yaw))
+        results.append(relocalizer.relocalize(record, prior))
+        if len(results) >= max_queries:
+            break
+    if not results:
+        raise CartoError("no scans to relocalize", recording.path)
+    first, rest = results[0], results[1:] or results[:1]
+
+    def stats(values) -> dict:
+        v = np.asarray(values, dtype=np.float64)
+        return {"mean_ms": float(v.mean()), "p50_ms": float(np.percentile(v, 50)),
+                "p95_ms": float(np.percentile(v, 95)), "p99_ms": float(np.percentile(v, 99))}
+
+    total = stats([r.total_ms for r in rest])
+    buckets = {b: stats([r.timings[b] for r in rest]) for b in TIMING_BUCKETS}
+    for b in buckets.values():
+        b["share"] = b["mean_ms"] / total["mean_ms"] if total["mean_ms"] > 0 else None
+    paths: dict[str, int] = {}
+    for r in results:
+        paths[r.path] = paths.get(r.path, 0) + 1
+    return {
+        "queries": len(results),
+        "success_rate": sum(bool(r.success) for r in results) / len(results),
+        "first_query_ms": first.total_ms,
+        "total": total,
+        "stages": buckets,
+        "paths": paths,
+    }
+
+
+def format_relocalization(rel: dict) -> str:
+    t = rel["total"]
+    lines = [f"relocalization: {rel['queries']} queries, {100 * rel['success_rate']:.1f}% reliable, "
+             f"p50 {t['p50_ms']:.2f} ms, p95 {t['p95_ms']:.2f} ms, p99 {t['p99_ms']:.2f} ms "
+             f"(first query {rel['first_query_ms']:.0f} ms: grids and kernels)",
+             f"  {'stage':<20} {'mean ms':>8} {'share':>6} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8}"]
+    for name, s in rel["stages"].items():
+        share = "" if s["share"] is None else f"{100 * s['share']:.1f}%"
+        lines.append(f"  {name:<20} {s['mean_ms']:>8.2f} {share:>6} {s['p50_ms']:>8.2f} {s['p95_ms']:>8.2f} "
+                     f"{s['p99_ms']:>8.2f}")
+    lines.append("  paths: " + ", ".join(f"{k} {v}" for k, v in rel["paths"].items()))
+    return "\n".join(lines)

@@ -143,3 +143,25 @@ def test_cli_eval_gates(tmp_path):
                               "--junit", str(tmp_path / "e.xml")])
     assert bad.exit_code == 1 and "gate failed" in bad.stderr
     ET.parse(tmp_path / "e.xml")
+
+
+def test_relocalization_profile(tmp_path, report):
+    from support import SAMPLE_BAG
+
+    from carto_cli.io.map_file import load_map, save_map
+    from carto_cli.io.open import open_recording
+    from carto_cli.profiling import profile_relocalization
+
+    options = load_options("office")
+    with open_recording(SAMPLE_BAG) as rec:
+        result = build(rec, options, max_scans=120)
+    path = save_map(tmp_path / "m.carto", result, options)
+    with open_recording(SAMPLE_BAG) as rec:
+        rel = profile_relocalization(load_map(path), rec, every=15, max_queries=8)
+    assert rel["queries"] == 8
+    assert set(rel["stages"]) == {"submap preparation", "pose search", "scan scoring", "other"}
+    shares = sum(s["share"] for s in rel["stages"].values())
+    assert shares == pytest.approx(1.0, abs=0.02)
+    assert rel["success_rate"] >= 0.75  # the first 120 scans are in the map; later ones mostly overlap it
+    full = dict(report, relocalization=rel)
+    jsonschema.validate(json.loads(json.dumps(full)), json.loads(SCHEMA_PATH.read_text()))
