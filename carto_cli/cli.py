@@ -430,5 +430,48 @@ def profiles_show(
         typer.echo(dump_options_yaml(options).rstrip())
 
 
+@app.command("tune")
+@handle_errors
+def tune_(
+    recordings: list[Path] = typer.Argument(..., help="One or more recordings; a trial maps them all."),
+    space: Optional[Path] = typer.Option(None, "--space", help="Search space YAML (default: the base profile's)."),
+    trials: int = typer.Option(20, "--trials", help="Trials to add in this run (a rerun resumes the study)."),
+    objective: str = typer.Option(
+        "auto", "--objective", help="relations, ground-truth, relocalization, map-quality or auto."),
+    relations: Optional[list[Path]] = typer.Option(None, "--relations", help="Relations file per recording."),
+    ground_truth: Optional[list[Path]] = typer.Option(None, "--ground-truth", help="Reference trajectory per recording."),
+    profile: Optional[str] = PROFILE,
+    overrides: Optional[list[str]] = SET,
+    time_weight: float = typer.Option(0.0, "--time-weight", help="Add W x (ms per scan) to the objective."),
+    storage: Optional[str] = typer.Option(
+        None, "--storage", help="Optuna storage URL (default: sqlite next to -o; postgresql://... to share)."),
+    study: Optional[str] = typer.Option(None, "--study", help="Study name (default: the output's stem)."),
+    n_jobs: int = typer.Option(1, "--n-jobs", help="Trials in parallel, each in its own process."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Seed of the TPE sampler."),
+    max_scans: Optional[int] = typer.Option(None, "--max-scans", help="Map only the first N scans of each recording."),
+    out: Path = typer.Option(..., "--output", "-o", help="The tuned profile (YAML over the base profile)."),
+):
+    """Search options against a measured objective (Optuna TPE) and write the best as a profile."""
+    from carto_cli.progress import progress
+    from carto_cli.tune import tune
+    from carto_cli.tune_space import default_space_path
+
+    space_path = space if space is not None else default_space_path(profile)
+    with progress("tuning", trials, state.quiet) as bar:
+        def on_trial(number, value, best):
+            bar.advance()
+            if best is not None:
+                bar.set_description(f"tuning (best {best:.4g})")
+
+        result = tune(recordings, space_path, trials=trials, out=out, objective=objective, relations=relations,
+                      ground_truth=ground_truth, base_profile=profile, overrides=overrides or [],
+                      time_weight=time_weight, storage=storage, study_name=study, n_jobs=n_jobs, seed=seed,
+                      max_scans=max_scans, on_trial=on_trial)
+    base = "" if result.baseline_value is None else f" (base profile {result.baseline_value:.4g})"
+    typer.echo(f"{result.n_trials} trials ({result.n_complete} complete, {result.n_pruned} pruned, "
+               f"{result.n_failed} failed); best {result.objective} {result.best_value:.4g}{base} -> "
+               f"{result.profile_path}, {result.csv_path.name}, {result.png_path.name}")
+
+
 def main() -> None:
     app(prog_name="carto")
