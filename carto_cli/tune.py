@@ -409,13 +409,22 @@ class _Job:
     startup: int
 
 
+def _storage(url: str):
+    """SQLite studies shared by several processes: wait for the file lock instead of failing a trial."""
+    import optuna
+
+    if url.startswith("sqlite:"):
+        return optuna.storages.RDBStorage(url, engine_kwargs={"connect_args": {"timeout": 120}})
+    return url
+
+
 def _load_study(job: _Job, worker: int):
     import optuna
 
     seed = None if job.seed is None else job.seed + worker
     sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=job.startup)
     pruner = optuna.pruners.MedianPruner(n_startup_trials=3, n_warmup_steps=0)
-    return optuna.load_study(study_name=job.study_name, storage=job.storage, sampler=sampler, pruner=pruner)
+    return optuna.load_study(study_name=job.study_name, storage=_storage(job.storage), sampler=sampler, pruner=pruner)
 
 
 def _objective(job: _Job):
@@ -557,7 +566,7 @@ def tune(
     out.parent.mkdir(parents=True, exist_ok=True)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     try:
-        study = optuna.create_study(study_name=study_name, storage=storage, direction="minimize",
+        study = optuna.create_study(study_name=study_name, storage=_storage(storage), direction="minimize",
                                     load_if_exists=True)
     except Exception as e:
         raise CartoError(f"cannot open the study storage {storage}: {e}") from None
@@ -575,7 +584,13 @@ def tune(
         signal.signal(signal.SIGINT, _on_sigint)
     workers: list = []
     try:
-        shares = [trials // n_jobs + (1 if i < trials % n_jobs else 0) for i in range(n_jobs)]
+        remaining = trials
+        if n_jobs > 1 and remaining and any(t.state == optuna.trial.TrialState.WAITING for t in study.trials):
+            # Optuna hands an enqueued trial to whichever process asks first, and two processes can
+            # both take it ("Cannot tell a COMPLETE trial"): run the baseline here before forking.
+            _run(job, 0, 1, on_trial)
+            remaining -= 1
+        shares = [remaining // n_jobs + (1 if i < remaining % n_jobs else 0) for i in range(n_jobs)]
         if n_jobs > 1:
             ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
             for w in range(1, n_jobs):
@@ -586,6 +601,10 @@ def tune(
         _run(job, 0, shares[0], on_trial)
         for p in workers:
             p.join()
+        failed = [p.exitcode for p in workers if p.exitcode]
+        if failed:
+            raise CartoError(f"{len(failed)} tuning worker process(es) failed (exit codes {failed}); "
+                             "the study keeps every trial that finished")
     finally:
         for p in workers:
             if p.is_alive():

@@ -207,10 +207,32 @@ def test_tune_rejects_bad_inputs(sim, tmp_path):
         tune([rec], grid_space, trials=1, out=tmp_path / "x.yaml")
 
 
-def test_parallel_processes_share_the_study(sim, tmp_path):
-    space = {"trajectory_builder_2d.ceres_scan_matcher.translation_weight": {"low": 0.1, "high": 1.0e4, "log": True}}
-    seen = []
-    result = tune([sim.recording()], space, trials=4, n_jobs=2, ground_truth=[sim.ground_truth], seed=0,
-                  max_scans=40, out=tmp_path / "p.yaml", on_trial=lambda n, v, b: seen.append(n))
-    assert result.n_trials == 4 and result.n_complete == 4
-    assert 1 <= len(seen) < 4  # this process ran its share; the worker process ran the rest
+PARALLEL_SCRIPT = """
+import sys
+from pathlib import Path
+from carto_cli.sim.recording import simulate
+from carto_cli.sim.trajectory import loop_trajectory
+from carto_cli.sim.world import loop_building
+from carto_cli.tune import tune
+
+world = loop_building()
+sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, beams=180)
+space = {"trajectory_builder_2d.ceres_scan_matcher.translation_weight": {"low": 0.1, "high": 1.0e4, "log": True}}
+seen = []
+result = tune([sim.recording()], space, trials=4, n_jobs=2, ground_truth=[sim.ground_truth], seed=0,
+              max_scans=40, out=Path(sys.argv[1]), on_trial=lambda n, v, b: seen.append(n))
+print(result.n_trials, result.n_complete, len(seen))
+"""
+
+
+def test_parallel_processes_share_the_study(tmp_path):
+    # In a fresh interpreter, as `carto tune --n-jobs 2` runs: forking pytest's own process is not what users do.
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", PARALLEL_SCRIPT, str(tmp_path / "p.yaml")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    n_trials, n_complete, seen = map(int, done.stdout.split()[-3:])
+    assert n_trials == 4 and n_complete == 4
+    assert 1 <= seen < 4  # this process ran its share; the worker process ran the rest
