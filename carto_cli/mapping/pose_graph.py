@@ -224,7 +224,10 @@ class PoseGraph:
 
         self._nodes_since_optimization += 1
         n_every = self.pg.optimize_every_n_nodes
-        if n_every > 0 and self._nodes_since_optimization >= n_every:
+        # Without loop closure the graph holds only local-SLAM, intra-submap and odometry
+        # constraints: optimizing it would only pull the trajectory towards the odometry,
+        # so "local SLAM only" (--no-loop-closure) must not optimize at all.
+        if self.loop_closure and n_every > 0 and self._nodes_since_optimization >= n_every:
             self.optimize(final=False)
         return node
 

@@ -162,3 +162,26 @@ def test_loop_closures_are_mostly_correct(two_laps):
     # keeps from bending the map (see test_loop_closure_removes_most_of_the_local_drift).
     assert np.median(errors) < 0.1
     assert np.mean(errors < 0.3) > 0.55
+
+
+def test_no_optimization_runs_without_loop_closure():
+    """--no-loop-closure is local SLAM only: optimize_every_n_nodes must not fire."""
+    g = _graph("pose_graph.optimize_every_n_nodes=2", loop_closure=False)
+    sm = _FakeSubmap(0)
+    g.add_odometry(0.0, (0.0, 0.0, 0.0))
+    g.add_odometry(10.0, (10.0, 0.0, 0.0))
+    for i in range(6):
+        g.add_node(float(i), (1.1 * i, 0.0, 0.0), np.zeros((0, 2)), [sm])
+    assert g.stats.optimizations == 0
+    np.testing.assert_allclose(g.global_poses[:, 0], 1.1 * np.arange(6))
+
+
+@pytest.mark.parametrize("profile", ["wheeled", "sparse"])
+def test_mapping_profiles_load_and_keep_loop_closure_cheap(profile):
+    o = load_options(profile)
+    assert o.trajectory_builder_2d.ceres_scan_matcher.rotation_weight == 1.0
+    assert o.pose_graph.constraint_builder.fast_correlative_scan_matcher.multilevel
+    if profile == "wheeled":
+        # just under the bench-dense sensor's 30 m, so 'no return' readings are not hits
+        assert o.trajectory_builder_2d.max_range < 30.0
+        assert o.pose_graph.constraint_builder.min_search_distance > 0
