@@ -1,0 +1,1123 @@
+"""The SLAM benchmark harness behind ``bench/run``.
+
+Runs every benchmark case in a fresh subprocess of its own (one at a time), so
+that each case's peak memory (``ru_maxrss`` of that process, from ``wait4``) and
+numba start-up are measured on their own, then writes ``docs/benchmarks.md``.
+
+Cases (``--list`` prints them):
+
+* ``bench/<case>``: every directory of ``$DATA/bench`` — sparse real key scans of
+  the Radish logs with drifting odometry; named by the directory (``intel``).
+* ``bench-dense/<case>``: every directory of ``$DATA/bench-dense`` — dense 10 Hz
+  scans simulated in the same buildings; named ``dense-<case>``.
+* ``ccny``: the real CCNY bag (``data/ccny_laser_scan_matcher_demo.bag``), no
+  reference: speed and loop closures only.
+* ``sim-loop``: ``carto_cli.sim``'s loop building driven for 10 minutes (several
+  laps) at 10 Hz; relations are built here from the exact ground truth.
+
+Per case: relation error (mean ± std, translational m and rotational deg), ATE
+where there is ground truth, the odometry's own relation error on the same
+relations, wall time split into local SLAM / constraint search / optimization
+from the StageTimer, scans/s, loop closures and the share of them that agree
+with the reference, peak memory. What exactly is computed is written into the
+generated document (``METHOD`` below).
+
+    bench/run [--cases intel,aces,dense,...] [--quick] [--set k=v ...] [--profile NAME]
+
+A case that fails (an exception, a crash, the per-case timeout) shows as
+"failed: <reason>" and the others go on. Raw results (one JSON per case, the
+stage trees, maps and trajectories) go to ``--results`` (default a fresh
+directory under ``$TMPDIR/carto-bench``). The cases run a copy of ``carto_cli``
+taken when the run starts (``--no-snapshot``: the working tree), so that a long
+run in a tree others edit measures one version of the code; the document names
+the commit, whether the tree was dirty and a fingerprint of the sources.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import datetime as _dt
+import json
+import math
+import os
+import platform
+import re
+import hashlib
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import traceback
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("CARTO_BENCH_DATA", "/work/shared/data"))
+CCNY_BAG = REPO / "data" / "ccny_laser_scan_matcher_demo.bag"
+DEFAULT_DOC = REPO / "docs" / "benchmarks.md"
+
+QUICK_SCANS = 1500          # --quick: the first scans of every case (intel, aces and ccny have fewer: in full)
+SIM_DURATION = 600.0        # s of the simulated loop-building recording
+SIM_SEED = 0
+LC_TOLERANCE_M = 0.2        # a loop closure is correct within these of the reference
+LC_TOLERANCE_DEG = 1.0
+DEFAULT_TIMEOUT = 6 * 3600  # s per case
+
+FAMILIES = {
+    "bench": "bench/ — sparse real key scans (Radish logs), drifting odometry",
+    "bench-dense": "bench-dense/ — dense 10 Hz scans simulated in the same buildings",
+    "sim": "Simulated loop building (carto_cli.sim), exact ground truth",
+    "ccny": "Real ROS bag without reference (CCNY Hokuyo demo)",
+}
+# The profile each family is mapped with under `--profile auto` (the default): the settings a user of
+# that kind of data would pick, each measured in its own file's comments.
+FAMILY_PROFILES = {"bench": "sparse", "bench-dense": "wheeled", "sim": "wheeled", "ccny": "office"}
+
+
+def profile_for(case: "Case", profile: str | None) -> str | None:
+    if profile in (None, "auto"):
+        return FAMILY_PROFILES.get(case.family)
+    return None if profile == "default" else profile
+
+
+FAMILY_ALIASES = {"bench": "bench", "sparse": "bench", "bench-dense": "bench-dense", "dense": "bench-dense",
+                  "sim": "sim", "ccny": "ccny", "real": "ccny"}
+
+
+# --------------------------------------------------------------------------- cases
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str                     # what --cases takes
+    family: str                   # key of FAMILIES
+    building: str                 # row label in the family's table
+    path: str | None              # recording (None: simulated)
+    relations: str | None = None
+    groundtruth: str | None = None
+    quick_scans: int | None = None  # scans in --quick mode (None: all)
+
+
+def discover_cases() -> list[Case]:
+    cases: list[Case] = []
+    for family, prefix in (("bench", ""), ("bench-dense", "dense-")):
+        root = DATA / family
+        if not root.is_dir():
+            continue
+        order = {"intel": 0, "aces": 1, "freiburg-079": 2}  # PEERS.md's order, then the rest by name
+        for d in sorted((p for p in root.iterdir() if p.is_dir()), key=lambda p: (order.get(p.name, 9), p.name)):
+            rel, gt = d / "relations.txt", d / "groundtruth.txt"
+            cases.append(Case(prefix + d.name, family, d.name, str(d / "scans.clf.gz"),
+                              str(rel) if rel.is_file() else None, str(gt) if gt.is_file() else None,
+                              QUICK_SCANS))
+    cases.append(Case("ccny", "ccny", "ccny demo bag", str(CCNY_BAG), quick_scans=QUICK_SCANS))
+    cases.append(Case("sim-loop", "sim", f"loop building, {SIM_DURATION / 60:g} min", None, quick_scans=QUICK_SCANS))
+    return cases
+
+
+def select_cases(spec: str | None, cases: list[Case]) -> list[Case]:
+    """``--cases``: names (intel, dense-intel), bench/intel, bench-dense/intel, family names, 'all'."""
+    if not spec or spec.strip() == "all":
+        return cases
+    by_name = {c.name: c for c in cases}
+    chosen: list[Case] = []
+    for token in (t.strip() for t in spec.split(",")):
+        if not token:
+            continue
+        if token == "all":
+            found = cases
+        elif token in FAMILY_ALIASES:
+            found = [c for c in cases if c.family == FAMILY_ALIASES[token]]
+        elif token in by_name:
+            found = [by_name[token]]
+        elif "/" in token:
+            fam, _, building = token.partition("/")
+            fam = FAMILY_ALIASES.get(fam, fam)
+            found = [c for c in cases if c.family == fam and c.building == building]
+        else:
+            found = []
+        if not found:
+            raise SystemExit(f"bench/run: unknown case '{token}' (cases: {', '.join(by_name)}; "
+                             f"families: {', '.join(FAMILY_ALIASES)}; or 'all')")
+        chosen += [c for c in found if c not in chosen]
+    return chosen
+
+
+# --------------------------------------------------------------------------- worker (one case, own process)
+
+
+def _progress(case: Case, total: int | None):
+    state = {"n": 0, "t0": time.perf_counter(), "last": time.perf_counter()}
+
+    def on_scan(k: int) -> None:
+        state["n"] += k
+        now = time.perf_counter()
+        if now - state["last"] >= 30.0:
+            state["last"] = now
+            of = f"/{total}" if total else ""
+            print(f"[{case.name}] {state['n']}{of} scans, {now - state['t0']:.0f} s", file=sys.stderr, flush=True)
+
+    return on_scan
+
+
+def simulation_case(duration: float = SIM_DURATION, seed: int = SIM_SEED):
+    from carto_cli.sim import loop_building, loop_trajectory, simulate
+
+    world = loop_building()
+    one_lap = loop_trajectory(world, laps=1).duration
+    laps = int(math.ceil(duration / one_lap))
+    trajectory = loop_trajectory(world, laps=laps)
+    sim = simulate(world, trajectory, duration=duration, seed=seed)
+    return sim, laps, one_lap
+
+
+def relations_from_groundtruth(gt, *, step: int = 10, revisit_every: int = 5, min_dt: float = 30.0,
+                               max_dist: float = 3.0, max_angle_deg: float = 60.0, max_revisits: int = 3000,
+                               seed: int = 0):
+    """Relations in the recipe of bench-dense/README: (i, i+step) every step-th pose, plus revisits.
+
+    Revisits: poses subsampled every ``revisit_every`` (2 Hz at 10 Hz), every pair at least
+    ``min_dt`` apart whose poses are within ``max_dist`` and ``max_angle_deg``; a seeded
+    random ``max_revisits`` of them when there are more.
+    """
+    import numpy as np
+
+    from carto_cli.evaluate import Relations
+
+    t, xy, th = gt.t, gt.xy, gt.theta
+
+    def rel(i, j):
+        d = xy[j] - xy[i]
+        c, s = np.cos(th[i]), np.sin(th[i])
+        dth = (th[j] - th[i] + np.pi) % (2 * np.pi) - np.pi
+        return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], dth])
+
+    i1 = np.arange(0, len(t) - step, step)
+    j1 = i1 + step
+    sub = np.arange(0, len(t), revisit_every)
+    a, b = np.triu_indices(len(sub), k=1)
+    a, b = sub[a], sub[b]
+    dyaw = np.abs((th[b] - th[a] + np.pi) % (2 * np.pi) - np.pi)
+    ok = (t[b] - t[a] >= min_dt) & (np.hypot(*(xy[b] - xy[a]).T) <= max_dist) & (dyaw <= math.radians(max_angle_deg))
+    a, b = a[ok], b[ok]
+    candidates = len(a)
+    if len(a) > max_revisits:
+        keep = np.sort(np.random.default_rng(seed).choice(len(a), max_revisits, replace=False))
+        a, b = a[keep], b[keep]
+    i = np.concatenate([i1, a])
+    j = np.concatenate([j1, b])
+    return Relations(t[i].copy(), t[j].copy(), rel(i, j)), {"consecutive": int(len(i1)), "revisits": int(len(a)),
+                                                             "revisit_candidates": int(candidates)}
+
+
+def _pose_errors(a, b):
+    """Translational (m) and rotational (deg) differences of (n, 3) relative poses."""
+    import numpy as np
+
+    from carto_cli import transform
+
+    return (np.hypot(a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]),
+            np.degrees(np.abs(transform.normalize_angle(a[:, 2] - b[:, 2]))))
+
+
+def loop_closure_check(graph, reference) -> dict:
+    """Compare every loop closure with the reference (see METHOD in the document).
+
+    anchor: node i relative to the first node of submap j (the node whose scan started it);
+    nearest: node i relative to the node of submap j nearest to it in the reference, which
+    leaves out local SLAM's drift inside the submap between its first node and the place
+    where the scan matched. Also the submaps' own drift: each submap's nodes relative to its
+    first node, local SLAM against the reference.
+    """
+    import numpy as np
+
+    from carto_cli import transform
+    from carto_cli.evaluate import interpolate_poses
+
+    cs = graph.constraints
+    mask = np.asarray(cs.is_loop_closure, dtype=bool)
+    nodes = np.asarray(cs.node)[mask]
+    subs = np.asarray(cs.submap)[mask]
+    out: dict = {"total": int(mask.sum()), "correct": None, "checked": 0}
+    if reference is None:
+        return out
+    local = np.asarray(graph.local_poses)
+    node_times = np.asarray(graph.node_times, dtype=np.float64)
+    xy, th, valid = interpolate_poses(reference, node_times)
+    ref = np.column_stack([xy, th])                                 # reference pose of every node
+    members = [np.asarray(e.nodes, dtype=np.int64) for e in graph.submaps]
+
+    # Local SLAM's drift inside each submap, relative to its first node.
+    drift_m, drift_deg = [], []
+    for ns in members:
+        ns = ns[valid[ns]]
+        if len(ns) < 2:
+            continue
+        et, er = _pose_errors(transform.relative(local[ns[0]], local[ns]), transform.relative(ref[ns[0]], ref[ns]))
+        drift_m.append(float(et.max()))
+        drift_deg.append(float(er.max()))
+    if drift_m:
+        out.update(submap_drift_median_m=float(np.median(drift_m)), submap_drift_median_deg=float(np.median(drift_deg)),
+                   submap_drift_max_m=float(np.max(drift_m)), submap_drift_max_deg=float(np.max(drift_deg)))
+    if out["total"] == 0:
+        return out
+
+    rel = np.asarray(cs.relative)[mask]
+    implied_node = transform.compose(np.array([graph.submaps[j].local_pose for j in subs]), rel)  # local frame
+    first = np.array([members[j][0] for j in subs], dtype=np.int64)
+    nearest = np.empty_like(first)
+    for k, (i, j) in enumerate(zip(nodes, subs)):
+        ns = members[j][valid[members[j]]]
+        nearest[k] = ns[np.argmin(np.hypot(*(ref[ns, :2] - ref[i, :2]).T))] if len(ns) else members[j][0]
+    ok = valid[nodes] & valid[first] & valid[nearest]
+    out["checked"] = int(ok.sum())
+    if not ok.any():
+        return out
+    for label, anchor in (("anchor", first), ("nearest", nearest)):
+        et, er = _pose_errors(transform.relative(local[anchor], implied_node), transform.relative(ref[anchor], ref[nodes]))
+        et, er = et[ok], er[ok]
+        good = (et <= LC_TOLERANCE_M) & (er <= LC_TOLERANCE_DEG)
+        out[f"{label}_correct"] = int(good.sum())
+        out[f"{label}_share"] = float(good.mean())
+        out[f"{label}_median_m"] = float(np.median(et))
+        out[f"{label}_median_deg"] = float(np.median(er))
+        out[f"{label}_p90_m"] = float(np.percentile(et, 90))
+        out[f"{label}_p90_deg"] = float(np.percentile(er, 90))
+        out[f"{label}_over_1m"] = int((et > 1.0).sum())
+    out["correct"] = out["anchor_correct"]
+    out["share_correct"] = out["anchor_share"]
+    return out
+
+
+def _relation_dict(r) -> dict:
+    return {"trans_mean": r.translation.mean, "trans_std": r.translation.std, "rot_mean": r.rotation.mean,
+            "rot_std": r.rotation.std, "used": r.used, "skipped": r.skipped,
+            "trans_max": r.translation.max, "trans_median": r.translation.median}
+
+
+def _odometry_trajectory(recording, topic):
+    import numpy as np
+
+    from carto_cli.io.trajectory import Trajectory
+    from carto_cli.records import Odometry
+
+    rows = [(r.time, r.x, r.y, r.yaw) for r in recording.records([topic]) if isinstance(r, Odometry)]
+    if len(rows) < 2:
+        return None
+    a = np.array(rows, dtype=np.float64)
+    keep = np.concatenate([[True], np.diff(a[:, 0]) > 0])  # strictly increasing times
+    a = a[keep]
+    return Trajectory.from_arrays(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
+
+
+# Stage names of the StageTimer tree (carto_cli.timing). They are found by name wherever they sit, so
+# that moving a stage (e.g. the pose graph's work into or out of the per-scan stage) keeps the split right.
+JIT_STAGE, SCAN_STAGE, GLOBAL_STAGE = "jit warm-up", "scan", "global"
+CONSTRAINT_STAGE, OPTIMIZATION_STAGE = "loop closure", "optimization"
+LOCAL_DETAIL = ("preprocess", "extrapolate", "match", "motion filter", "insert")
+CONSTRAINT_DETAIL = ("candidate selection", "precomputation", "branch and bound", "refinement")
+
+
+def split_wall_time(snap) -> dict:
+    """Seconds of build's wall time: JIT, local SLAM, constraint search, optimization, other.
+
+    ``jit warm-up``, ``loop closure`` and ``optimization`` stages count wherever they are;
+    local SLAM is the rest of the ``scan`` stage except what runs inside a ``global``
+    stage there (the pose graph's bookkeeping, which goes to *other* with reading the
+    recording and map assembly).
+    """
+    b = {"jit_warmup_s": 0, "local_slam_s": 0, "constraint_search_s": 0, "optimization_s": 0}
+    special = {JIT_STAGE: "jit_warmup_s", CONSTRAINT_STAGE: "constraint_search_s",
+               OPTIMIZATION_STAGE: "optimization_s"}
+
+    def visit(node, in_scan: bool):
+        key = special.get(node.name)
+        if key is not None and node.path:
+            b[key] += node.total_ns
+            return
+        if node.path and node.name == GLOBAL_STAGE:
+            in_scan = False
+        elif node.path == SCAN_STAGE:
+            in_scan = True
+        if in_scan:
+            b["local_slam_s"] += node.self_ns
+        for c in node.children:
+            visit(c, in_scan)
+
+    visit(snap.root, False)
+    out = {k: v / 1e9 for k, v in b.items()}
+    out["other_s"] = snap.wall_ns / 1e9 - sum(out.values())
+    return out
+
+
+def stage_detail(snap) -> dict:
+    """Seconds in the sub-stages of local SLAM (children of ``scan``) and of the constraint search."""
+    out = {f"local/{n}": 0.0 for n in LOCAL_DETAIL}
+    out.update({f"constraint/{n}": 0.0 for n in CONSTRAINT_DETAIL})
+
+    def visit(node, parent: str, under_constraint: bool):
+        if parent == SCAN_STAGE and node.name in LOCAL_DETAIL:
+            out[f"local/{node.name}"] += node.total_ns / 1e9
+        if under_constraint and node.name in CONSTRAINT_DETAIL:
+            out[f"constraint/{node.name}"] += node.total_ns / 1e9
+            return
+        for c in node.children:
+            visit(c, node.path, under_constraint or node.name == CONSTRAINT_STAGE)
+
+    visit(snap.root, "", False)
+    return out
+
+
+def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str], outdir: Path) -> dict:
+    """Build the map of one case and measure it. Runs in the case's own process."""
+    t_import = time.perf_counter()
+    import numpy as np
+
+    from carto_cli.evaluate import Relations, ate, read_relations, relation_error
+    from carto_cli.io.map_writer import render_png, write_png
+    from carto_cli.io.open import open_recording
+    from carto_cli.io.recording import ReadOptions
+    from carto_cli.io.topics import select_topics
+    from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
+    from carto_cli.mapping.map_builder import build
+    from carto_cli.options import load_options
+    from carto_cli.timing import StageTimer, report_json, report_tree_text
+
+    import_s = time.perf_counter() - t_import
+    import carto_cli
+
+    package_dir = Path(carto_cli.__file__).resolve().parent
+    options = load_options(profile, overrides)
+    tb = options.trajectory_builder_2d
+    max_scans = case.quick_scans if quick else None
+    info: dict = {"import_s": import_s, "package": str(package_dir), "fingerprint": source_fingerprint(package_dir)}
+
+    t0 = time.perf_counter()
+    sim = None
+    if case.family == "sim":
+        sim, laps, lap_s = simulation_case()
+        recording = sim.recording()
+        info.update(sim_laps=laps, sim_lap_s=lap_s, sim_duration_s=SIM_DURATION, sim_seed=SIM_SEED)
+    else:
+        recording = open_recording(case.path, ReadOptions(min_z=tb.min_z, max_z=tb.max_z))
+    info["setup_s"] = time.perf_counter() - t0
+
+    with recording as rec:
+        selection = select_topics(rec)
+        total = next((t.count for t in rec.topics() if t.name == selection.scan), None)
+        timer = StageTimer()
+        result = build(rec, options, selection=selection, timer=timer, on_scan=_progress(case, total),
+                       max_scans=max_scans)
+        timer.stop()
+        t_eval = time.perf_counter()
+        odometry = None
+        if sim is not None:
+            odometry = Trajectory.from_arrays(sim.odometry[:, 0], sim.odometry[:, 1], sim.odometry[:, 2],
+                                              sim.odometry[:, 3])
+        elif selection.odometry:
+            odometry = _odometry_trajectory(rec, selection.odometry)
+
+    snap = timer.snapshot()
+    wall = snap.wall_ns / 1e9
+    stages = split_wall_time(snap)
+    detail = stage_detail(snap)
+
+    # ---- accuracy
+    traj = Trajectory.from_poses(result.times, result.poses)
+    reference = None
+    relations = None
+    rel_info = None
+    if sim is not None:
+        gt = sim.ground_truth
+        reference = Trajectory.from_arrays(gt[:, 0], gt[:, 1], gt[:, 2], gt[:, 3])
+        relations, rel_info = relations_from_groundtruth(reference)
+    else:
+        if case.groundtruth:
+            reference = read_trajectory(case.groundtruth)
+        if case.relations:
+            relations = read_relations(case.relations)
+    accuracy: dict = {}
+    if relations is not None:
+        r = relation_error(traj, relations)
+        accuracy["relations"] = _relation_dict(r)
+        if rel_info:
+            accuracy["relations_built"] = rel_info
+        if odometry is not None:
+            m = r.used_mask
+            sub = Relations(relations.t1[m], relations.t2[m], relations.d[m])
+            try:
+                accuracy["odometry_relations"] = _relation_dict(relation_error(odometry, sub))
+            except Exception as e:  # the odometry is a baseline, never a reason to fail the case
+                accuracy["odometry_relations_error"] = str(e)
+    if reference is not None:
+        a = ate(traj, reference, associate="trajectory")
+        accuracy["ate"] = {"trans_mean": a.translation.mean, "trans_rmse": a.translation.rmse,
+                           "rot_mean": a.rotation.mean, "used": a.used}
+    lc = loop_closure_check(result.graph, reference)
+    eval_s = time.perf_counter() - t_eval
+
+    # ---- artefacts for eyeballing (outside every timed figure)
+    outdir.mkdir(parents=True, exist_ok=True)
+    try:
+        write_png(outdir / f"{case.name}.png", render_png(result.image, result.poses, result.loop_closures))
+        write_trajectory(outdir / f"{case.name}.tum", traj, fmt="tum")
+        (outdir / f"{case.name}.timing.txt").write_text(report_tree_text(snap))
+        (outdir / f"{case.name}.timing.json").write_text(json.dumps(report_json(snap), indent=1))
+    except Exception as e:  # artefacts are a convenience
+        print(f"[{case.name}] could not write artefacts: {e}", file=sys.stderr)
+
+    bstats = result.graph.builder.stats if result.graph is not None else None
+    stats = {k: (float(v) if isinstance(v, (np.floating,)) else v) for k, v in result.stats.items()}
+    import resource
+
+    return {
+        "status": "ok",
+        "case": asdict(case),
+        "quick": quick,
+        "max_scans": max_scans,
+        "selection": {"scan": selection.scan, "odometry": selection.odometry, "imu": selection.imu},
+        "laser_pose_source": result.laser_pose_source,
+        "stats": stats,
+        "build_wall_s": wall,
+        "scans_per_s": stats["scans"] / wall if wall > 0 else None,
+        "stages": stages,
+        "stage_detail": detail,
+        "constraint_builder": asdict(bstats) if bstats is not None else None,
+        "accuracy": accuracy,
+        "loop_closures": lc,
+        "eval_s": eval_s,
+        "self_maxrss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+        **info,
+    }
+
+
+def worker_main(args) -> int:
+    cases = {c.name: c for c in discover_cases()}
+    case = cases[args.worker]
+    out = Path(args.out)
+    try:
+        res = run_case(case, args.quick, profile_for(case, args.profile), args.set or [], out.parent)
+        code = 0
+    except BaseException as e:  # report every failure, KeyboardInterrupt included
+        traceback.print_exc()
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        res = {"status": "failed", "case": asdict(case), "error": f"{type(e).__name__}: {msg}"[:300]}
+        code = 1
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(res, indent=1, default=_json_default))
+    os.replace(tmp, out)
+    return code
+
+
+def _json_default(v):
+    try:
+        import numpy as np
+
+        if isinstance(v, np.generic):
+            return v.item()
+        if isinstance(v, np.ndarray):
+            return v.tolist()
+    except ImportError:
+        pass
+    if isinstance(v, Path):
+        return str(v)
+    return repr(v)
+
+
+# --------------------------------------------------------------------------- source snapshot
+
+
+def source_fingerprint(package_dir: Path) -> str:
+    """A short hash of the package's sources (.py and .yaml), to tell which code a case ran."""
+    h = hashlib.sha1()
+    for f in sorted(package_dir.rglob("*")):
+        if f.suffix in (".py", ".yaml") and "__pycache__" not in f.parts:
+            h.update(str(f.relative_to(package_dir)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def snapshot_package(dest: Path) -> Path:
+    """Copy carto_cli (with numba's on-disk cache, mtimes kept so it stays valid) to ``dest``.
+
+    Workers put ``dest`` first on PYTHONPATH: a run of several hours in a tree that other
+    people edit then measures one version of the code throughout.
+    """
+    target = dest / "carto_cli"
+    if target.exists():
+        shutil.rmtree(target)
+    shutil.copytree(REPO / "carto_cli", target, copy_function=shutil.copy2,
+                    ignore=shutil.ignore_patterns("*.tmp", "*.swp"))
+    return dest
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def run_in_subprocess(case: Case, args, results: Path) -> dict:
+    out = results / f"{case.name}.json"
+    out.unlink(missing_ok=True)
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", case.name, "--out", str(out)]
+    if args.quick:
+        cmd.append("--quick")
+    cmd += ["--profile", profile_for(case, args.profile) or "default"]
+    for s in args.set or []:
+        cmd += ["--set", s]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if args.snapshot_dir:
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (args.snapshot_dir, os.environ.get("PYTHONPATH")) if p)
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, cwd=str(REPO),
+                            text=True, errors="replace")
+    tail: collections.deque[str] = collections.deque(maxlen=20)
+    log = open(results / f"{case.name}.log", "w")
+
+    def pump():
+        for line in proc.stderr:
+            tail.append(line.rstrip())
+            log.write(line)
+            log.flush()
+            sys.stderr.write(line)
+            sys.stderr.flush()
+
+    reader = threading.Thread(target=pump, daemon=True)
+    reader.start()
+    timed_out = threading.Event()
+
+    def kill():
+        timed_out.set()
+        try:
+            os.kill(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+    killer = threading.Timer(args.timeout, kill) if args.timeout and args.timeout > 0 else None
+    if killer:
+        killer.start()
+    try:
+        _, status, usage = os.wait4(proc.pid, 0)  # this child's own rusage: its peak RSS
+    except KeyboardInterrupt:
+        os.kill(proc.pid, signal.SIGKILL)
+        os.wait4(proc.pid, 0)
+        raise
+    finally:
+        if killer:
+            killer.cancel()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    wall = time.perf_counter() - t0
+    reader.join(timeout=5)
+    log.close()
+
+    res = None
+    if out.is_file():
+        try:
+            res = json.loads(out.read_text())
+        except ValueError:
+            res = None
+    if res is None:
+        if timed_out.is_set():
+            reason = f"timeout after {args.timeout:g} s"
+        elif proc.returncode < 0:
+            sig = -proc.returncode
+            name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else str(sig)
+            reason = f"killed by {name}" + (" (out of memory?)" if sig == signal.SIGKILL else "")
+        else:
+            last = next((l for l in reversed(tail) if l.strip()), "")
+            reason = f"exit status {proc.returncode}" + (f": {last[:200]}" if last else "")
+        res = {"status": "failed", "case": asdict(case), "error": reason}
+    res["process_wall_s"] = wall
+    res["peak_rss_mb"] = usage.ru_maxrss / 1024.0
+    res["returncode"] = proc.returncode
+    out.write_text(json.dumps(res, indent=1, default=_json_default))
+    return res
+
+
+# --------------------------------------------------------------------------- environment
+
+
+def _run(cmd: list[str]) -> str:
+    try:
+        return subprocess.run(cmd, cwd=str(REPO), capture_output=True, text=True, timeout=30).stdout.strip()
+    except Exception:
+        return ""
+
+
+def environment() -> dict:
+    cpu = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem_gb = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                mem_gb = int(line.split()[1]) / 1024 / 1024
+    except OSError:
+        pass
+    versions = {"python": platform.python_version()}
+    for mod in ("numpy", "numba", "scipy", "cv2"):
+        try:
+            versions[mod] = __import__(mod).__version__
+        except Exception:
+            versions[mod] = "not installed"
+    status = _run(["git", "status", "--porcelain"]).splitlines()
+    modified = [l for l in status if not l.startswith("??")]
+    untracked = [l for l in status if l.startswith("??")]
+    return {
+        "cpu": cpu or platform.processor() or "unknown",
+        "cores": os.cpu_count(),
+        "memory_gb": mem_gb,
+        "kernel": platform.release(),
+        "loadavg_start": os.getloadavg(),
+        "versions": versions,
+        "commit": _run(["git", "rev-parse", "--short", "HEAD"]) or "unknown",
+        "dirty": bool(status),
+        "modified": [l[3:] for l in modified],
+        "untracked": [l[3:] for l in untracked],
+    }
+
+
+# --------------------------------------------------------------------------- peers
+
+
+def parse_peers(path: Path) -> dict:
+    """{family: {case: {odometry, cartographer, best}}} from PEERS.md; empty when unreadable."""
+    try:
+        text = path.read_text()
+    except OSError:
+        return {}
+    out: dict = {}
+    sections = re.split(r"^## ", text, flags=re.M)[1:]
+    for sec in sections:
+        head, _, body = sec.partition("\n")
+        family = head.split()[0].rstrip("/") if head.split() else ""
+        rows = [l for l in body.splitlines() if l.strip().startswith("|")]
+        if len(rows) < 3:
+            continue
+        cells = lambda l: [c.strip().replace("**", "") for c in l.strip().strip("|").split("|")]  # noqa: E731
+        header = cells(rows[0])
+        fam: dict = {}
+        for l in rows[2:]:
+            c = cells(l)
+            if not c or not c[0]:
+                continue
+            entry = {"odometry": None, "cartographer": None, "best": None}
+            best_val, best_txt = math.inf, None
+            for h, v in zip(header[1:], c[1:]):
+                hl = h.lower()
+                if hl.startswith("odometry"):
+                    entry["odometry"] = v
+                    continue
+                if hl.startswith("cartographer") and entry["cartographer"] is None:
+                    entry["cartographer"] = v
+                m = re.match(r"\s*(\d+(?:\.\d+)?) m\b", v)
+                if m and float(m.group(1)) < best_val:
+                    best_val, best_txt = float(m.group(1)), f"{m.group(1)} m ({h.split(' (')[0]})"
+            entry["best"] = best_txt
+            fam[c[0]] = entry
+        best_line = re.search(r"Best figure per case[^:]*:(.*)", body)
+        if best_line:
+            for case, val, who in re.findall(r"([\w.-]+) (\d+(?:\.\d+)?) m \(([^)]*)\)", best_line.group(1)):
+                fam.setdefault(case, {"odometry": None, "cartographer": None, "best": None})["best"] = f"{val} m ({who})"
+        out[family] = fam
+    return out
+
+
+# --------------------------------------------------------------------------- report
+
+
+METHOD = f"""\
+## What is measured
+
+* **Relation error** — `carto_cli.evaluate.relation_error` on the case's `relations.txt` (Kümmerle et al.):
+  for every relation `t1 t2 dx dy dyaw`, the SLAM trajectory's pose at `t2` expressed in its pose at `t1`
+  (poses at every scan, interpolated linearly in x, y and along the shorter arc in yaw) is compared with
+  the relation; the translational error is the norm of the difference of the translations (m), the
+  rotational one the wrapped yaw difference (deg). Shown as mean ± std (population std) over the relations
+  whose two times fall within the trajectory (with `--quick`, only the processed part).
+  *odometry (here)* is the same metric on the recording's own odometry (the topic SLAM used), on exactly the
+  relations used for carto; *odometry / Cartographer / best peer* are copied from `PEERS.md`.
+* **ATE** — after the SE(2) alignment that minimises it (`carto_cli.evaluate.ate`, at the trajectory's
+  timestamps), mean translational error in m.
+* **Simulated loop building** — `carto_cli.sim.loop_building()` driven round its ring corridor by
+  `loop_trajectory` (as many laps as needed, cut at {SIM_DURATION:g} s), scans at 10 Hz (360 beams over 270°,
+  30 m, 1 cm noise, 1% dropouts), odometry at 50 Hz with the default drift model, seed {SIM_SEED}. The relations are
+  built here from the exact ground truth with the bench-dense recipe: (i, i+10) for every 10th scan (1 s
+  apart), plus revisits — scans subsampled at 2 Hz, every pair ≥ 30 s apart within 3 m and 60°, a seeded
+  random 3000 of them when there are more.
+* **Wall time** — `build` under a `StageTimer`, stages found by name wherever they sit in the tree:
+  *constraint search* = every `loop closure` stage (candidate selection, precomputation grids, branch and
+  bound, refinement); *optimization* = every `optimization` stage (the periodic ones and the final one);
+  *JIT* = the `jit warm-up` stage (numba loading its on-disk cache, or compiling when the cache is stale;
+  kernels used only later — branch and bound, optimization — load inside their own stages); *local SLAM* =
+  the rest of the `scan` stage (preprocess, extrapolate, match, motion filter, insert) except what runs in a
+  `global` stage inside it; *other* = the rest of `build`'s wall time (reading and decoding the recording,
+  or ray casting the simulated scans; pose-graph bookkeeping; map assembly). *scans/s* = scans read /
+  `build` wall time. *process* = the whole case process from start to exit (interpreter start, imports,
+  reading, SLAM, evaluation, writing the map) — comparable to the peers' "whole-process wall clock".
+* **Peak RSS** — `ru_maxrss` of the case's own process (`os.wait4`), one fresh process per case, run
+  one at a time.
+* **Loop closures** — the pose graph's inter-submap constraints. One says node *i* sits at relative pose
+  *r* in submap *j*'s frame (the local SLAM frame translated to the submap's `local_pose` *S_j*), so it puts
+  node *i* at `S_j ∘ r` in the local frame. With *f* the first node inserted into submap *j* (the node whose
+  scan started it) and *L_f* its local-SLAM pose, the loop closure implies the pose of node *i* relative to
+  node *f*: `inverse(L_f) ∘ S_j ∘ r`. The reference is `inverse(G(t_f)) ∘ G(t_i)`, G being the reference
+  trajectory (`groundtruth.txt`, or the simulator's exact poses) interpolated at the two nodes' times. A loop
+  closure is **correct** when the two agree within {LC_TOLERANCE_M:g} m (norm of the translation difference)
+  and {LC_TOLERANCE_DEG:g}° (wrapped yaw difference): *correct vs anchor*, the figure of the family tables.
+  The submap's grid is drawn by all its nodes, so local SLAM's drift between node *f* and the part of the
+  submap where the scan matched counts against the loop closure there; *correct vs nearest node* repeats the
+  test with, instead of *f*, the node of submap *j* nearest to node *i* in the reference (its local pose
+  *L_k*, reference `G(t_k)`), which isolates the loop closure's own error. *off by > 1 m* counts the
+  loop closures more than 1 m wrong even then: false matches. *submap drift* is local SLAM's own error
+  inside each submap — for every submap, the largest error of its nodes' local poses relative to its first
+  node against the reference (m, deg) — as the median over submaps / the worst submap. *B&B searches* is
+  how many node–submap pairs went through branch and bound.
+"""
+
+
+def _f(x, spec=".3f", unit=""):
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "—"
+    return f"{format(x, spec)}{unit}"
+
+
+def _failed(res: dict) -> str:
+    return f"failed: {res.get('error', 'unknown error')}".replace("|", "/").replace("\n", " ")
+
+
+def _rel_cell(r: dict | None) -> str:
+    if not r:
+        return "—"
+    return f"{_f(r['trans_mean'])} ± {_f(r['trans_std'])} m / {_f(r['rot_mean'], '.2f')} ± {_f(r['rot_std'], '.2f')}°"
+
+
+def _lc_cell(res: dict) -> str:
+    lc = res.get("loop_closures") or {}
+    total = lc.get("total")
+    if total is None:
+        return "—"
+    if lc.get("correct") is None:
+        return f"{total}" if total else "none"
+    share = lc.get("share_correct")
+    return f"{lc['correct']} / {total}" + (f" ({100 * share:.0f}%)" if share is not None else "")
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def accuracy_table(family: str, results: list[dict], peers: dict) -> str:
+    fam_peers = peers.get(family, {})
+    if family in ("bench", "bench-dense"):
+        header = ["case", "scans", "carto: relation error", "odometry (here)", "odometry (PEERS)",
+                  "Cartographer (PEERS, stock)", "best peer (PEERS)", "loop closures correct", "ATE m"]
+    elif family == "sim":
+        header = ["case", "scans", "carto: relation error", "odometry (here)", "loop closures correct",
+                  "ATE m", "relations"]
+    else:
+        header = ["case", "scans", "loop closures", "searches"]
+    rows = []
+    for res in results:
+        case = res["case"]
+        p = fam_peers.get(case["building"], {})
+        label = case["name"]
+        if res.get("status") != "ok":
+            cells = [label, "—", _failed(res)]
+            cells += ["—"] * (len(header) - len(cells))
+            if family in ("bench", "bench-dense"):
+                cells[4:7] = [p.get("odometry") or "—", p.get("cartographer") or "—", p.get("best") or "—"]
+            rows.append(cells)
+            continue
+        acc = res.get("accuracy", {})
+        scans = str(res["stats"]["scans"])
+        ate_cell = _f((acc.get("ate") or {}).get("trans_mean"))
+        odo = acc.get("odometry_relations")
+        odo_cell = f"{_f(odo['trans_mean'], '.2f')} m / {_f(odo['rot_mean'], '.1f')}°" if odo else "—"
+        if family in ("bench", "bench-dense"):
+            rows.append([label, scans, _rel_cell(acc.get("relations")), odo_cell, p.get("odometry") or "—",
+                         p.get("cartographer") or "—", p.get("best") or "—", _lc_cell(res), ate_cell])
+        elif family == "sim":
+            rb = acc.get("relations_built") or {}
+            used = (acc.get("relations") or {}).get("used", "?")
+            rows.append([label, scans, _rel_cell(acc.get("relations")), odo_cell, _lc_cell(res), ate_cell,
+                         f"{used} used of {rb.get('consecutive', '?')} consecutive + {rb.get('revisits', '?')} "
+                         "revisits"])
+        else:
+            cb = res.get("constraint_builder") or {}
+            rows.append([label, scans, _lc_cell(res), str(cb.get("searched", "—"))])
+    return _table(header, rows)
+
+
+def performance_table(results: list[dict]) -> str:
+    header = ["case", "scans", "nodes / submaps", "build wall s", "scans/s", "local SLAM s", "constraint search s",
+              "optimization s", "JIT s", "other s", "process wall s", "peak RSS MB", "LC searches → accepted"]
+    rows = []
+    for res in results:
+        name = res["case"]["name"]
+        rss = _f(res.get("peak_rss_mb"), ".0f")
+        pw = _f(res.get("process_wall_s"), ".1f")
+        if res.get("status") != "ok":
+            rows.append([name, "—", _failed(res)] + ["—"] * 7 + [pw, rss, "—"])
+            continue
+        st, sg = res["stats"], res["stages"]
+        cb = res.get("constraint_builder") or {}
+        rows.append([
+            name, str(st["scans"]), f"{st['nodes']} / {st['submaps']}", _f(res["build_wall_s"], ".1f"),
+            _f(res["scans_per_s"], ".0f"), _f(sg["local_slam_s"], ".1f"), _f(sg["constraint_search_s"], ".1f"),
+            _f(sg["optimization_s"], ".1f"), _f(sg["jit_warmup_s"], ".2f"), _f(sg["other_s"], ".1f"), pw, rss,
+            f"{cb.get('searched', '—')} → {cb.get('accepted', '—')}",
+        ])
+    return _table(header, rows)
+
+
+def loop_closure_table(results: list[dict]) -> str:
+    header = ["case", "loop closures", "B&B searches", "correct vs anchor", "correct vs nearest node",
+              "median error vs anchor", "median error vs nearest", "off by > 1 m (nearest)",
+              "submap drift, median / worst submap"]
+    rows = []
+    for res in results:
+        if res.get("status") != "ok":
+            continue
+        lc = res.get("loop_closures") or {}
+        cb = res.get("constraint_builder") or {}
+        total = lc.get("total", 0)
+
+        def share(label):
+            if lc.get(f"{label}_correct") is None:
+                return "—"
+            return f"{lc[f'{label}_correct']} ({100 * lc[f'{label}_share']:.0f}%)"
+
+        def med(label):
+            if lc.get(f"{label}_median_m") is None:
+                return "—"
+            return f"{lc[f'{label}_median_m']:.3f} m / {lc[f'{label}_median_deg']:.2f}°"
+
+        drift = "—"
+        if lc.get("submap_drift_median_m") is not None:
+            drift = (f"{lc['submap_drift_median_m']:.2f} m {lc['submap_drift_median_deg']:.1f}° / "
+                     f"{lc['submap_drift_max_m']:.2f} m {lc['submap_drift_max_deg']:.1f}°")
+        rows.append([res["case"]["name"], str(total), str(cb.get("searched", "—")), share("anchor"), share("nearest"),
+                     med("anchor"), med("nearest"), str(lc.get("nearest_over_1m", "—")), drift])
+    return _table(header, rows) if rows else ""
+
+
+def detail_table(results: list[dict]) -> str:
+    cols = [("preprocess", "local/preprocess"), ("match", "local/match"), ("insert", "local/insert"),
+            ("candidate sel.", "constraint/candidate selection"),
+            ("precomputation", "constraint/precomputation"),
+            ("branch and bound", "constraint/branch and bound"),
+            ("refinement", "constraint/refinement")]
+    header = ["case"] + [c for c, _ in cols] + ["ms per B&B search", "optimizations"]
+    rows = []
+    for res in results:
+        if res.get("status") != "ok":
+            continue
+        d = res["stage_detail"]
+        cb = res.get("constraint_builder") or {}
+        bnb = d["constraint/branch and bound"]
+        per = 1000 * bnb / cb["searched"] if cb.get("searched") else None
+        rows.append([res["case"]["name"]] + [_f(d[p], ".1f") for _, p in cols]
+                    + [_f(per, ".1f"), str(res["stats"].get("optimizations", "—"))])
+    return _table(header, rows) if rows else ""
+
+
+def _code_line(results: list[dict], env: dict) -> str:
+    prints = {r.get("fingerprint") for r in results if r.get("fingerprint")}
+    where = ("a copy of `carto_cli` taken when the run started" if env.get("snapshot")
+             else "`carto_cli` of the working tree as it was when each case started (`--no-snapshot`)")
+    line = f"* code: {where}, source fingerprint `{env.get('fingerprint')}`"
+    if len(prints) > 1 or (prints and env.get("fingerprint") not in prints):
+        per = ", ".join(f"{r['case']['name']} `{r.get('fingerprint', '?')}`" for r in results)
+        line += f" — **the sources changed during the run**: {per}"
+    return line
+
+
+def render_doc(results: list[dict], env: dict, argv_line: str, args, started: str, finished: str,
+               peers: dict, changed: dict | str) -> str:
+    v = env["versions"]
+    dirty = ""
+    if env["dirty"]:
+        dirty = f" + uncommitted changes ({len(env['modified'])} modified, {len(env['untracked'])} untracked files)"
+    mode = f"quick (`--quick`: every case cut to its first {QUICK_SCANS} scans; sparse intel and aces and " \
+           "the CCNY bag are shorter and run in full)" if args.quick else "every scan of every case run"
+    out = [
+        "# Benchmarks\n",
+        "Generated by `bench/run` (bench/harness.py); do not edit by hand — rerun it.\n",
+        f"* command: `{argv_line}` (from the repository root)",
+        f"* mode: {mode}",
+        f"* date: {started} → {finished}",
+        f"* commit: `{env['commit']}`{dirty}",
+        _code_line(results, env),
+        f"* machine: {env['cpu']}, {env['cores']} cores, {_f(env['memory_gb'], '.0f')} GB RAM, Linux {env['kernel']}; "
+        f"load average at start {', '.join(f'{x:.2f}' for x in env['loadavg_start'])} (a shared machine: wall "
+        "times carry the noise of other people's jobs)",
+        f"* software: Python {v['python']}, numpy {v['numpy']}, numba {v['numba']}, scipy {v['scipy']}, "
+        f"opencv {v['cv2']}",
+        "* profile: " + (", ".join(f"{FAMILIES[f].split(' ')[0]} `{p}`" for f, p in FAMILY_PROFILES.items())
+                         if args.profile in (None, "auto") else f"`{args.profile}` for every case")
+        + "; cases run one at a time, each in a fresh process",
+    ]
+    if args.profile in (None, "auto"):
+        out.append("* options: each profile's values and the reason for each are in `carto_cli/profiles/NAME.yaml`"
+                   " (`carto profiles show NAME --changed`)\n")
+    elif isinstance(changed, dict):
+        if changed:
+            out.append("* options that differ from the defaults (Cartographer's stock 2D configuration, "
+                       "`carto options`):\n")
+            out.append(_table(["option", "value"], [[f"`{k}`", f"`{val}`"] for k, val in changed.items()]))
+        else:
+            out.append("* options: all at their defaults (Cartographer's stock 2D configuration)\n")
+    else:
+        out.append(f"* options: could not be loaded: {changed}\n")
+    by_family: dict[str, list[dict]] = {}
+    for r in results:
+        by_family.setdefault(r["case"]["family"], []).append(r)
+    for family in FAMILIES:
+        if family not in by_family:
+            continue
+        out.append(f"\n## {FAMILIES[family]}\n")
+        out.append(accuracy_table(family, by_family[family], peers))
+    lct = loop_closure_table(results)
+    if lct:
+        out.append("\n## Loop closures\n")
+        out.append(lct)
+    out.append("\n## Time and memory\n")
+    out.append(performance_table(results))
+    det = detail_table(results)
+    if det:
+        out.append("\nWhere the time goes (s; the sub-stages of local SLAM and of the constraint search):\n")
+        out.append(det)
+    peers_note = ""
+    if peers:
+        peers_note = ("\nPeer figures are read from `PEERS.md` when this document is generated (translational "
+                      "relation error, then rotational and the peer's whole-process wall time where given).\n")
+    out.append(peers_note)
+    out.append("\n" + METHOD)
+    out.append(f"\nRaw results (per-case JSON, stage trees, maps, trajectories, logs) were written to "
+               f"`{args.results}`.\n")
+    return "\n".join(out)
+
+
+# --------------------------------------------------------------------------- main
+
+
+def _changed_options(profile, overrides):
+    try:
+        from carto_cli.options import changed_options, load_options
+
+        return {k: v for k, v in changed_options(load_options(profile, overrides)).items()}
+    except Exception as e:
+        return f"{type(e).__name__}: {e}"
+
+
+def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
+    p = argparse.ArgumentParser(
+        prog=prog, description="Run the SLAM benchmark cases, one fresh process each, and write docs/benchmarks.md.",
+        epilog="The document goes to docs/benchmarks.md only for a full run of every case; a --quick or "
+               "--cases run writes it to the results directory unless --doc is given.")
+    p.add_argument("--cases", help="comma-separated cases or families (bench, dense, sim, ccny, all); "
+                                   "default: all. See --list.")
+    p.add_argument("--quick", action="store_true",
+                   help=f"only the first {QUICK_SCANS} scans of each case (sparse intel and aces run in full)")
+    p.add_argument("--set", "-s", action="append", metavar="KEY=VALUE", help="option override (repeatable)")
+    p.add_argument("--profile", "-p", default="auto",
+                   help="options profile (name or .yaml path); 'auto' (default): sparse for bench/, wheeled for "
+                        "bench-dense/ and the simulation, office for the CCNY bag; 'default': Cartographer's stock")
+    p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, help="seconds per case (0: none)")
+    p.add_argument("--results", help="directory for raw results (default: a new one under $TMPDIR/carto-bench)")
+    p.add_argument("--doc", help="where to write the Markdown report")
+    p.add_argument("--no-doc", action="store_true", help="print the report only")
+    p.add_argument("--no-snapshot", action="store_true",
+                   help="run the tree's carto_cli as it is at each case's start instead of a copy taken at the start")
+    p.add_argument("--list", action="store_true", help="list the cases and exit")
+    p.add_argument("--worker", help=argparse.SUPPRESS)
+    p.add_argument("--out", help=argparse.SUPPRESS)
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None, prog: str = "bench/run") -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = parse_args(argv, prog)
+    if args.worker:
+        return worker_main(args)
+    cases = discover_cases()
+    if args.list:
+        for c in cases:
+            print(f"{c.name:20s} {c.family:12s} {c.path or '(simulated)'}")
+        return 0
+    chosen = select_cases(args.cases, cases)
+    # Fail early on bad options rather than once per case.
+    if args.profile in (None, "auto"):
+        problems = [c for c in (_changed_options(p, args.set or []) for p in set(FAMILY_PROFILES.values()))
+                    if isinstance(c, str)]
+        changed = problems[0] if problems else {}
+    else:
+        changed = _changed_options(None if args.profile == "default" else args.profile, args.set or [])
+    if isinstance(changed, str):
+        print(f"{prog}: {changed}", file=sys.stderr)
+        return 2
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    results_dir = Path(args.results) if args.results else Path(tempfile.gettempdir()) / "carto-bench" / stamp
+    results_dir.mkdir(parents=True, exist_ok=True)
+    args.results = str(results_dir)
+    args.snapshot_dir = None
+    fingerprint = source_fingerprint(REPO / "carto_cli")
+    if not args.no_snapshot:
+        args.snapshot_dir = str(snapshot_package(results_dir / "src"))
+        fingerprint = source_fingerprint(Path(args.snapshot_dir) / "carto_cli")
+    full = not args.quick and len(chosen) == len(cases)
+    doc = None if args.no_doc else Path(args.doc) if args.doc else DEFAULT_DOC if full else results_dir / "benchmarks.md"
+    argv_line = shlex.join([prog] + argv)
+    env = environment()
+    env["fingerprint"] = fingerprint
+    env["snapshot"] = args.snapshot_dir
+    started = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+    print(f"{argv_line}: {len(chosen)} case(s), results in {results_dir}", file=sys.stderr)
+
+    results = []
+    for case in chosen:
+        print(f"== {case.name} ==", file=sys.stderr, flush=True)
+        try:
+            res = run_in_subprocess(case, args, results_dir)
+        except KeyboardInterrupt:
+            raise
+        except Exception as e:  # the harness itself must not stop on one case
+            res = {"status": "failed", "case": asdict(case), "error": f"harness: {type(e).__name__}: {e}"}
+        results.append(res)
+        if res.get("status") == "ok":
+            acc = (res.get("accuracy") or {}).get("relations")
+            err = f", relation error {_rel_cell(acc)}" if acc else ""
+            print(f"== {case.name}: {res['stats']['scans']} scans in {res['build_wall_s']:.1f} s "
+                  f"(process {res['process_wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MB){err}, "
+                  f"loop closures {_lc_cell(res)}", file=sys.stderr, flush=True)
+        else:
+            print(f"== {case.name}: {_failed(res)}", file=sys.stderr, flush=True)
+
+    finished = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+    peers = parse_peers(DATA / "PEERS.md")
+    text = render_doc(results, env, argv_line, args, started, finished, peers, changed)
+    (results_dir / "summary.json").write_text(json.dumps(
+        {"command": argv_line, "environment": env, "results": results}, indent=1, default=_json_default))
+    if doc is not None:
+        doc.parent.mkdir(parents=True, exist_ok=True)
+        tmp = doc.with_name(doc.name + ".tmp")
+        tmp.write_text(text)
+        os.replace(tmp, doc)
+        print(f"wrote {doc}", file=sys.stderr)
+    print(text)
+    return 0 if all(r.get("status") == "ok" for r in results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
