@@ -1012,6 +1012,22 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
 # --------------------------------------------------------------------------- main
 
 
+KEPT_SECTIONS = ("relocalization",)  # written by other scripts (bench/relocalization.py) between markers
+
+
+def _kept_sections(doc: Path) -> str:
+    """The marked sections other benchmark scripts own, carried over when this document is regenerated."""
+    if not doc.exists():
+        return ""
+    old = doc.read_text()
+    kept = []
+    for name in KEPT_SECTIONS:
+        begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+        if begin in old and end in old:
+            kept.append(old[old.index(begin):old.index(end) + len(end)])
+    return ("\n" + "\n\n".join(kept) + "\n") if kept else ""
+
+
 def _changed_options(profile, overrides):
     try:
         from carto_cli.options import changed_options, load_options
@@ -1111,6 +1127,7 @@ def main(argv: list[str] | None = None, prog: str = "bench/run") -> int:
         {"command": argv_line, "environment": env, "results": results}, indent=1, default=_json_default))
     if doc is not None:
         doc.parent.mkdir(parents=True, exist_ok=True)
+        text = text.rstrip("\n") + "\n" + _kept_sections(doc)
         tmp = doc.with_name(doc.name + ".tmp")
         tmp.write_text(text)
         os.replace(tmp, doc)
