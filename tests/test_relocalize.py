@@ -94,6 +94,59 @@ def test_perturbed_priors_are_found_within_10cm_and_1deg(relocalizer, queries):
         assert 1 <= len(r.submaps_considered) <= relocalizer.ro.max_windowed_submaps
 
 
+def test_prior_off_by_its_full_stated_uncertainty_stays_windowed(relocalizer, queries):
+    """A prior 3 sigma off (1.5 m / 15 deg at 0.5 m / 5 deg) is inside the first window or the wide pass,
+    never a whole-submap search: the window has a margin over 3 sigma."""
+    _, qs = queries
+    for k, (scan, truth) in enumerate(qs[1::3]):
+        direction = math.pi / 4 + k * math.pi / 2  # the window's corners are farther; the disc's rim is the test
+        prior = truth + np.array([1.5 * math.cos(direction), 1.5 * math.sin(direction),
+                                  math.radians(15 if k % 2 else -15)])
+        r = relocalizer.relocalize(scan, prior, sigma_xy=0.5, sigma_yaw=math.radians(5))
+        assert r.success, r.reason
+        assert r.path in ("windowed", "windowed-wide"), r.reason
+        assert len(r.submaps_considered) <= relocalizer.ro.max_windowed_submaps
+        dxy, dyaw = pose_error(r.pose, truth)
+        assert dxy < 0.1 and dyaw < 1.0
+
+
+def test_answer_beyond_the_first_window_is_found_by_the_wide_pass(relocalizer, queries):
+    _, qs = queries
+    scan, truth = qs[9]
+    # sigma 0.1 m / 2 deg: first window ±0.375 m / ±7.5 deg; the truth is 0.6 m and 9 deg away.
+    r = relocalizer.relocalize(scan, truth + [0.6, 0.0, math.radians(9)], sigma_xy=0.1, sigma_yaw=math.radians(2))
+    assert r.success, r.reason
+    assert r.path == "windowed-wide" and "windowed search" in r.reason
+    assert len(r.submaps_considered) <= relocalizer.ro.max_windowed_submaps
+    dxy, dyaw = pose_error(r.pose, truth)
+    assert dxy < 0.1 and dyaw < 1.0
+
+
+def _doubled(mapped, shift=(60.0, 0.0, 0.0)):
+    """The map plus a copy of it (submaps and nodes) 60 m away: every place exists twice."""
+    m, n = mapped.num_submaps, mapped.num_nodes
+    moved = np.array([transform.compose(shift, p) for p in mapped.submap_global_poses])
+    nodes = np.array([transform.compose(shift, p) for p in mapped.node_global_poses])
+    return SimpleNamespace(
+        path=None, options=mapped.options, laser_pose=mapped.laser_pose, num_submaps=2 * m,
+        submaps=list(mapped.submaps) * 2, submap_global_poses=np.concatenate([mapped.submap_global_poses, moved]),
+        submap_nodes=list(mapped.submap_nodes) + [np.asarray(s) + n for s in mapped.submap_nodes],
+        node_global_poses=np.concatenate([mapped.node_global_poses, nodes]))
+
+
+def test_global_search_reports_aliasing_instead_of_guessing(mapped, queries):
+    _, qs = queries
+    rel = Relocalizer(_doubled(mapped))
+    scan, truth = qs[5]
+    r = rel.relocalize(scan, None)
+    assert r.path == "global" and not r.success
+    assert "ambiguous" in r.reason
+    # A prior tells the two apart: the copy 60 m away is no rival of the place next to it.
+    r = rel.relocalize(scan, truth + [1.0, -1.0, 0.3], sigma_xy=2.0, sigma_yaw=math.radians(10))
+    assert r.success, r.reason
+    assert pose_error(r.pose, truth)[0] < 0.1
+
+
 def test_prior_in_the_wrong_place_is_detected_and_the_fallback_recovers(relocalizer, queries):
     _, qs = queries
     for scan, truth in (qs[3], qs[len(qs) - 4]):
@@ -183,9 +236,12 @@ def test_radius_follows_the_priors_confidence(relocalizer):
     assert relocalizer.radius_for(0.1, True) == ro.high_confidence_radius
     assert relocalizer.radius_for(1.0, True) == ro.medium_confidence_radius
     assert relocalizer.radius_for(2.0, False) == ro.low_confidence_radius
-    assert relocalizer.windows(0.1, math.radians(1)) == (pytest.approx(ro.min_linear_search_window),
-                                                         pytest.approx(ro.min_angular_search_window))
-    assert relocalizer.windows(0.5, math.radians(5)) == (pytest.approx(1.5), pytest.approx(math.radians(15)))
+    assert relocalizer.windows(0.05, math.radians(1)) == (pytest.approx(ro.min_linear_search_window),
+                                                          pytest.approx(ro.min_angular_search_window))
+    # 3 sigma plus a 25 % margin: a prior off by 3 sigma is inside the window, not on its edge.
+    lin, ang = relocalizer.windows(0.5, math.radians(5))
+    assert lin >= 1.5 * 1.2 and ang >= math.radians(15) * 1.2
+    assert lin == pytest.approx(1.875) and ang == pytest.approx(math.radians(18.75))
     assert relocalizer.windows(5.0, 1.0)[0] == ro.max_linear_search_window
 
 
