@@ -10,8 +10,9 @@ Per case (every directory of ``$DATA/bench-dense`` as ``dense-<name>`` and of ``
 1. **Map.** ``map_builder.build(recording, options, max_scans=N60)`` on the first 60 % of the
    scans (of the first ``--max-scans`` scans when given), saved with ``save_map`` and loaded back
    with ``load_map`` (what ``carto relocalize`` reads). Mapping options: ``--profile`` when given,
-   else ``default`` for the dense cases and ``sparse`` for the sparse key-scan logs (the stock
-   settings do not close the loops of those logs, see PEERS.md); ``--set`` on top. The
+   else ``wheeled`` for the dense cases and ``sparse`` for the sparse key-scan logs (the profiles
+   bench/run maps them with; the stock settings do not close the loops of the sparse logs, see
+   PEERS.md); ``--set`` on top. The
    relocalizer uses the map's own options (their ``relocalization`` section).
 2. **Reference in the map frame.** ``groundtruth.txt`` interpolated at the mapped scans' times.
    Primary reference of a query: a *local* frame, fitted on the mapped poses whose reference
@@ -131,7 +132,7 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
     from carto_cli.options import load_options
     from carto_cli.relocalize import Query, Relocalizer, relocalize_many
 
-    profile = args.profile if args.profile else ("default" if family == "bench-dense" else "sparse")
+    profile = args.profile if args.profile else ("wheeled" if family == "bench-dense" else "sparse")
     options = load_options(profile, args.set)
     tb = options.trajectory_builder_2d
     reference = read_trajectory(path / "groundtruth.txt")
@@ -389,7 +390,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--queries", type=int, default=100, help="queries with a prior per case (default 100)")
     ap.add_argument("--global-queries", type=int, default=20, help="of those, how many also without a prior")
     ap.add_argument("--max-scans", type=int, default=0, help="use only the first N scans of every case")
-    ap.add_argument("--profile", help="mapping profile for every case (default: default / sparse by family)")
+    ap.add_argument("--profile", help="mapping profile for every case (default: wheeled / sparse by family)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="option override (repeatable)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--doc", type=Path, default=DEFAULT_DOC)
