@@ -208,7 +208,11 @@ def map_(
     timer.stop()
     if timings:
         typer.echo(report_tree_text(timer))
-    typer.echo(f"{summary_line(result)} -> {outputs.yaml.parent}")
+    warm_up = timer.snapshot().find("jit warm-up")
+    note = ""
+    if warm_up is not None and warm_up.total_ns > 1e9:
+        note = f" (incl. {warm_up.total_ns / 1e9:.0f} s compiling kernels: later runs load them from the cache)"
+    typer.echo(f"{summary_line(result)}{note} -> {outputs.yaml.parent}")
 
 
 def _finish_gates(gates, junit: Optional[Path], suite: str, label: str) -> None:
