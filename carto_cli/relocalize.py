@@ -88,6 +88,18 @@ _DISTINCT_XY = 1.0  # m: candidates farther apart than this (or _DISTINCT_YAW) a
 _DISTINCT_YAW = math.radians(10.0)
 _AMBIGUITY_MARGIN = 0.03  # a search without a (trusted) prior must beat every other place by this much score
 _NODE_MARGIN = 2.0  # m: a whole-submap search covers the box of the submap's nodes plus this
+# A scan taken where the map ends sees partly unmapped space: its points there read 0.1 whatever the pose, and
+# drag the plain score of the right pose below min_score (bench-dense, wheeled maps: every covered failure with
+# a prior was such a scan, 17-26 % of its points in unknown cells, 0.40-0.49 searched at the reference pose).
+# The windowed passes therefore search down to _KNOWN_SEARCH_FLOOR and accept a refined pose whose plain score
+# misses the threshold when the points in known cells (at least _MIN_KNOWN_FRACTION of them) reach it on their own.
+# Only the first pass: in the wide one (4x the area) that let chance fits 2-4 m off through (bench-dense/aces).
+_KNOWN_SEARCH_FLOOR = 0.35
+_MIN_KNOWN_FRACTION = 0.5
+# ms from the start of a query with a prior after which the fallbacks (whole-submap searches around the prior and
+# then everywhere) stop taking new submaps: a reliable prior that no window confirms is mostly a place the map
+# never saw (bench-dense: fallback-all never succeeded with a prior), where failing fast is the answer.
+_FALLBACK_BUDGET_MS = 30.0
 
 
 # ----------------------------------------------------------------------------------- results
@@ -106,6 +118,8 @@ class RelocalizationResult:
     search_score: float = 0.0  # branch-and-bound score before refinement
     reason: str = ""  # why it fell back / failed, '' on a clean windowed success
     threshold: float = 0.0  # the score ``success`` was judged against
+    known_fraction: float = 1.0  # share of the refinement points in known cells at ``pose``
+    known_score: float = 0.0  # score_at over those points only
 
     def to_dict(self) -> dict:
         """JSON-ready (``carto relocalize --json``)."""
@@ -114,6 +128,8 @@ class RelocalizationResult:
             "score": round(float(self.score), 6),
             "search_score": round(float(self.search_score), 6),
             "threshold": float(self.threshold),
+            "known_fraction": round(float(self.known_fraction), 4),
+            "known_score": round(float(self.known_score), 6),
             "path": self.path,
             "success": bool(self.success),
             "submap": self.submap,
@@ -434,7 +450,7 @@ class Relocalizer:
         return best
 
     def _whole(self, points, submaps, min_score, tm: _Timings, *, prior=None, window: float | None = None,
-               margin: float = 0.0) -> list[_Candidate]:
+               margin: float = 0.0, deadline: float | None = None) -> list[_Candidate]:
         """Coarse-to-fine searches of the submaps: whole, or within ±``window`` m (any heading) of ``prior``.
 
         Returns every submap's best that comes within ``margin`` of the best overall (best first): with a
@@ -445,6 +461,8 @@ class Relocalizer:
         top = 0.0
         for i in submaps:
             t = time.perf_counter()
+            if deadline is not None and t > deadline:
+                break
             stack = self.cache.get(i, self.grids[i])
             t = tm.add("submap preparation", t)
             floor = max(min_score, top - margin) if found else min_score
@@ -491,8 +509,12 @@ class Relocalizer:
                 return c, pose
         return None
 
-    def _refine(self, fine_points, cand: _Candidate, threshold: float, tm: _Timings):
-        """(map pose, score, consistent, reason)."""
+    def _refine(self, fine_points, cand: _Candidate, threshold: float, tm: _Timings, *, known_ok: bool = False):
+        """(map pose, score, success, reason, known fraction, known score).
+
+        ``known_ok``: a score below ``threshold`` still succeeds when at least ``_MIN_KNOWN_FRACTION`` of the
+        points fall in known cells and their own mean reaches ``threshold`` (the rest see unmapped space).
+        """
         t = time.perf_counter()
         grid = self.grids[cand.submap]
         c = self.options.pose_graph.constraint_builder.ceres_scan_matcher
@@ -511,10 +533,18 @@ class Relocalizer:
             reason = (f"refinement moved {math.hypot(moved[0], moved[1]):.2f} m / "
                       f"{math.degrees(abs(moved[2])):.1f} deg from the search's pose")
         score = _score_at(grid, fine_points, grid_pose)
+        known, known_score = _known_score(grid, fine_points, grid_pose)
         tm.add("scan scoring", t)
-        if consistent and score < threshold:
+        ok = consistent and score >= threshold
+        if consistent and not ok and known_ok:
+            ok = known >= _MIN_KNOWN_FRACTION and known_score >= threshold
+            if not ok:
+                reason = (f"refined score {score:.3f} below {threshold:g} (known cells: {100 * known:.0f} % of the "
+                          f"points, scoring {known_score:.3f})")
+        elif consistent and not ok:
             reason = f"refined score {score:.3f} below {threshold:g}"
-        return transform.compose(self.grid_to_map[cand.submap], grid_pose), score, consistent and score >= threshold, reason
+        return (transform.compose(self.grid_to_map[cand.submap], grid_pose), score, ok, reason, known,
+                known_score)
 
     # ------------------------------------------------------------------ the query
 
@@ -540,13 +570,14 @@ class Relocalizer:
         search_floor = min(ro.min_score, ro.global_min_score)
 
         def finish(cand: _Candidate | None, path: str, threshold: float, fallback_pose, *, label: str = "",
-                   rivals: Sequence[_Candidate] = ()) -> RelocalizationResult:
+                   rivals: Sequence[_Candidate] = (), known_ok: bool = False) -> RelocalizationResult:
             if cand is None:
                 timings, total = tm.finish()
                 return RelocalizationResult(np.asarray(fallback_pose, dtype=np.float64), 0.0, path, False,
                                             considered, timings, total, None, 0.0,
                                             "; ".join(reasons + ["no match above the threshold"]), threshold)
-            pose, score, ok, reason = self._refine(fine_pts, cand, threshold, tm)
+            pose, score, ok, reason, known, known_score = self._refine(fine_pts, cand, threshold, tm,
+                                                                       known_ok=known_ok)
             if ok and rivals:
                 rival = self._rival(cand, pose, rivals, None if path == "global" else prior)
                 if rival is not None:
@@ -558,7 +589,7 @@ class Relocalizer:
                 reasons.append(f"{label}: {reason}" if label else reason)
             timings, total = tm.finish()
             return RelocalizationResult(pose, score, path, ok, considered, timings, total, cand.submap, cand.score,
-                                        "; ".join(reasons), threshold)
+                                        "; ".join(reasons), threshold, known, known_score)
 
         def decide(cands: list[_Candidate], path: str, threshold: float, fallback_pose,
                    label: str = "") -> RelocalizationResult:
@@ -605,19 +636,20 @@ class Relocalizer:
             nearest = filtered[:ro.max_windowed_submaps]
             considered.extend(nearest)
             # Pass 1: coarse-to-fine branch and bound in windows covering the prior's uncertainty with a margin.
-            cand = self._windowed(search_pts, prior, nearest, lin, ang, ro.min_score, tm)
+            floor = min(ro.min_score, _KNOWN_SEARCH_FLOOR)
+            cand = self._windowed(search_pts, prior, nearest, lin, ang, floor, tm)
             edge = cand is not None and self._at_edge(cand, lin, ang)
             if cand is not None and not edge:
-                res = finish(cand, "windowed", ro.min_score, prior, label="windowed search")
+                res = finish(cand, "windowed", ro.min_score, prior, label="windowed search", known_ok=True)
                 if res.success:
                     return res
             elif cand is not None:
                 reasons.append(f"windowed search's best ({cand.score:.3f}) is at the edge of its window")
             else:
-                reasons.append(f"windowed search found nothing above {ro.min_score:g}")
+                reasons.append(f"windowed search found nothing above {floor:g}")
             # Pass 2: twice the windows, coarse to fine; only something better than pass 1 replaces it.
             wlin, wang = self.wide_windows(lin, ang)
-            wide = self._windowed(search_pts, prior, nearest, wlin, wang, ro.min_score, tm)
+            wide = self._windowed(search_pts, prior, nearest, wlin, wang, floor, tm)
             if wide is not None and (cand is None or wide.score > cand.score):
                 cand = wide
             if cand is not None:
@@ -629,7 +661,7 @@ class Relocalizer:
                 if res.success:
                     return res
             else:
-                reasons.append(f"wide windowed search found nothing above {ro.min_score:g}")
+                reasons.append(f"wide windowed search found nothing above {floor:g}")
         elif not reliable:
             reasons.append(f"prior unreliable (sigma_xy {sxy:g} m, sigma_yaw {math.degrees(syaw):.1f} deg)")
         else:
@@ -639,6 +671,8 @@ class Relocalizer:
         # one when the prior was reliable but wrong), in the covering submaps near it (they hold every scan taken
         # there) -- bounded by that radius, not by the submaps' size.
         t = time.perf_counter()
+        # Only a reliable prior's fallbacks are bounded (an unreliable one starts here: this is its search).
+        deadline = tm.t0 + _FALLBACK_BUDGET_MS / 1e3 if reliable and filtered else None
         radius = max(self.radius_for(sxy, reliable), ro.low_confidence_radius) if reliable else self.radius_for(sxy, False)
         if corridor:
             near = filtered
@@ -651,7 +685,9 @@ class Relocalizer:
         if near:
             considered.extend(i for i in near if i not in considered)
             cands = self._whole(search_pts, near, search_floor, tm, prior=prior, window=radius,
-                                margin=_AMBIGUITY_MARGIN)
+                                margin=_AMBIGUITY_MARGIN, deadline=deadline)
+            if deadline is not None and time.perf_counter() > deadline:
+                reasons.append(f"fallback time budget ({_FALLBACK_BUDGET_MS:g} ms) spent")
             if cands:
                 res = decide(cands, "fallback-filtered", ro.global_min_score, prior,
                              label=f"fallback over {len(near)} nearby submaps")
@@ -665,7 +701,12 @@ class Relocalizer:
             res = finish(None, "fallback-all", ro.global_min_score, prior)
             return res
         considered.extend(i for i in rest if i not in considered)
-        cands = self._whole(search_pts, rest, search_floor, tm, margin=_AMBIGUITY_MARGIN)
+        if deadline is not None and time.perf_counter() > deadline:
+            reasons.append(f"fallback time budget ({_FALLBACK_BUDGET_MS:g} ms) spent")
+            return finish(None, "fallback-all", ro.global_min_score, prior)
+        cands = self._whole(search_pts, rest, search_floor, tm, margin=_AMBIGUITY_MARGIN, deadline=deadline)
+        if deadline is not None and time.perf_counter() > deadline:
+            reasons.append(f"fallback time budget ({_FALLBACK_BUDGET_MS:g} ms) spent")
         return decide(cands, "fallback-all", ro.global_min_score, prior)
 
     def _at_edge(self, cand: _Candidate, lin: float, ang: float) -> bool:
@@ -713,6 +754,16 @@ def _window_levels(depth: int) -> tuple[tuple[float, int], ...]:
     if depth >= 4:
         return ((1.0, 3), (0.0, 1), (0.0, 0))
     return branch_and_bound.default_levels(depth)
+
+
+def _known_score(grid, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
+    """(share of ``points`` at ``pose`` that fall in known cells, their mean occupancy probability)."""
+    if len(points) == 0:
+        return 0.0, 0.0
+    p = np.asarray(grid.probability(grid.cell_index(transform.apply(pose, points)), unknown=np.nan), dtype=np.float64)
+    known = ~np.isnan(p)
+    n = int(known.sum())
+    return n / len(p), (float(p[known].mean()) if n else 0.0)
 
 
 def _score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:

@@ -147,7 +147,12 @@ def test_global_search_reports_aliasing_instead_of_guessing(mapped, queries):
     assert pose_error(r.pose, truth)[0] < 0.1
 
 
-def test_prior_in_the_wrong_place_is_detected_and_the_fallback_recovers(relocalizer, queries):
+def test_prior_in_the_wrong_place_is_detected_and_the_fallback_recovers(relocalizer, queries, monkeypatch):
+    import carto_cli.relocalize as rl
+
+    # The fallback's wall-clock budget would make this depend on the machine's speed; the budget
+    # has its own test below.
+    monkeypatch.setattr(rl, "_FALLBACK_BUDGET_MS", 1e9)
     _, qs = queries
     for scan, truth in (qs[3], qs[len(qs) - 4]):
         # Across the building (bottom stretch <-> right stretch), true heading, confident sigma.
@@ -420,3 +425,39 @@ def test_relocalize_many_writes_a_csv_and_summarises(relocalizer, queries, tmp_p
     d = results[0].result.to_dict()
     assert d["path"] == "windowed" and set(d["timings_ms"]) == {"submap preparation", "pose search",
                                                                 "scan scoring", "other"}
+
+
+def test_points_in_unmapped_space_do_not_sink_a_right_pose(relocalizer, queries):
+    """A scan seeing partly unmapped space is judged on its points in known cells (first windowed pass)."""
+    from carto_cli.relocalize import _Candidate, _known_score, _Timings
+
+    _, qs = queries
+    scan, truth = qs[5]
+    _, fine = relocalizer.preprocess(scan)
+    i = relocalizer.filter_by_distance(truth, 1.0)[0]
+    grid_pose = transform.compose(relocalizer.map_to_grid[i], np.asarray(truth, float))
+    known, score = _known_score(relocalizer.grids[i], fine, grid_pose)
+    assert known > 0.9 and score > 0.6
+    # As many points again far outside every submap: unknown cells, 0.1 each in the plain score.
+    far = fine + np.array([500.0, 500.0])
+    pts = np.vstack([fine, far[: int(0.6 * len(fine))]])
+    cand = _Candidate(i, grid_pose, 0.5, grid_pose)
+    _, plain, ok, reason, _, _ = relocalizer._refine(pts, cand, 0.55, _Timings())
+    assert plain < 0.55 and not ok and "below" in reason
+    _, _, ok, _, known, kscore = relocalizer._refine(pts, cand, 0.55, _Timings(), known_ok=True)
+    assert ok and 0.55 < known < 0.7 and kscore >= 0.55
+    # Mostly unmapped: not enough of the scan to judge on.
+    pts = np.vstack([fine, far, far])
+    assert not relocalizer._refine(pts, cand, 0.55, _Timings(), known_ok=True)[2]
+
+
+def test_fallback_time_budget_bounds_a_prior_in_unmapped_space(relocalizer, queries, monkeypatch):
+    """A reliable prior no window confirms stops searching once the fallback budget is spent."""
+    import carto_cli.relocalize as rl
+
+    _, qs = queries
+    scan, truth = qs[3]
+    wrong = np.array([21.5, 9.0, truth[2]]) if truth[1] < 4 else np.array([8.0, 0.0, truth[2]])
+    monkeypatch.setattr(rl, "_FALLBACK_BUDGET_MS", 0.0)
+    r = relocalizer.relocalize(scan, wrong, sigma_xy=0.1, sigma_yaw=math.radians(2))
+    assert not r.success and "budget" in r.reason
