@@ -29,3 +29,13 @@ def test_profiles_cli():
     assert full.exit_code == 0 and "num_range_data: 33" in full.stdout
     bad = runner.invoke(app, ["profiles", "show", "nope"])
     assert bad.exit_code == 2 and "nope" in bad.stderr
+
+
+def test_repository_profiles_directory_is_the_packaged_one():
+    from support import REPO
+
+    from carto_cli.options import profiles_dir
+
+    root = REPO / "profiles"
+    assert (root / "default.yaml").is_file()
+    assert (root / "office.yaml").read_text() == (profiles_dir() / "office.yaml").read_text()
