@@ -27,6 +27,7 @@ def test_info_on_the_real_ccny_bag():
     assert scan["scan"]["frames"] == ["/laser"]
     assert abs(info["duration"] - 35.8) < 0.2
     assert not info["has_odometry"] and not info["has_imu"]
+    assert any("5.4% of ranges are out-of-limit" in w for w in info["warnings"])
 
 
 def test_info_text():
