@@ -477,5 +477,24 @@ def tune_(
                f"{result.profile_path}, {result.csv_path.name}, {result.png_path.name}")
 
 
+@app.command("options")
+@handle_errors
+def options_(
+    filter_: Optional[str] = typer.Argument(None, metavar="[FILTER]", help="Only options whose name contains this."),
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+):
+    """Every option: its name, type, default, unit, bounds and what it does."""
+    from carto_cli.options import option_info
+
+    infos = [i for i in option_info() if filter_ is None or filter_ in i.name]
+    if as_json:
+        typer.echo(json.dumps([i.__dict__ for i in infos], indent=2, default=str))
+        return
+    for i in infos:
+        unit = f" {i.unit}" if i.unit else ""
+        bounds = f"  [{i.bounds}]" if i.bounds else ""
+        typer.echo(f"{i.name} = {i.default!r}{unit} ({i.type}){bounds}\n    {i.doc}")
+
+
 def main() -> None:
     app(prog_name="carto")

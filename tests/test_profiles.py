@@ -39,3 +39,16 @@ def test_repository_profiles_directory_is_the_packaged_one():
     root = REPO / "profiles"
     assert (root / "default.yaml").is_file()
     assert (root / "office.yaml").read_text() == (profiles_dir() / "office.yaml").read_text()
+
+
+def test_options_command_lists_every_option():
+    import json
+
+    from carto_cli.options import option_names
+
+    runner = CliRunner()
+    r = runner.invoke(app, ["options", "--json"])
+    assert r.exit_code == 0
+    assert [o["name"] for o in json.loads(r.stdout)] == option_names()
+    one = runner.invoke(app, ["options", "num_range_data"])
+    assert one.exit_code == 0 and "trajectory_builder_2d.submaps.num_range_data = 90" in one.stdout
