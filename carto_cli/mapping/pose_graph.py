@@ -254,10 +254,17 @@ class PoseGraph:
 
     def _search_submap_against_nodes(self, index: int) -> None:
         entry = self.submaps[index]
-        members = set(entry.nodes)
-        for node in range(self.num_nodes):
-            if node in members or not self.node_searches[node]:
-                continue
+        # Every earlier node is a candidate for a newly finished submap; the distance rule that rejects
+        # most of them is applied to all at once here rather than per node in Python. Links between
+        # trajectories only ever get added, so a node linked now is still linked in maybe_add.
+        searching = np.asarray(self.node_searches, dtype=bool)
+        searching[entry.nodes] = False
+        traj = np.asarray(self.node_trajectory)
+        linked = np.array([t == entry.trajectory or frozenset((t, entry.trajectory)) in self.builder.connected
+                           for t in range(int(traj.max()) + 1)])[traj]
+        offset = self.global_poses[:, :2] - entry.global_pose[:2]
+        far = np.hypot(offset[:, 0], offset[:, 1]) > self.pg.constraint_builder.max_constraint_distance
+        for node in np.flatnonzero(searching & ~(linked & far)).tolist():
             lc = self.builder.maybe_add(self, node, index)
             if lc is not None:
                 self._add_loop_closure(lc)
