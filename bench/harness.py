@@ -647,14 +647,9 @@ def _run(cmd: list[str]) -> str:
 
 
 def environment() -> dict:
-    cpu = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    from carto_cli.profiling import cpu_model
+
+    cpu = cpu_model()
     mem_gb = None
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():

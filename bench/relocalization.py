@@ -311,14 +311,9 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
             commit += " + uncommitted changes in the tree"
     except Exception:
         commit = "unknown"
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    from carto_cli.profiling import cpu_model
+
+    cpu = cpu_model()
     cmd = "python bench/relocalization.py" + ("" if not argv else " " + " ".join(shlex.quote(a) for a in argv))
     out = [BEGIN, "", "## Relocalization", "",
            f"`{cmd}` — {_dt.date.today().isoformat()}, commit {commit}, {os.cpu_count()} cores ({cpu}), "
