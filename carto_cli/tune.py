@@ -65,6 +65,8 @@ import yaml
 
 from carto_cli.errors import CartoError
 from carto_cli.evaluate import Relations, align_se2, ate, interpolate_poses, read_relations, relation_error
+from carto_cli.io.atomic import atomic_output
+from carto_cli.io.map_writer import write_png
 from carto_cli.io.trajectory import Trajectory, read_trajectory
 from carto_cli.options import Options, apply_overrides, changed_options, load_options
 from carto_cli.tune_space import Param, base_values, load_space, suggest_params
@@ -685,7 +687,6 @@ def write_profile(path: Path, options: Options, *, best=None, objective: str = "
                   time_weight: float = 0.0, max_scans: int | None = None) -> Path:
     """``options`` as a profile: the keys that differ from the packaged defaults (so the file stands
     alone under ``--profile``, base profile included), with a header saying where it came from."""
-    from carto_cli.io.atomic import atomic_output
 
     path = Path(path)
     changed = changed_options(options, load_options())
@@ -719,7 +720,7 @@ def write_trials_csv(path: Path, trials) -> Path:
     for t in trials:
         names += [k for k in t.params if k not in names]
         attrs += [k for k in t.user_attrs if k not in attrs]
-    with open(path, "w", newline="", encoding="utf-8") as f:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow(["number", "state", "value", "duration_s"] + names + attrs)
         for t in trials:
@@ -806,6 +807,4 @@ def draw_report(path: Path, trials, importances: dict[str, float], title: str = 
             cv2.putText(img, f"{v:.2f}", (bx0 + w + 5, y + row // 2 + 4), font, 0.4, black, 1, cv2.LINE_AA)
     else:
         cv2.putText(img, "(needs at least 3 completed trials)", (680, by0 + 30), font, 0.45, grey, 1, cv2.LINE_AA)
-    if not cv2.imwrite(str(path), img):
-        raise CartoError("cannot write the report image", path)
-    return path
+    return write_png(path, img)
