@@ -252,6 +252,15 @@ class Relocalization:
     min_score: float = _opt(0.55, "lowest score a search around a prior accepts", ge=0, le=1)
     global_min_score: float = _opt(0.6, "lowest score a whole-submap search (fallback, no prior) accepts",
                                    ge=0, le=1)
+    global_search_min_score: float = _opt(
+        0.5, "whole-submap searches keep candidates down to this score on the coarser search points (which score "
+        "~0.07 below the refined pose); the refined pose is still judged against global_min_score", ge=0, le=1)
+    max_see_through: float = _opt(
+        0.2, "a match where more than this share of the scan's rays pass through walls of the map is rejected "
+        "(aliased places put the endpoints on walls, rarely the rays through free space)", ge=0, le=1)
+    fallback_max_submaps: int = _opt(
+        8, "a reliable prior no window confirms is searched for in at most this many more submaps, nearest first "
+        "(0: no limit); such a prior is mostly a place the map never saw, where failing fast is the answer", ge=0)
     default_sigma_xy: float = _opt(0.5, "position uncertainty of a prior given without one", unit="m", gt=0)
     default_sigma_yaw: float = _opt(math.radians(10.0), "heading uncertainty of a prior given without one",
                                     unit="rad", gt=0, le=math.pi)

@@ -147,12 +147,7 @@ def test_global_search_reports_aliasing_instead_of_guessing(mapped, queries):
     assert pose_error(r.pose, truth)[0] < 0.1
 
 
-def test_prior_in_the_wrong_place_is_detected_and_the_fallback_recovers(relocalizer, queries, monkeypatch):
-    import carto_cli.relocalize as rl
-
-    # The fallback's wall-clock budget would make this depend on the machine's speed; the budget
-    # has its own test below.
-    monkeypatch.setattr(rl, "_FALLBACK_BUDGET_MS", 1e9)
+def test_prior_in_the_wrong_place_is_detected_and_the_fallback_recovers(relocalizer, queries):
     _, qs = queries
     for scan, truth in (qs[3], qs[len(qs) - 4]):
         # Across the building (bottom stretch <-> right stretch), true heading, confident sigma.
@@ -427,10 +422,14 @@ def test_relocalize_many_writes_a_csv_and_summarises(relocalizer, queries, tmp_p
                                                                 "scan scoring", "other"}
 
 
-def test_points_in_unmapped_space_do_not_sink_a_right_pose(relocalizer, queries):
+def test_points_in_unmapped_space_do_not_sink_a_right_pose(mapped, queries):
     """A scan seeing partly unmapped space is judged on its points in known cells (first windowed pass)."""
+    from carto_cli.options import apply_overrides
     from carto_cli.relocalize import _Candidate, _known_score, _Timings
 
+    # The made-up far points below are rays straight through the building's walls: the free-space check would
+    # (rightly) reject them, and is tested on its own.
+    relocalizer = Relocalizer(mapped, apply_overrides(mapped.options, ["relocalization.max_see_through=1"]))
     _, qs = queries
     scan, truth = qs[5]
     _, fine = relocalizer.preprocess(scan)
@@ -442,22 +441,50 @@ def test_points_in_unmapped_space_do_not_sink_a_right_pose(relocalizer, queries)
     far = fine + np.array([500.0, 500.0])
     pts = np.vstack([fine, far[: int(0.6 * len(fine))]])
     cand = _Candidate(i, grid_pose, 0.5, grid_pose)
-    _, plain, ok, reason, _, _ = relocalizer._refine(pts, cand, 0.55, _Timings())
+    _, plain, ok, reason, _, _, _ = relocalizer._refine(pts, cand, 0.55, _Timings())
     assert plain < 0.55 and not ok and "below" in reason
-    _, _, ok, _, known, kscore = relocalizer._refine(pts, cand, 0.55, _Timings(), known_ok=True)
+    _, _, ok, _, known, kscore, _ = relocalizer._refine(pts, cand, 0.55, _Timings(), known_ok=True)
     assert ok and 0.55 < known < 0.7 and kscore >= 0.55
     # Mostly unmapped: not enough of the scan to judge on.
     pts = np.vstack([fine, far, far])
     assert not relocalizer._refine(pts, cand, 0.55, _Timings(), known_ok=True)[2]
 
 
-def test_fallback_time_budget_bounds_a_prior_in_unmapped_space(relocalizer, queries, monkeypatch):
-    """A reliable prior no window confirms stops searching once the fallback budget is spent."""
-    import carto_cli.relocalize as rl
+def test_fallback_submap_limit_bounds_a_confident_prior_no_window_confirms(mapped, queries):
+    """A reliable prior that no window confirms searches at most fallback_max_submaps more submaps."""
+    from carto_cli.options import apply_overrides
 
     _, qs = queries
     scan, truth = qs[3]
     wrong = np.array([21.5, 9.0, truth[2]]) if truth[1] < 4 else np.array([8.0, 0.0, truth[2]])
-    monkeypatch.setattr(rl, "_FALLBACK_BUDGET_MS", 0.0)
-    r = relocalizer.relocalize(scan, wrong, sigma_xy=0.1, sigma_yaw=math.radians(2))
-    assert not r.success and "budget" in r.reason
+    rel = Relocalizer(mapped, apply_overrides(mapped.options, ["relocalization.fallback_max_submaps=1"]))
+    r = rel.relocalize(scan, wrong, sigma_xy=0.1, sigma_yaw=math.radians(2))
+    assert "fallback limited to the nearest 1 submaps" in r.reason
+    windowed = rel.ro.max_windowed_submaps
+    assert len(r.submaps_considered) <= windowed + 1
+    # Without the limit the same query searches further (and finds the pose: the test above).
+    free = Relocalizer(mapped, apply_overrides(mapped.options, ["relocalization.fallback_max_submaps=0"]))
+    r = free.relocalize(scan, wrong, sigma_xy=0.1, sigma_yaw=math.radians(2))
+    assert r.success and len(r.submaps_considered) > windowed + 1
+
+
+def test_a_match_whose_rays_cross_walls_is_rejected(relocalizer, queries):
+    """The free-space check: a scan placed where its rays pass through the map's walls is no match."""
+    from carto_cli.relocalize import _Candidate, _Timings
+
+    _, qs = queries
+    scan, truth = qs[5]
+    _, fine = relocalizer.preprocess(scan)
+    i = relocalizer.filter_by_distance(truth, 1.0)[0]
+    grid_pose = transform.compose(relocalizer.map_to_grid[i], np.asarray(truth, float))
+    cand = _Candidate(i, grid_pose, 0.7, grid_pose)
+    _, _, ok, _, _, _, see = relocalizer._refine(fine, cand, 0.55, _Timings())
+    assert ok and see < 0.05
+    # The same endpoints seen from a sensor 3 m away through the wall: most rays now cross it.
+    for offset in ([-3.0, 0.0], [0.0, -3.0], [3.0, 0.0], [0.0, 3.0]):
+        _, _, ok, reason, _, _, see = relocalizer._refine(fine, cand, 0.55, _Timings(), sensor=offset)
+        if see > relocalizer.ro.max_see_through:
+            assert not ok and "pass through walls" in reason
+            break
+    else:
+        raise AssertionError("no sensor offset made the rays cross a wall")
