@@ -341,6 +341,9 @@ def relocalize_(
         None, "--queries", help="Batch: lines 't|index x y yaw [sigma_xy sigma_yaw]'; writes a CSV."),
     csv_out: Optional[Path] = typer.Option(None, "--csv", help="Batch results CSV (default: QUERIES.results.csv)."),
     scan_topic: Optional[str] = typer.Option(None, "--scan-topic"),
+    overrides: Optional[list[str]] = typer.Option(
+        None, "--set", "-s", help="Override one of the map's options, e.g. relocalization.min_score=0.65 "
+        "(repeatable; angles in radians, or '20deg')."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
 ):
     """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search."""
@@ -357,8 +360,10 @@ def relocalize_(
         raise CartoError("--global and --initial-pose exclude each other")
     if at is not None and scan_index is not None:
         raise CartoError("--at and --scan-index exclude each other")
+    from carto_cli.options import apply_overrides
+
     loaded = load_map(map_file)
-    relocalizer = Relocalizer(loaded)
+    relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
     with open_recording(recording) as rec:
         if queries is not None:
             qs = read_queries(queries)
@@ -391,6 +396,8 @@ def relocalize_(
                f"score {result.score:.3f} ({'ok' if result.success else 'UNRELIABLE'}) via {result.path}, "
                f"{len(result.submaps_considered)} submaps")
     typer.echo("timing " + ", ".join(f"{k} {v:.1f} ms" for k, v in t.items()) + f", total {result.total_ms:.1f} ms")
+    if result.reason:
+        typer.echo(f"{'why' if not result.success else 'notes'}: {result.reason}")
     if not result.success:
         raise typer.Exit(1)
 

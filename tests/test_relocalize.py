@@ -488,3 +488,62 @@ def test_a_match_whose_rays_cross_walls_is_rejected(relocalizer, queries):
             break
     else:
         raise AssertionError("no sensor offset made the rays cross a wall")
+
+
+# ------------------------------------------------------------------------------------------ command line
+
+
+@pytest.fixture(scope="module")
+def cli_files(mapped, queries, tmp_path_factory):
+    """The map file and the second pass written as a ROS1 bag, as `carto relocalize` reads them."""
+    from carto_cli.io.writers import write_recording
+
+    sim, qs = queries
+    base = tmp_path_factory.mktemp("cli")
+    bag = base / "second_pass.bag"
+    write_recording(iter(list(sim.records(["/scan"]))), bag, "ros1",
+                    topics={"/scan": "sensor_msgs/msg/LaserScan"})
+    return mapped.path, bag, qs
+
+
+def _cli(*args):
+    from typer.testing import CliRunner
+
+    from carto_cli.cli import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_cli_relocalizes_one_scan_as_text_and_json(cli_files):
+    import json
+
+    map_path, bag, qs = cli_files
+    scan, truth = qs[5]
+    prior = truth + [0.8, -0.6, math.radians(8)]
+    pose = f"{prior[0]},{prior[1]},{math.degrees(prior[2])}deg"
+    r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time)
+    assert r.exit_code == 0, r.output
+    assert "(ok) via windowed" in r.output and "timing submap preparation" in r.output
+    r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time, "--json")
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.output)
+    assert d["success"] and d["path"] == "windowed"
+    assert pose_error([d["pose"]["x"], d["pose"]["y"], d["pose"]["yaw"]], truth)[0] < 0.1
+    assert set(d["timings_ms"]) == {"submap preparation", "pose search", "scan scoring", "other"}
+
+
+def test_cli_says_why_a_scan_was_not_relocalized(cli_files):
+    map_path, bag, qs = cli_files
+    scan, truth = qs[5]
+    pose = f"{truth[0]},{truth[1]},{truth[2]}"
+    # A threshold no scan reaches: not found, the reason printed, exit 1.
+    r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time,
+             "--set", "relocalization.min_score=0.95", "--set", "relocalization.global_min_score=0.95")
+    assert r.exit_code == 1, r.output
+    assert "UNRELIABLE" in r.output and "why: " in r.output and "below 0.95" in r.output
+
+
+def test_cli_rejects_an_unknown_override_by_name(cli_files):
+    map_path, bag, qs = cli_files
+    r = _cli("relocalize", map_path, bag, "--global", "--set", "relocalization.min_scroe=0.7")
+    assert r.exit_code == 2 and "min_scroe" in r.output
