@@ -104,7 +104,7 @@ _MIN_KNOWN_FRACTION = 0.5
 # 0.65/0.8 x 0.3/0.6/1.0 m), this one spread them most: right ones at most 0.11, a fifth of the wrong ones above 0.2.
 _WALL_PROBABILITY = 0.8
 _WALL_MARGIN = 1.0
-# Not for whole-submap searches: accepting known cells there (>= 80 % of the points) turned 7 of 100 missed global
+# Not for whole-submap searches: accepting known cells there (>= 80 % of the points) turned 2 of the 7 missed global
 # queries on bench-dense/aces into successes, but also 9 of 300 queries in places the map never saw into wrong ones.
 
 
@@ -516,13 +516,13 @@ class Relocalizer:
         return None
 
     def _refine(self, fine_points, cand: _Candidate, threshold: float, tm: _Timings, *, known_ok: bool = False,
-                min_known: float = _MIN_KNOWN_FRACTION, sensor=(0.0, 0.0)):
+                sensor=(0.0, 0.0)):
         """(map pose, score, success, reason, known fraction, known score, see-through fraction).
 
         ``sensor``: the laser's position in the tracking frame, where the scan's rays start.
 
-        ``known_ok``: a score below ``threshold`` still succeeds when at least ``min_known`` of the points fall
-        in known cells and their own mean reaches ``threshold`` (the rest see unmapped space).
+        ``known_ok``: a score below ``threshold`` still succeeds when at least ``_MIN_KNOWN_FRACTION`` of the
+        points fall in known cells and their own mean reaches ``threshold`` (the rest see unmapped space).
         """
         t = time.perf_counter()
         grid = self.grids[cand.submap]
@@ -548,7 +548,7 @@ class Relocalizer:
         tm.add("scan scoring", t)
         ok = consistent and score >= threshold
         if consistent and not ok and known_ok:
-            ok = known >= min_known and known_score >= threshold
+            ok = known >= _MIN_KNOWN_FRACTION and known_score >= threshold
             if not ok:
                 reason = (f"refined score {score:.3f} below {threshold:g} (known cells: {100 * known:.0f} % of the "
                           f"points, scoring {known_score:.3f})")
@@ -582,20 +582,19 @@ class Relocalizer:
         reasons: list[str] = []
         # Whole-submap searches look for anything above global_search_min_score and judge the *refined* score
         # against global_min_score: the search's score, on the coarser loop-closure points, runs ~0.07 below it
-        # (bench-dense/aces: right answers at 0.57-0.59 searched, 0.65-0.74 refined; with the floor at 0.55,
-        # 13 of 100 global queries on the route were missed at 0.60-0.65 refined).
+        # (bench-dense/aces: right answers at 0.57-0.59 searched, 0.65-0.74 refined; with the floor at 0.55, 13 of
+        # 100 global queries on the mapped route found nothing, 6 of which a floor of 0.5 finds).
         search_floor = min(ro.global_search_min_score, ro.global_min_score)
 
         def finish(cand: _Candidate | None, path: str, threshold: float, fallback_pose, *, label: str = "",
-                   rivals: Sequence[_Candidate] = (), known_ok: bool = False,
-                   min_known: float = _MIN_KNOWN_FRACTION) -> RelocalizationResult:
+                   rivals: Sequence[_Candidate] = (), known_ok: bool = False) -> RelocalizationResult:
             if cand is None:
                 timings, total = tm.finish()
                 return RelocalizationResult(np.asarray(fallback_pose, dtype=np.float64), 0.0, path, False,
                                             considered, timings, total, None, 0.0,
                                             "; ".join(reasons + ["no match above the threshold"]), threshold)
             pose, score, ok, reason, known, known_score, see = self._refine(
-                fine_pts, cand, threshold, tm, known_ok=known_ok, min_known=min_known, sensor=mount[:2])
+                fine_pts, cand, threshold, tm, known_ok=known_ok, sensor=mount[:2])
             if ok and rivals:
                 rival = self._rival(cand, pose, rivals, None if path == "global" else prior)
                 if rival is not None:
