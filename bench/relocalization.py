@@ -256,6 +256,7 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
             pool_ref, pool_ref_global = np.array(pool_ref), np.array(pool_ref_global)
             pool_known, pool_score, pool_track = np.array(pool_known), np.array(pool_score), np.array(pool_track)
             inside = (pool_known >= args.in_map_known) & (pool_track <= args.in_map_route)
+            info["in_map_rule"] = {"route_m": args.in_map_route, "known": args.in_map_known}
             info["pool"] = {"scans": len(pool), "in_map": int(inside.sum()),
                             "known_quartiles": [float(q) for q in np.percentile(pool_known, [25, 50, 75])]}
             print(f"[{name}] {int(inside.sum())} of {len(pool)} later scans are in the map (within "
@@ -360,6 +361,7 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
     from carto_cli.profiling import cpu_model
 
     cpu = cpu_model()
+    rule = next((c["in_map_rule"] for c in cases if "in_map_rule" in c), {"route_m": IN_MAP_ROUTE, "known": IN_MAP_KNOWN})
     cmd = "python bench/relocalization.py" + ("" if not argv else " " + " ".join(shlex.quote(a) for a in argv))
     out = [BEGIN, "", "## Relocalization", "",
            f"`{cmd}` — {_dt.date.today().isoformat()}, commit {commit}, {os.cpu_count()} cores ({cpu}), "
@@ -369,14 +371,15 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
            "moved into the map frame by an SE(2) fit of the mapped trajectory to `groundtruth.txt` near the query "
            "(mapped poses within 5 m; *vs global fit*: the fit over the whole mapped part, whose residual is the map's "
            "own error, column *map ATE*; *vs submap fit*: the fit on the nodes of the submap the pose was matched "
-           "in). A later scan is *in the map* when its reference lies within 1 m of the mapped route and at least "
-           "80 % of its points fall on known cells there: the robot drove there while mapping. Queries: "
+           f"in). A later scan is *in the map* when its reference lies within {rule['route_m']:g} m of the mapped "
+           f"route and at least {100 * rule['known']:.0f} % of its points fall on known cells there: the robot "
+           "drove there while mapping. Queries: "
            "`--queries` in-map scans and `--outside-queries` of the others (uniformly, seeded), each with a prior "
            "= reference perturbed uniformly within 1.5 m / ±15°, given with sigma 0.5 m / 5°; global queries: the "
            "first `--global-queries` of each set without a prior. Success = reported success and within 0.2 m / 2° "
            "of the reference, over the in-map queries; *false* = reported success outside that. Outside the map "
-           "nothing can be right: the column counts claimed answers and, in brackets, wrong ones (some are right "
-           "where the scan still sees mapped walls). Latency = `total_ms` of each in-map query with the map's "
+           "no answer is expected: the column counts claimed answers and, in brackets, the wrong ones among them "
+           "(a scan off the route that still sees mapped walls can be found). Latency = `total_ms` of each in-map query with the map's "
            "precomputation stacks built beforehand (a loaded map serving queries), numba compiled.",
            "",
            "Targets (issue 6): with a prior ≥ 99 % success, p50 ≤ 10 ms, p99 ≤ 50 ms; global ≥ 95 % success, "
