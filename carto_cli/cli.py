@@ -364,6 +364,8 @@ def relocalize_(
 
     loaded = load_map(map_file)
     relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
+    for w in relocalizer.warnings:
+        typer.echo(f"carto: warning: {w}", err=True)
     with open_recording(recording) as rec:
         if queries is not None:
             qs = read_queries(queries)

@@ -67,7 +67,7 @@ from carto_cli import transform
 from carto_cli.errors import CartoError
 from carto_cli.io.atomic import atomic_output
 from carto_cli.matching import branch_and_bound, least_squares
-from carto_cli.matching.precomputation import PrecomputationGridStack
+from carto_cli.matching.precomputation import PrecomputationGridStack, stack_bytes
 from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.options import Options
 from carto_cli.records import Scan
@@ -252,7 +252,10 @@ class Relocalizer:
                            else np.asarray(loaded_map.laser_pose, dtype=np.float64).reshape(3))
 
         m = loaded_map.num_submaps
-        self.grids = [s.grid for s in loaded_map.submaps]
+        # A map saved mid-trajectory holds its newest submaps as allocated while growing (up to 8x their known
+        # area: bench-dense/aces, stock options, 3024 x 4652 cells for 1264 x 1430 known); their precomputation
+        # stacks would be as big, and evict each other from the cache on every whole-map search.
+        self.grids = [_tight(s.grid) for s in loaded_map.submaps]
         # map -> grid frame of each submap: local_pose ∘ inverse(global_pose)
         self.map_to_grid = np.array([
             transform.compose(s.local_pose, transform.inverse(loaded_map.submap_global_poses[i]))
@@ -276,6 +279,16 @@ class Relocalizer:
             transform.apply(self.grid_to_map[i], self.map.submaps[i].local_pose[None, :2])
             for i, nodes in enumerate(loaded_map.submap_nodes)]
         self.covering = self._covering_submaps()
+        # A whole-map search visits every covering submap: with stacks beyond the cache budget each such query
+        # rebuilds the evicted ones (LRU order is the worst case for a cyclic scan), ~0.1 s per million cells.
+        self.stack_bytes_needed = sum(stack_bytes(self.grids[i].num_cells, self.ro.branch_and_bound_depth)
+                                      for i in self.searchable)
+        self.warnings: list[str] = []
+        if self.stack_bytes_needed > budget:
+            self.warnings.append(
+                f"the map's precomputation grids need {self.stack_bytes_needed / 1e6:.0f} MB, more than "
+                f"relocalization.cache_budget_mb = {budget / 1e6:g}: searches over many submaps will rebuild them "
+                f"(--set relocalization.cache_budget_mb={int(self.stack_bytes_needed / 1e6) + 1} keeps them all)")
         # Where a whole-submap search looks: the box of the submap's nodes plus a margin (the robot can only be
         # where it was while mapping), as (centre x, centre y, half-width) in the grid frame; None: the whole grid.
         self.node_windows: list[tuple[float, float, float] | None] = []
@@ -741,6 +754,14 @@ class Relocalizer:
 
     def stats(self) -> dict:
         return {"submaps": self.map.num_submaps, "searchable": len(self.searchable), "cache": self.cache.stats()}
+
+
+def _tight(grid):
+    """The grid cropped to its known cells, unless it already is (no copy then)."""
+    b = grid.known_bounds
+    if b is None or (b[0] == 0 and b[1] == 0 and b[2] == grid.num_cells[0] - 1 and b[3] == grid.num_cells[1] - 1):
+        return grid
+    return grid.cropped()
 
 
 def _global_levels(depth: int) -> tuple[tuple[float, int], ...]:

@@ -547,3 +547,33 @@ def test_cli_rejects_an_unknown_override_by_name(cli_files):
     map_path, bag, qs = cli_files
     r = _cli("relocalize", map_path, bag, "--global", "--set", "relocalization.min_scroe=0.7")
     assert r.exit_code == 2 and "min_scroe" in r.output
+
+
+def test_grids_allocated_beyond_their_known_cells_are_searched_cropped(mapped, queries):
+    """A map saved mid-trajectory keeps its newest submaps as allocated; the relocalizer crops them."""
+    from carto_cli.mapping.grid import ProbabilityGrid
+
+    big = []
+    for s in mapped.submaps:
+        g = s.grid
+        padded = ProbabilityGrid(g.resolution, g.origin - 200 * g.resolution, (g.num_cells[0] + 400, g.num_cells[1] + 400))
+        padded.cells[200:200 + g.num_cells[1], 200:200 + g.num_cells[0]] = g.cells
+        padded.known_box = g.known_box + 200
+        big.append(SimpleNamespace(grid=padded, local_pose=s.local_pose))
+    padded_map = SimpleNamespace(**{k: getattr(mapped, k) for k in (
+        "options", "laser_pose", "submap_global_poses", "node_global_poses", "submap_nodes", "num_submaps",
+        "trajectory", "node_scans")}, submaps=big, path=None)
+    rel = Relocalizer(padded_map)
+    plain = Relocalizer(mapped)
+    assert [g.num_cells for g in rel.grids] == [g.num_cells for g in plain.grids]
+    assert rel.stack_bytes_needed == plain.stack_bytes_needed and not rel.warnings
+    _, qs = queries
+    scan, truth = qs[5]
+    r = rel.relocalize(scan, truth + [0.5, -0.5, 0.1], sigma_xy=0.5, sigma_yaw=math.radians(5))
+    assert r.success and pose_error(r.pose, truth)[0] < 0.1
+
+
+def test_a_cache_budget_below_the_maps_stacks_is_reported(mapped):
+    rel = Relocalizer(mapped, cache_budget_bytes=1000)
+    assert len(rel.warnings) == 1 and "cache_budget_mb" in rel.warnings[0]
+    assert not Relocalizer(mapped).warnings

@@ -125,6 +125,12 @@ def block_max(base: np.ndarray, width: int) -> np.ndarray:
     return _block_max_along_rows(np.ascontiguousarray(along_x), width)
 
 
+def stack_bytes(num_cells, depth: int) -> int:
+    """Bytes of the levels of a depth-``depth`` stack over a grid of ``num_cells`` (nx, ny), without building it."""
+    pads = (1 << np.arange(int(depth), dtype=np.int64)) - 1
+    return int(((int(num_cells[0]) + pads) * (int(num_cells[1]) + pads)).sum())
+
+
 class PrecomputationGridStack:
     """Levels 0..depth-1 of block-max grids of one (finished) submap; build once, match many scans.
 

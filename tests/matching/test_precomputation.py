@@ -112,3 +112,11 @@ def test_levels_are_read_only_and_depth_is_checked():
         PrecomputationGridStack(ProbabilityGrid(0.05, (0, 0), (4, 4)), 0)
     with pytest.raises(ValueError, match="GiB"):  # options allow depth 24: 2^23 cells of padding
         PrecomputationGridStack(ProbabilityGrid(0.05, (0, 0), (4, 4)), 24)
+
+
+@pytest.mark.parametrize("shape,depth", [((7, 5), 1), ((40, 33), 4), ((120, 90), 7)])
+def test_stack_bytes_predicts_the_built_stack(shape, depth):
+    from carto_cli.matching.precomputation import stack_bytes
+
+    g = ProbabilityGrid(0.05, (0.0, 0.0), shape)
+    assert stack_bytes(g.num_cells, depth) == PrecomputationGridStack(g, depth).data.nbytes
