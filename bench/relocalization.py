@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Relocalization benchmark: success rate and latency of ``carto relocalize`` on the bench cases.
 
-    python bench/relocalization.py [--cases dense-intel,intel,...] [--queries 100] [--global-queries 20]
-                                   [--max-scans N] [--profile NAME] [--set key=value ...] [--seed 0]
+    python bench/relocalization.py [--cases dense-intel,intel,...] [--queries 100] [--outside-queries 30]
+                                   [--global-queries 20] [--in-map-route 1.0] [--in-map-known 0.8] [--max-scans N] [--profile NAME] [--set key=value ...] [--seed 0]
                                    [--doc docs/benchmarks.md | --no-doc] [--results DIR] [--map-cache DIR]
 
 Per case (every directory of ``$DATA/bench-dense`` as ``dense-<name>`` and of ``$DATA/bench``):

@@ -33,10 +33,12 @@ answers :meth:`Relocalizer.relocalize` queries, Cartographer-style:
    succeeded, the other submaps too.
 4. The best candidate is refined by least squares, re-scored on the submap
    (``score_at``) and accepted (``success``) only when that score reaches the
-   threshold and the refinement stayed near the search's answer (a wandering
-   refinement has slid along a corridor). Whole-submap searches (global and
-   fallbacks) search down to ``min_score`` and judge the refined score
-   against ``global_min_score``; they also keep every submap's best within ``_AMBIGUITY_MARGIN`` of
+   threshold, the refinement stayed near the search's answer (a wandering
+   refinement has slid along a corridor) and at most ``max_see_through`` of the
+   scan's rays pass through walls of the submap at the answer (free-space check,
+   ``matching/ray_consistency.py``). Whole-submap searches (global and
+   fallbacks) search down to ``global_search_min_score`` and judge the refined
+   score against ``global_min_score``; they also keep every submap's best within ``_AMBIGUITY_MARGIN`` of
    the best overall: when one of those is a different place (> 1 m or > 10°
    away in the map frame; with a prior, and not farther from it than the
    best), the answer is marked ambiguous (``success`` false) -- aliasing
@@ -99,11 +101,6 @@ _NODE_MARGIN = 2.0  # m: a whole-submap search covers the box of the submap's no
 # Only the first pass: in the wide one (4x the area) that let chance fits 2-4 m off through (bench-dense/aces).
 _KNOWN_SEARCH_FLOOR = 0.35
 _MIN_KNOWN_FRACTION = 0.5
-# A ray "sees through" a wall when it crosses a cell this probable more than _WALL_MARGIN before its endpoint
-# (relocalization.max_see_through). Of the variants tried on bench-dense (1035 right and 41 wrong claimed matches,
-# 0.65/0.8 x 0.3/0.6/1.0 m), this one spread them most: right ones at most 0.11, a fifth of the wrong ones above 0.2.
-_WALL_PROBABILITY = 0.8
-_WALL_MARGIN = 1.0
 # Not for whole-submap searches: accepting known cells there (>= 80 % of the points) turned 2 of the 7 missed global
 # queries on bench-dense/aces into successes, but also 9 of 300 queries in places the map never saw into wrong ones.
 
@@ -556,8 +553,7 @@ class Relocalizer:
                       f"{math.degrees(abs(moved[2])):.1f} deg from the search's pose")
         score = _score_at(grid, fine_points, grid_pose)
         known, known_score = _known_score(grid, fine_points, grid_pose)
-        see_through = see_through_fraction(grid, fine_points, grid_pose, sensor, occupied=_WALL_PROBABILITY,
-                                           margin=_WALL_MARGIN)
+        see_through = see_through_fraction(grid, fine_points, grid_pose, sensor)
         tm.add("scan scoring", t)
         ok = consistent and score >= threshold
         if consistent and not ok and known_ok:
