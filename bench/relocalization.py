@@ -30,7 +30,7 @@ Per case (every directory of ``$DATA/bench-dense`` as ``dense-<name>`` and of ``
    ``--in-map-known`` (80 %) of its points fall on known cells of a submap there. Known cells alone
    are not enough: the far ends of corridors the robot only looked down are known from a few grazing
    rays, and a scan taken there meets walls the map has barely seen (bench-dense with a prior: 100 %
-   success within 1 m of the route, 89-97 % at 1-2 m, 64-95 % over all later scans with 80 % known).
+   success within 1 m of the route, 89-100 % within 2 m, 64-95 % over all later scans with 80 % known).
    ``--queries`` in-map scans (default 100) and ``--outside-queries`` others (default 30) are sampled
    uniformly without replacement (seeded), each with a prior = reference pose in the map frame
    perturbed uniformly within a disc of 1.5 m and ±15° of yaw, given with sigma_xy = 0.5 m and
