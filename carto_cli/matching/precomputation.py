@@ -125,10 +125,16 @@ def block_max(base: np.ndarray, width: int) -> np.ndarray:
     return _block_max_along_rows(np.ascontiguousarray(along_x), width)
 
 
+def _level_shapes(nx: int, ny: int, depth: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pads, widths, heights) of each level: level d is padded by 2^d - 1 cells on the low side of each axis."""
+    pads = (1 << np.arange(int(depth), dtype=np.int64)) - 1
+    return pads, int(nx) + pads, int(ny) + pads
+
+
 def stack_bytes(num_cells, depth: int) -> int:
     """Bytes of the levels of a depth-``depth`` stack over a grid of ``num_cells`` (nx, ny), without building it."""
-    pads = (1 << np.arange(int(depth), dtype=np.int64)) - 1
-    return int(((int(num_cells[0]) + pads) * (int(num_cells[1]) + pads)).sum())
+    _, widths, heights = _level_shapes(num_cells[0], num_cells[1], depth)
+    return int((widths * heights).sum())
 
 
 class PrecomputationGridStack:
@@ -153,9 +159,8 @@ class PrecomputationGridStack:
 
         base = _quantise(np.ascontiguousarray(grid.cells), VALUE_TO_CELL_VALUE)
         widths = 1 << np.arange(depth, dtype=np.int64)
-        self.pads = widths - 1
-        self.level_widths = nx + self.pads  # columns (x) of each padded level
-        self.level_heights = ny + self.pads  # rows (y)
+        # columns (x) and rows (y) of each padded level
+        self.pads, self.level_widths, self.level_heights = _level_shapes(nx, ny, depth)
         sizes = self.level_widths * self.level_heights
         if int(sizes.sum()) > MAX_STACK_BYTES:
             # Padding grows as 2^depth: the "depth 15-25" of some tuning guides would ask for
