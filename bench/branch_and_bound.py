@@ -27,13 +27,13 @@ import time
 
 import numpy as np
 
-from carto_cli.mapping.grid import ProbabilityGrid
-from carto_cli.mapping.range_inserter import ProbabilityGridRangeDataInserter
+from carto_cli.grid.probability_grid import ProbabilityGrid
+from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
 from carto_cli.matching import branch_and_bound as bnb
 from carto_cli.matching.precomputation import PrecomputationGridStack
 from carto_cli.sensor.range_filter import crop_polar
 from carto_cli.sim import Lidar, loop_building
-from carto_cli.transform import normalize_angle
+from carto_cli.core.transform import normalize_angle
 
 LIDAR = Lidar(beams=360, fov=2 * math.pi, max_range=15.0, noise=0.01, dropout=0.01)
 

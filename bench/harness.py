@@ -186,7 +186,7 @@ def relations_from_groundtruth(gt, *, step: int = 10, revisit_every: int = 5, mi
     """
     import numpy as np
 
-    from carto_cli.evaluate import Relations
+    from carto_cli.evaluation.metrics import Relations
 
     t, xy, th = gt.t, gt.xy, gt.theta
 
@@ -218,7 +218,7 @@ def _pose_errors(a, b):
     """Translational (m) and rotational (deg) differences of (n, 3) relative poses."""
     import numpy as np
 
-    from carto_cli import transform
+    from carto_cli.core import transform
 
     return (np.hypot(a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]),
             np.degrees(np.abs(transform.normalize_angle(a[:, 2] - b[:, 2]))))
@@ -235,8 +235,8 @@ def loop_closure_check(graph, reference) -> dict:
     """
     import numpy as np
 
-    from carto_cli import transform
-    from carto_cli.evaluate import interpolate_poses
+    from carto_cli.core import transform
+    from carto_cli.evaluation.metrics import interpolate_poses
 
     cs = graph.constraints
     mask = np.asarray(cs.is_loop_closure, dtype=bool)
@@ -303,7 +303,7 @@ def _odometry_trajectory(recording, topic):
     import numpy as np
 
     from carto_cli.io.trajectory import Trajectory
-    from carto_cli.records import Odometry
+    from carto_cli.core.records import Odometry
 
     rows = [(r.time, r.x, r.y, r.yaw) for r in recording.records([topic]) if isinstance(r, Odometry)]
     if len(rows) < 2:
@@ -314,7 +314,7 @@ def _odometry_trajectory(recording, topic):
     return Trajectory.from_arrays(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
 
 
-# Stage names of the StageTimer tree (carto_cli.timing). They are found by name wherever they sit, so
+# Stage names of the StageTimer tree (carto_cli.core.timing). They are found by name wherever they sit, so
 # that moving a stage (e.g. the pose graph's work into or out of the per-scan stage) keeps the split right.
 JIT_STAGE, SCAN_STAGE, GLOBAL_STAGE = "jit warm-up", "scan", "global"
 CONSTRAINT_STAGE, OPTIMIZATION_STAGE = "loop closure", "optimization"
@@ -377,15 +377,15 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     t_import = time.perf_counter()
     import numpy as np
 
-    from carto_cli.evaluate import Relations, ate, read_relations, relation_error
-    from carto_cli.io.map_writer import render_png, write_png
-    from carto_cli.io.open import open_recording
+    from carto_cli.evaluation.metrics import Relations, ate, read_relations, relation_error
+    from carto_cli.io.map_image import render_png, write_png
+    from carto_cli.io.sources.open import open_recording
     from carto_cli.io.recording import ReadOptions
     from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
-    from carto_cli.mapping.map_builder import build
+    from carto_cli.pipeline import build
     from carto_cli.options import load_options
-    from carto_cli.timing import StageTimer, report_json, report_tree_text
+    from carto_cli.core.timing import StageTimer, report_json, report_tree_text
 
     import_s = time.perf_counter() - t_import
     import carto_cli
@@ -647,7 +647,7 @@ def _run(cmd: list[str]) -> str:
 
 
 def environment() -> dict:
-    from carto_cli.profiling import cpu_model
+    from carto_cli.evaluation.profiling import cpu_model
 
     cpu = cpu_model()
     mem_gb = None
@@ -732,7 +732,7 @@ def parse_peers(path: Path) -> dict:
 METHOD = f"""\
 ## What is measured
 
-* **Relation error** — `carto_cli.evaluate.relation_error` on the case's `relations.txt` (Kümmerle et al.):
+* **Relation error** — `carto_cli.evaluation.metrics.relation_error` on the case's `relations.txt` (Kümmerle et al.):
   for every relation `t1 t2 dx dy dyaw`, the SLAM trajectory's pose at `t2` expressed in its pose at `t1`
   (poses at every scan, interpolated linearly in x, y and along the shorter arc in yaw) is compared with
   the relation; the translational error is the norm of the difference of the translations (m), the
@@ -740,7 +740,7 @@ METHOD = f"""\
   whose two times fall within the trajectory (with `--quick`, only the processed part).
   *odometry (here)* is the same metric on the recording's own odometry (the topic SLAM used), on exactly the
   relations used for carto; *odometry / Cartographer / best peer* are copied from `PEERS.md`.
-* **ATE** — after the SE(2) alignment that minimises it (`carto_cli.evaluate.ate`, at the trajectory's
+* **ATE** — after the SE(2) alignment that minimises it (`carto_cli.evaluation.metrics.ate`, at the trajectory's
   timestamps), mean translational error in m.
 * **Simulated loop building** — `carto_cli.sim.loop_building()` driven round its ring corridor by
   `loop_trajectory` (as many laps as needed, cut at {SIM_DURATION:g} s), scans at 10 Hz (360 beams over 270°,

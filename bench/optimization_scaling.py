@@ -18,7 +18,7 @@ import numpy as np
 
 from carto_cli.mapping.constraints import ConstraintSet
 from carto_cli.mapping.optimization import NodePairs, optimize, residuals
-from carto_cli.transform import relative
+from carto_cli.core.transform import relative
 
 
 def chain(start, steps):

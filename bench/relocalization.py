@@ -133,8 +133,8 @@ def _stats(rows: list[dict]) -> dict:
 def explained(reloc, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
     """How well the map holds a scan at its reference ``pose`` (map frame): over the submaps whose known box
     contains the pose, the best share of ``points`` on known cells and the score there."""
-    from carto_cli import transform
-    from carto_cli.relocalize import _known_score, _score_at
+    from carto_cli.core import transform
+    from carto_cli.relocalization.relocalizer import _known_score, _score_at
 
     best = (0.0, 0.0)
     for i in np.flatnonzero(reloc.box_distances(pose[:2]) <= 0.0):
@@ -146,15 +146,15 @@ def explained(reloc, points: np.ndarray, pose: np.ndarray) -> tuple[float, float
 
 
 def run_case(name: str, family: str, path: Path, args) -> dict:
-    from carto_cli import transform
-    from carto_cli.evaluate import align_se2, interpolate_poses
+    from carto_cli.core import transform
+    from carto_cli.evaluation.metrics import align_se2, interpolate_poses
     from carto_cli.io.map_file import load_map, save_map
-    from carto_cli.io.open import open_recording
+    from carto_cli.io.sources.open import open_recording
     from carto_cli.io.recording import ReadOptions
     from carto_cli.io.trajectory import read_trajectory
-    from carto_cli.mapping.map_builder import build
+    from carto_cli.pipeline import build
     from carto_cli.options import load_options
-    from carto_cli.relocalize import Query, Relocalizer, _scans_for, relocalize_many
+    from carto_cli.relocalization.relocalizer import Query, Relocalizer, _scans_for, relocalize_many
 
     profile = args.profile if args.profile else ("wheeled" if family == "bench-dense" else "sparse")
     options = load_options(profile, args.set)
@@ -358,7 +358,7 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
             commit += " + uncommitted changes in the tree"
     except Exception:
         commit = "unknown"
-    from carto_cli.profiling import cpu_model
+    from carto_cli.evaluation.profiling import cpu_model
 
     cpu = cpu_model()
     rule = next((c["in_map_rule"] for c in cases if "in_map_rule" in c), {"route_m": IN_MAP_ROUTE, "known": IN_MAP_KNOWN})

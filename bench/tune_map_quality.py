@@ -3,11 +3,11 @@
 Usage: python bench/tune_map_quality.py CASE PROFILE MAX_SCANS, e.g. bench/aces sparse 250.
 """
 import sys, json, time
-from carto_cli.io.open import open_recording
+from carto_cli.io.sources.open import open_recording
 from carto_cli.options import load_options, apply_overrides
-from carto_cli.tune import make_cases, score_case, map_quality
-from carto_cli.mapping.map_builder import build
-from carto_cli.evaluate import relation_error
+from carto_cli.tuning.study import make_cases, score_case, map_quality
+from carto_cli.pipeline import build
+from carto_cli.evaluation.metrics import relation_error
 from carto_cli.io.trajectory import Trajectory
 import math
 case, profile, ms = sys.argv[1], sys.argv[2], int(sys.argv[3])

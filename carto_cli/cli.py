@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 
 from carto_cli import __version__
-from carto_cli.errors import CartoError
+from carto_cli.core.errors import CartoError
 
 app = typer.Typer(
     add_completion=False,
@@ -93,9 +93,9 @@ def info(
     max_z: float = MAX_Z,
 ):
     """Describe a recording: topics, rates, scan geometry, static TF, warnings."""
-    from carto_cli.info import format_info, inspect_recording
-    from carto_cli.io.open import open_recording
-    from carto_cli.progress import progress
+    from carto_cli.commands.info import format_info, inspect_recording
+    from carto_cli.io.sources.open import open_recording
+    from carto_cli.core.progress import progress
 
     with open_recording(recording, _read_options(min_z, max_z)) as rec:
         total = sum(t.count for t in rec.topics() if t.kind in ("scan", "odometry", "imu"))
@@ -127,9 +127,9 @@ def convert(
     max_z: float = MAX_Z,
 ):
     """Convert between ROS1 bags, ROS2 bags (sqlite3 / mcap storage) and MCAP; scans, odometry, IMU and static TF."""
-    from carto_cli.io.open import open_recording
-    from carto_cli.io.writers import format_for_output, write_recording
-    from carto_cli.progress import progress
+    from carto_cli.io.sources.open import open_recording
+    from carto_cli.io.recording_writers import format_for_output, write_recording
+    from carto_cli.core.progress import progress
 
     out_format = format_for_output(out, fmt)
     with open_recording(source, _read_options(min_z, max_z)) as rec:
@@ -189,9 +189,9 @@ def map_(
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum."""
     from carto_cli.io.tf_tree import parse_pose
-    from carto_cli.map_job import run_map, summary_line
-    from carto_cli.progress import progress
-    from carto_cli.timing import StageTimer, report_tree_text
+    from carto_cli.commands.map import run_map, summary_line
+    from carto_cli.core.progress import progress
+    from carto_cli.core.timing import StageTimer, report_tree_text
 
     options = _options(profile, overrides)
     mount = parse_pose(laser_pose, "--laser-pose") if laser_pose else None
@@ -217,7 +217,7 @@ def map_(
 
 def _finish_gates(gates, junit: Optional[Path], suite: str, label: str) -> None:
     """JUnit output if asked, one stderr line per failed gate, exit 1 if any failed."""
-    from carto_cli.gates import write_junit
+    from carto_cli.evaluation.gates import write_junit
 
     if junit is not None:
         write_junit(junit, suite, gates)
@@ -243,8 +243,8 @@ def eval_(
     junit: Optional[Path] = typer.Option(None, "--junit", help="Write the gates' outcome as JUnit XML."),
 ):
     """Score a trajectory: relation error (Kuemmerle et al.) and/or ATE + RPE against a ground truth."""
-    from carto_cli.evaluate import evaluate, format_table, to_json
-    from carto_cli.gates import accuracy_gates
+    from carto_cli.evaluation.metrics import evaluate, format_table, to_json
+    from carto_cli.evaluation.gates import accuracy_gates
 
     if relations is None and ground_truth is None:
         raise CartoError("give --relations FILE and/or --ground-truth FILE")
@@ -279,15 +279,15 @@ def profile_(
         None, "--relocalize", help="Also profile relocalizing every 10th scan of RECORDING in this map.carto."),
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates."""
-    from carto_cli.gates import compare_profiles
+    from carto_cli.evaluation.gates import compare_profiles
     from carto_cli.io.atomic import write_text_atomic
-    from carto_cli.io.open import open_recording
+    from carto_cli.io.sources.open import open_recording
     from carto_cli.io.recording import ReadOptions
     from carto_cli.io.topics import select_topics
-    from carto_cli.mapping.map_builder import build
-    from carto_cli.profiling import build_report, calibrate as run_calibration, format_report
-    from carto_cli.progress import progress
-    from carto_cli.timing import StageTimer
+    from carto_cli.pipeline import build
+    from carto_cli.evaluation.profiling import build_report, calibrate as run_calibration, format_report
+    from carto_cli.core.progress import progress
+    from carto_cli.core.timing import StageTimer
 
     options = _options(profile, overrides)
     base = None
@@ -308,7 +308,7 @@ def profile_(
     report = build_report(result, timer, options, recording, calibration)
     if relocalize_map is not None:
         from carto_cli.io.map_file import load_map
-        from carto_cli.profiling import profile_relocalization
+        from carto_cli.evaluation.profiling import profile_relocalization
 
         with open_recording(recording, ReadOptions(min_z=tb.min_z, max_z=tb.max_z)) as rec:
             report["relocalization"] = profile_relocalization(load_map(relocalize_map), rec, scan_topic=scan_topic)
@@ -316,7 +316,7 @@ def profile_(
         write_text_atomic(output, json.dumps(report, indent=2) + "\n")
     typer.echo(json.dumps(report, indent=2) if as_json else format_report(report))
     if not as_json and "relocalization" in report:
-        from carto_cli.profiling import format_relocalization
+        from carto_cli.evaluation.profiling import format_relocalization
 
         typer.echo("\n" + format_relocalization(report["relocalization"]))
     if base is None:
@@ -350,9 +350,9 @@ def relocalize_(
     import math
 
     from carto_cli.io.map_file import load_map
-    from carto_cli.io.open import open_recording
-    from carto_cli.progress import progress
-    from carto_cli.relocalize import Relocalizer, parse_pose, read_queries, relocalize_many, scan_at, write_results_csv
+    from carto_cli.io.sources.open import open_recording
+    from carto_cli.core.progress import progress
+    from carto_cli.relocalization.relocalizer import Relocalizer, parse_pose, read_queries, relocalize_many, scan_at, write_results_csv
 
     if queries is None and not global_ and initial_pose is None:
         raise CartoError("give --initial-pose x,y,yaw, or --global, or --queries FILE")
@@ -465,9 +465,9 @@ def tune_(
     out: Path = typer.Option(..., "--output", "-o", help="The tuned profile (YAML over the base profile)."),
 ):
     """Search options against a measured objective (Optuna TPE) and write the best as a profile."""
-    from carto_cli.progress import progress
-    from carto_cli.tune import tune
-    from carto_cli.tune_space import default_space_path
+    from carto_cli.core.progress import progress
+    from carto_cli.tuning.study import tune
+    from carto_cli.tuning.space import default_space_path
 
     space_path = space if space is not None else default_space_path(profile)
     with progress("tuning", trials, state.quiet) as bar:

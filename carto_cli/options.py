@@ -30,7 +30,7 @@ from typing import Any, Iterable
 
 import yaml
 
-from carto_cli.errors import CartoError
+from carto_cli.core.errors import CartoError
 
 __all__ = [
     "Options", "TrajectoryBuilder2D", "PoseGraph", "Relocalization",

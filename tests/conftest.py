@@ -6,7 +6,7 @@ from support import STATIC_TF, synthetic_records
 @pytest.fixture(scope="session")
 def written_recordings(tmp_path_factory):
     """The same synthetic records written to every output format (built once per session)."""
-    from carto_cli.io.writers import write_recording
+    from carto_cli.io.recording_writers import write_recording
 
     base = tmp_path_factory.mktemp("recordings")
     records = synthetic_records()

@@ -48,8 +48,8 @@ def scan_points(pose, n=360, noise=0.0, rng=None):
 
 def build_room_grid(poses, resolution=0.05, noise=0.01, seed=0, n=360):
     """A probability grid of the room built by inserting one scan from each pose."""
-    from carto_cli.mapping.grid import ProbabilityGrid
-    from carto_cli.mapping.range_inserter import ProbabilityGridRangeDataInserter
+    from carto_cli.grid.probability_grid import ProbabilityGrid
+    from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
 
     rng = np.random.default_rng(seed)
     # Walls on cell centres: the grid's own half-cell quantisation then puts no bias into matching tests.

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from carto_cli.records import Imu, Odometry, Scan, Transform
+from carto_cli.core.records import Imu, Odometry, Scan, Transform
 
 def _find_shared() -> Path:
     """The project's shared data: $CARTO_SHARED_DATA, else ../shared/data next to the checkout, else /work/shared/data."""

@@ -68,7 +68,7 @@ def test_convert_round_trip(tmp_path):
     assert result.exit_code == 0, result.output
     back = tmp_path / "back.bag"
     assert run("convert", out, back).exit_code == 0
-    from carto_cli.io.open import open_recording
+    from carto_cli.io.sources.open import open_recording
 
     with open_recording(SAMPLE_BAG) as a, open_recording(back) as b:
         pairs = list(zip(a.records(), b.records(), strict=True))

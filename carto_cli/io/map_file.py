@@ -21,7 +21,7 @@ Why this and not ``.npz`` or pickle:
 - Failures are told apart: the stated file length reveals truncation (the common failure:
   an interrupted copy) before the checksum is even computed; the small CRC over the fixed
   preamble tells a damaged length field from a short file; the SHA-256 catches any other
-  flipped bit. Each is a :class:`~carto_cli.errors.FormatError`; so is any inconsistency a
+  flipped bit. Each is a :class:`~carto_cli.core.errors.FormatError`; so is any inconsistency a
   forged checksum could let through (malformed JSON, an array outside the data, a bad
   dtype or shape, a decompression that does not give the declared size).
 - Per-array codec, chosen at save time: the smallest of stored, zstd (level 9) and zstd of
@@ -78,11 +78,11 @@ from typing import Any, Iterable
 import numpy as np
 
 from carto_cli import __version__
-from carto_cli.errors import CartoError, FormatError
+from carto_cli.core.errors import CartoError, FormatError
 from carto_cli.io.atomic import atomic_output
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
-from carto_cli.mapping.grid import ProbabilityGrid
+from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.mapping.pose_graph import PoseGraph, SubmapEntry
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options, apply_overrides, options_to_dict

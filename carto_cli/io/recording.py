@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from carto_cli.records import Record, Transform
+from carto_cli.core.records import Record, Transform
 
 
 # Message types carto understands, by the kind of record they become.

@@ -5,8 +5,8 @@ import math
 
 import numpy as np
 
-from carto_cli.errors import CartoError
-from carto_cli.records import Transform, strip_frame
+from carto_cli.core.errors import CartoError
+from carto_cli.core.records import Transform, strip_frame
 
 # Cartographer's usual tracking frames, in order of preference, when several roots exist.
 TRACKING_FRAMES = ("base_link", "base_footprint", "imu_link", "imu")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from carto_cli.errors import TopicError
+from carto_cli.core.errors import TopicError
 from carto_cli.io.recording import Recording, TopicInfo
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from carto_cli.errors import CartoError, FormatError
+from carto_cli.core.errors import CartoError, FormatError
 from carto_cli.io.atomic import atomic_output
 
 __all__ = ["Trajectory", "read_trajectory", "write_trajectory", "parse_table", "TRAJECTORY_FORMATS"]

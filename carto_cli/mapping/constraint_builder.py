@@ -16,11 +16,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from carto_cli import transform
+from carto_cli.core import transform
 from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import PrecomputationGridStack
 from carto_cli.options import Options
-from carto_cli.timing import NullTimer
+from carto_cli.core.timing import NullTimer
 
 if TYPE_CHECKING:
     from carto_cli.mapping.pose_graph import PoseGraph

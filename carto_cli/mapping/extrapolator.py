@@ -49,14 +49,14 @@ class PoseExtrapolator:
         self._trim()
 
     def add_odometry(self, odometry) -> None:
-        """A :class:`carto_cli.records.Odometry`; out-of-order samples are ignored."""
+        """A :class:`carto_cli.core.records.Odometry`; out-of-order samples are ignored."""
         if self._odometry and odometry.time <= self._odometry[-1][0]:
             return
         self._odometry.append((float(odometry.time), (float(odometry.x), float(odometry.y), float(odometry.yaw))))
         self._trim()
 
     def add_imu(self, imu) -> None:
-        """A :class:`carto_cli.records.Imu`; only its yaw rate is used, and only with ``use_imu_data``."""
+        """A :class:`carto_cli.core.records.Imu`; only its yaw rate is used, and only with ``use_imu_data``."""
         if not self.use_imu_data or (self._imu and imu.time <= self._imu[-1][0]):
             return
         self._imu.append((float(imu.time), float(imu.angular_velocity[2])))

@@ -23,16 +23,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from carto_cli import transform
+from carto_cli.core import transform
 from carto_cli.mapping.extrapolator import PoseExtrapolator
 from carto_cli.mapping.motion_filter import MotionFilter
 from carto_cli.mapping.submaps import ActiveSubmaps, Submap
 from carto_cli.matching import correlative, least_squares
 from carto_cli.options import TrajectoryBuilder2D
-from carto_cli.records import Imu, Odometry, Scan
+from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.sensor.range_filter import RangeData, accumulate, crop_polar, crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
-from carto_cli.timing import NullTimer
+from carto_cli.core.timing import NullTimer
 
 
 @dataclass

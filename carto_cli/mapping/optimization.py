@@ -40,7 +40,7 @@ import scipy.sparse.linalg as spla
 from numba import njit
 
 from carto_cli.mapping.constraints import ConstraintSet
-from carto_cli.transform import normalize_angle, relative as relative_pose
+from carto_cli.core.transform import normalize_angle, relative as relative_pose
 
 if TYPE_CHECKING:
     from carto_cli.options import PoseGraph

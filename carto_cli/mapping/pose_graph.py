@@ -18,13 +18,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from carto_cli import transform
+from carto_cli.core import transform
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
 from carto_cli.mapping.optimization import NodePairs, OptimizationSummary, optimize, residuals
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options
-from carto_cli.timing import NullTimer
+from carto_cli.core.timing import NullTimer
 
 
 @dataclass

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from carto_cli.mapping.grid import ProbabilityGrid
-from carto_cli.mapping.range_inserter import ProbabilityGridRangeDataInserter
+from carto_cli.grid.probability_grid import ProbabilityGrid
+from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
 from carto_cli.sensor.range_filter import RangeData
 
 INITIAL_SUBMAP_SIZE = 100  # cells; the grid grows as scans leave it

@@ -34,10 +34,10 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from numba import njit
 
-from carto_cli.mapping.grid import MAX_PROBABILITY, MIN_PROBABILITY
+from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY
 from carto_cli.matching.correlative import search_parameters
 from carto_cli.matching.precomputation import PrecomputationGridStack, cell_value_to_probability
-from carto_cli.transform import normalize_angle
+from carto_cli.core.transform import normalize_angle
 
 
 class MatchResult(NamedTuple):

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from carto_cli.mapping.grid import VALUE_TO_PROBABILITY
+from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
 
 
 class CorrelativeResult(NamedTuple):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from carto_cli.mapping.grid import MAX_CORRESPONDENCE_COST, VALUE_TO_CORRESPONDENCE_COST
+from carto_cli.grid.probability_grid import MAX_CORRESPONDENCE_COST, VALUE_TO_CORRESPONDENCE_COST
 
 
 @njit(cache=True)

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from carto_cli.mapping.grid import VALUE_TO_CORRESPONDENCE_COST
+from carto_cli.grid.probability_grid import VALUE_TO_CORRESPONDENCE_COST
 from carto_cli.matching.interpolation import cost_and_gradient
 
 

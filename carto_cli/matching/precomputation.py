@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from carto_cli.mapping.grid import MAX_PROBABILITY, MIN_PROBABILITY, VALUE_TO_PROBABILITY
+from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY, VALUE_TO_PROBABILITY
 
 # Refuse stacks bigger than this rather than exhaust memory.
 MAX_STACK_BYTES = 1 << 30

@@ -17,8 +17,8 @@ import math
 import numpy as np
 from numba import njit
 
-from carto_cli import transform
-from carto_cli.mapping.grid import VALUE_TO_PROBABILITY
+from carto_cli.core import transform
+from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
 
 __all__ = ["see_through_fraction", "WALL_PROBABILITY", "WALL_MARGIN"]
 

@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 from numba import njit
 
-from carto_cli import transform
+from carto_cli.core import transform
 
 
 @dataclass(frozen=True, eq=False)
@@ -170,7 +170,7 @@ def crop_polar(ranges, angles, *, min_range: float = 0.0, max_range: float = 30.
 
 
 def crop_scan(scan, *, mount=None, motion=None, **kwargs) -> RangeData:
-    """``crop_polar`` for a :class:`carto_cli.records.Scan`.
+    """``crop_polar`` for a :class:`carto_cli.core.records.Scan`.
 
     With a ``motion``, beams are de-skewed using the scan's ``time_increment``
     (a scan without one, such as a CARMEN log or a point cloud slice, is taken

@@ -15,9 +15,9 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from carto_cli.errors import TopicError
+from carto_cli.core.errors import TopicError
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
-from carto_cli.records import Imu, Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
+from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
 from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.odometry import ImuModel, OdometryModel, gyro_and_accel, wheel_odometry
 from carto_cli.sim.trajectory import Trajectory, wrap_angle

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from carto_cli import __version__
-from carto_cli.errors import CartoError, FormatError
+from carto_cli.core.errors import CartoError, FormatError
 from carto_cli.io.map_file import FORMAT_VERSION, MAGIC, LoadedMap, load_map, save_map
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.constraints import ConstraintKind
@@ -23,7 +23,7 @@ OVERRIDES = ["pose_graph.optimize_every_n_nodes=0", "trajectory_builder_2d.subma
 
 @pytest.fixture(scope="module")
 def mapped(tmp_path_factory):
-    from carto_cli.mapping.map_builder import build
+    from carto_cli.pipeline import build
     from carto_cli.sim.recording import simulate
     from carto_cli.sim.trajectory import loop_trajectory
     from carto_cli.sim.world import loop_building

@@ -1,6 +1,6 @@
 import pytest
 
-from carto_cli.errors import TopicError
+from carto_cli.core.errors import TopicError
 from carto_cli.io.recording import Recording, TopicInfo, kind_of, normalise_type
 from carto_cli.io.topics import select_topics
 

@@ -4,7 +4,7 @@ import os
 import numpy as np
 import pytest
 
-from carto_cli.errors import CartoError, FormatError
+from carto_cli.core.errors import CartoError, FormatError
 from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
 from support import shared_path
 

@@ -9,7 +9,7 @@ from carto_cli.mapping import optimization as opt
 from carto_cli.mapping.constraints import Constraint, ConstraintKind, ConstraintSet
 from carto_cli.mapping.optimization import NodePairs, node_pairs_from_options, optimize, residuals, solver_kwargs
 from carto_cli.options import Options
-from carto_cli.transform import compose, relative
+from carto_cli.core.transform import compose, relative
 
 # Cartographer's default weights (pose_graph.lua).
 MATCHER = (5e2, 1.6e3)

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from carto_cli import transform
-from carto_cli.evaluate import ate
+from carto_cli.core import transform
+from carto_cli.evaluation.metrics import ate
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.constraints import ConstraintKind
-from carto_cli.mapping.map_builder import build
+from carto_cli.pipeline import build
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import load_options

@@ -43,7 +43,7 @@ def test_submap_origin_is_first_insertion_origin():
 
 def test_finished_submap_is_cropped_and_closed():
     s = Submap((0.0, 0.0), resolution=0.05)
-    from carto_cli.mapping.range_inserter import ProbabilityGridRangeDataInserter
+    from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
     ins = ProbabilityGridRangeDataInserter()
     s.insert(range_data(0.0), ins)
     s.finish()

@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from carto_cli.mapping.grid import MAX_PROBABILITY, MIN_PROBABILITY, ProbabilityGrid, probability_to_value
-from carto_cli.mapping.range_inserter import ProbabilityGridRangeDataInserter
+from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY, ProbabilityGrid, probability_to_value
+from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
 from carto_cli.matching import branch_and_bound as bnb
 from carto_cli.matching.precomputation import PrecomputationGridStack
 from carto_cli.sensor.range_filter import crop_polar

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from room_sim import build_room_grid, scan_points
-from carto_cli.mapping.grid import ProbabilityGrid
+from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching.correlative import match, search_parameters
 
 TRUTH = np.array([3.0, 2.8, 0.3])

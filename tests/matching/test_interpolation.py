@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from carto_cli.mapping.grid import VALUE_TO_CORRESPONDENCE_COST, ProbabilityGrid
+from carto_cli.grid.probability_grid import VALUE_TO_CORRESPONDENCE_COST, ProbabilityGrid
 from carto_cli.matching.interpolation import interpolate_correspondence_cost
 
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from carto_cli.mapping.grid import MAX_PROBABILITY, MIN_PROBABILITY, ProbabilityGrid, probability_to_value
+from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY, ProbabilityGrid, probability_to_value
 from carto_cli.matching.precomputation import (
     VALUE_TO_CELL_VALUE,
     PrecomputationGridStack,

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from carto_cli.mapping.grid import ProbabilityGrid
+from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching.ray_consistency import see_through_fraction
 
 

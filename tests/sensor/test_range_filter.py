@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from carto_cli import transform as tf
+from carto_cli.core import transform as tf
 from carto_cli.sensor.range_filter import RangeData, accumulate, crop_points, crop_polar
 
 

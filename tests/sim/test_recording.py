@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from carto_cli.errors import TopicError
+from carto_cli.core.errors import TopicError
 from carto_cli.io.recording import Recording
-from carto_cli.records import Imu, Odometry, Scan
+from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.sim import (ImuModel, OdometryModel, SimulatedRecording, loop_building, loop_trajectory,
                            room, simulate)
 from carto_cli.sim.odometry import relative_motion

@@ -1,0 +1,129 @@
+"""The SLAM core object: scans, odometry and IMU in; poses, submaps and the pose graph out. No files.
+
+Like kiss-icp's ``KissICP``: the caller owns reading (``carto_cli.pipeline`` feeds a recording,
+tests feed arrays); this object only turns time-ordered measurements into a map.
+"""
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from carto_cli.core.records import Imu, Odometry, Scan
+from carto_cli.core.timing import NullTimer
+from carto_cli.grid.occupancy_image import OccupancyImage, assemble
+from carto_cli.mapping.local_slam import LocalSlam, LocalSlamResult
+from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping.submaps import Submap
+from carto_cli.options import Options
+
+
+@dataclass
+class SlamResult:
+    times: np.ndarray  # (S,) every scan that got a pose
+    poses: np.ndarray  # (S, 3) tracking frame in the map frame
+    local_poses: np.ndarray  # (S, 3) the same scans in the local SLAM frame
+    node_scans: np.ndarray  # (N,) index into times/poses of every node
+    submaps: list[Submap]
+    submap_poses: np.ndarray  # (M, 3) global poses of the submaps' frames (local frame ↦ map frame)
+    image: OccupancyImage
+    laser_pose: np.ndarray
+    stats: dict = field(default_factory=dict)
+    loop_closures: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (K, 4) x1 y1 x2 y2 for drawing
+    graph: PoseGraph | None = None
+
+
+class Slam:
+    """Local SLAM feeding a pose graph, as Cartographer's MapBuilder wires them for one trajectory.
+
+    With ``graph`` (e.g. restored from a map.carto) the measurements become trajectory
+    ``trajectory_id`` of that graph, linked to the earlier ones by loop closures.
+    """
+
+    def __init__(self, options: Options, *, laser_pose=(0.0, 0.0, 0.0), timer=None, loop_closure: bool = True,
+                 graph: PoseGraph | None = None, trajectory_id: int = 0, started: float | None = None):
+        self.options = options
+        self.timer = timer or NullTimer()
+        self.loop_closure = loop_closure
+        self.laser_pose = np.asarray(laser_pose, dtype=np.float64)
+        self.local = LocalSlam(options.trajectory_builder_2d, laser_pose=self.laser_pose, timer=self.timer)
+        self.graph = graph if graph is not None else PoseGraph(options, timer=self.timer, loop_closure=loop_closure)
+        self.trajectory_id = trajectory_id
+        self._started = _time.perf_counter() if started is None else started
+        self._first_node = self.graph.num_nodes
+        self._times: list[float] = []
+        self._local_poses: list[np.ndarray] = []
+        self._scan_node: list[int] = []  # latest node at or before each posed scan
+        self._node_scans: list[int] = []
+        self.num_scans = 0
+
+    @property
+    def num_poses(self) -> int:
+        return len(self._times)
+
+    def add_scan(self, scan: Scan) -> LocalSlamResult | None:
+        self.num_scans += 1
+        timer = self.timer
+        # Global SLAM work a scan triggers counts in that scan, so per-scan percentiles show its spikes.
+        with timer.scan():
+            result = self.local.add_scan(scan)
+            if result is not None and result.insertion is not None:
+                ins = result.insertion
+                # The node's odometry is interpolated at its time from the samples around it
+                # when the graph is optimized (Cartographer's InterpolateOdometry).
+                with timer.stage("global"):
+                    self.graph.add_node(result.time, result.local_pose, ins.loop_closure_points, ins.submaps,
+                                        trajectory=self.trajectory_id)
+                self._node_scans.append(len(self._times))
+        if result is None or not self._node_scans:
+            return result  # nothing to anchor a scan to before the first node
+        self._times.append(result.time)
+        self._local_poses.append(result.local_pose)
+        self._scan_node.append(len(self._node_scans) - 1)
+        return result
+
+    def add_odometry(self, odometry: Odometry) -> None:
+        self.graph.add_odometry(odometry.time, (odometry.x, odometry.y, odometry.yaw), trajectory=self.trajectory_id)
+        self.local.add_odometry(odometry)
+
+    def add_imu(self, imu: Imu) -> None:
+        self.local.add_imu(imu)
+
+    def finish(self) -> SlamResult:
+        """The final optimization, every scan's pose and the assembled map. Call once, with at least one pose."""
+        if not self._times:
+            raise ValueError("no scan got a pose")
+        timer, graph = self.timer, self.graph
+        if self.loop_closure:
+            with timer.stage("global"):
+                graph.optimize(final=True)
+        submaps = [entry.submap for entry in graph.submaps]
+        local_arr = np.array(self._local_poses)
+        poses = graph.scan_poses(local_arr, np.asarray(self._scan_node) + self._first_node)
+        submap_poses = graph.submap_global_poses
+        with timer.stage("assemble map"):
+            corrections = [graph.local_to_global(i) for i in range(len(graph.submaps))]
+            image = assemble([sm.grid for sm in submaps], corrections)
+        wall = _time.perf_counter() - self._started
+        n_scans = self.num_scans
+        stats = {
+            "scans": n_scans,
+            "poses": len(self._times),
+            "nodes": len(self._node_scans),
+            "submaps": len(submaps),
+            "wall_time_s": wall,
+            "scans_per_s": n_scans / wall if wall > 0 else float("nan"),
+            "empty_scans": self.local.stats.empty_scans,
+            "constraints": len(graph.constraints),
+            "loop_closures": graph.num_loop_closures,
+            "optimizations": graph.stats.optimizations,
+            "optimization_time_s": graph.stats.optimization_time_s,
+            "loop_closure_searches": graph.builder.stats.searched,
+            "precomputation_bytes": graph.builder.memory_bytes,
+        }
+        return SlamResult(
+            times=np.array(self._times), poses=poses, local_poses=local_arr,
+            node_scans=np.array(self._node_scans, int), submaps=submaps, submap_poses=submap_poses, image=image,
+            laser_pose=self.laser_pose, stats=stats, loop_closures=graph.loop_closure_segments(), graph=graph,
+        )

@@ -1,0 +1,124 @@
+"""The one place a recording meets the SLAM core: open it, choose its topics, place the laser, feed
+:class:`~carto_cli.mapping.slam.Slam` in time order. Every subcommand that maps goes through here."""
+from __future__ import annotations
+
+import time as _time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from carto_cli.core import transform
+from carto_cli.core.errors import CartoError
+from carto_cli.core.records import Imu, Odometry, Scan
+from carto_cli.io.recording import ReadOptions, Recording
+from carto_cli.io.sources.open import open_recording
+from carto_cli.io.tf_tree import laser_pose_from_tf
+from carto_cli.io.topics import TopicSelection, select_topics
+from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping.slam import Slam, SlamResult
+from carto_cli.options import Options
+
+
+@dataclass
+class MapResult(SlamResult):
+    laser_pose_source: str = ""
+    selection: TopicSelection | None = None
+
+
+@dataclass
+class OpenedRecording:
+    recording: Recording
+    selection: TopicSelection
+
+    @property
+    def scan_count(self) -> int:
+        """Messages on the scan topic (what a progress bar counts to)."""
+        return next(t.count for t in self.recording.topics() if t.name == self.selection.scan)
+
+
+def read_options(options: Options) -> ReadOptions:
+    """How to read a recording for these options (the 3D point-cloud slice)."""
+    tb = options.trajectory_builder_2d
+    return ReadOptions(min_z=tb.min_z, max_z=tb.max_z)
+
+
+@contextmanager
+def opened(path: str | Path, read: ReadOptions | None = None, *, scan_topic: str | None = None,
+           odom_topic: str | None = None, imu_topic: str | None = None) -> Iterator[OpenedRecording]:
+    """Open a recording and choose its topics (the ``--scan-topic`` family of choices), closing it after."""
+    with open_recording(path, read) as rec:
+        yield OpenedRecording(rec, select_topics(rec, scan_topic, odom_topic, imu_topic))
+
+
+def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit) -> tuple[np.ndarray, str]:
+    """--laser-pose wins; else static TF; else the laser is at the tracking frame."""
+    if explicit is not None:
+        return transform.as_pose(explicit), "--laser-pose"
+    if scan_frame:
+        found = laser_pose_from_tf(recording.static_transforms(), scan_frame)
+        if found is not None:
+            pose, root = found
+            return np.asarray(pose, dtype=np.float64), f"static TF {root} -> {scan_frame}"
+    return np.zeros(3), "identity (no static TF for the laser)"
+
+
+def _first_scan_frame(recording: Recording, topic: str) -> str | None:
+    for record in recording.records([topic]):
+        if isinstance(record, Scan):
+            return record.frame
+    return None
+
+
+def build(
+    recording: Recording,
+    options: Options,
+    *,
+    selection: TopicSelection | None = None,
+    laser_pose=None,
+    timer=None,
+    on_scan: Callable[[int], None] | None = None,
+    use_odometry: bool = True,
+    use_imu: bool = True,
+    max_scans: int | None = None,
+    loop_closure: bool = True,
+    graph: PoseGraph | None = None,
+    trajectory_id: int = 0,
+) -> MapResult:
+    """Map one recording. With ``graph`` (e.g. from a loaded map.carto) the recording becomes trajectory
+    ``trajectory_id`` of that graph, linked to the earlier ones by loop closures, as Cartographer's
+    offline node does with --load_state_filename."""
+    wall0 = _time.perf_counter()
+    selection = selection or select_topics(recording)
+    scan_frame = _first_scan_frame(recording, selection.scan)
+    if scan_frame is None:
+        raise CartoError(f"no scans on {selection.scan}", recording.path)
+    mount, mount_source = resolve_laser_pose(recording, scan_frame, laser_pose)
+    tb = options.trajectory_builder_2d
+    slam = Slam(options, laser_pose=mount, timer=timer, loop_closure=loop_closure, graph=graph,
+                trajectory_id=trajectory_id, started=wall0)
+
+    topics = [selection.scan]
+    if use_odometry and selection.odometry:
+        topics.append(selection.odometry)
+    if use_imu and selection.imu and tb.use_imu_data:
+        topics.append(selection.imu)
+
+    for record in recording.records(topics):
+        if isinstance(record, Scan):
+            if max_scans is not None and slam.num_scans >= max_scans:
+                break
+            slam.add_scan(record)
+            if on_scan is not None:
+                on_scan(1)
+        elif isinstance(record, Odometry):
+            slam.add_odometry(record)
+        elif isinstance(record, Imu):
+            slam.add_imu(record)
+
+    if slam.num_poses == 0:
+        raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
+    core = slam.finish()
+    return MapResult(**vars(core), laser_pose_source=mount_source, selection=selection)

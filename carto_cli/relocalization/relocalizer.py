@@ -1,0 +1,1073 @@
+"""Relocalization: a scan's pose in a saved map, from a prior pose or from nothing.
+
+A :class:`Relocalizer` holds a loaded map's submaps at their global poses and
+answers :meth:`Relocalizer.relocalize` queries, Cartographer-style:
+
+1. The scan is preprocessed as local SLAM does it (crop to min/max range in the
+   tracking frame through the laser mount, voxel filter, then the loop-closure
+   adaptive voxel filter for the search and the finer matching one for the
+   refinement).
+2. Submap filtering. Around a prior, the submaps whose grid's known bounding
+   box (not just its origin) lies within a radius of the prior, the radius
+   growing as the prior gets less certain (high / medium / low confidence);
+   with ``corridor=True``, the submaps whose box meets a rectangle along the
+   prior's heading (± forward range ahead/behind, ± side range across).
+3. Search. A reliable prior (sigma_xy <= 1.2 m and sigma_yaw <= 15° by
+   default) gets a windowed search around it in the nearest filtered submaps
+   (``max_windowed_submaps``, nearest track first), each only looking for
+   something *better* than the best so far. Pass 1: windows of 3 sigma plus a
+   25 % margin (so a prior off by its stated 3 sigma, plus the map's own local
+   error, is inside the window, not on its edge), coarse to fine (8-, 2-,
+   1-cell lattices). Pass 2, when pass 1 found nothing, failed the checks, or
+   answered in the outer fifth of its window: twice the windows, coarse to
+   fine, accepted at ``global_min_score``. Then fallbacks, at most ``fallback_max_submaps`` submaps for a
+   reliable prior (nearest first: a count, not a time, so answers do not depend on the machine's speed):
+   coarse-to-fine searches at any
+   heading within the search radius of the prior (the low-confidence one)
+   in the covering submaps near it ('fallback-filtered'; an unreliable prior
+   starts here), then the other covering submaps whole ('fallback-all').
+   No prior ('global'): the covering submaps, each searched coarse to fine
+   (``match_multilevel``, unless ``multilevel_global_search`` is off) over the
+   box of its own nodes plus 2 m (the robot can only be where it was while
+   mapping, and the grid around that is mostly rays), then, unless that
+   succeeded, the other submaps too.
+4. The best candidate is refined by least squares, re-scored on the submap
+   (``score_at``) and accepted (``success``) only when that score reaches the
+   threshold, the refinement stayed near the search's answer (a wandering
+   refinement has slid along a corridor) and at most ``max_see_through`` of the
+   scan's rays pass through walls of the submap at the answer (free-space check,
+   ``matching/ray_consistency.py``). Whole-submap searches (global and
+   fallbacks) search down to ``global_search_min_score`` and judge the refined
+   score against ``global_min_score``; they also keep every submap's best within ``_AMBIGUITY_MARGIN`` of
+   the best overall: when one of those is a different place (> 1 m or > 10°
+   away in the map frame; with a prior, and not farther from it than the
+   best), the answer is marked ambiguous (``success`` false) -- aliasing
+   between similar rooms or corridors is reported, not guessed.
+
+Poses are (x, y, yaw) of the tracking frame in the map frame. A submap's grid
+lives in its trajectory's local frame; a map pose P is at
+``local_pose ∘ inverse(global_pose) ∘ P`` in the grid (as in the constraint builder).
+
+Precomputation stacks are built on first use and kept in an LRU cache under a
+memory budget (:class:`StackCache`).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from carto_cli.core import transform
+from carto_cli.core.errors import CartoError
+from carto_cli.io.atomic import atomic_output
+from carto_cli.matching import branch_and_bound, least_squares
+from carto_cli.matching.precomputation import PrecomputationGridStack, stack_bytes
+from carto_cli.matching.ray_consistency import see_through_fraction
+from carto_cli.options import Options
+from carto_cli.core.records import Scan
+from carto_cli.sensor.range_filter import crop_scan
+from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
+
+__all__ = [
+    "Relocalizer", "RelocalizationResult", "StackCache", "Query", "QueryResult", "BatchSummary",
+    "PATHS", "TIMING_BUCKETS", "read_queries", "parse_pose", "scan_at", "relocalize_many",
+    "write_results_csv", "summarize", "CSV_COLUMNS",
+]
+
+PATHS = ("windowed", "windowed-wide", "fallback-filtered", "fallback-all", "global")
+TIMING_BUCKETS = ("submap preparation", "pose search", "scan scoring", "other")
+
+# Search tuning (not options: the issue-6 benchmark, bench/relocalization.py, is what they are set on).
+_WINDOW_MARGIN = 1.25  # first window = window_sigmas x sigma x this (a prior at 3 sigma is inside, not on the edge)
+_WIDE_FACTOR = 2.0  # second windowed pass, before any whole-submap search
+_EDGE_FRACTION = 0.8  # a windowed answer farther out than this fraction of a window is checked by the wide pass
+_DISTINCT_XY = 1.0  # m: candidates farther apart than this (or _DISTINCT_YAW) are different places
+_DISTINCT_YAW = math.radians(10.0)
+_AMBIGUITY_MARGIN = 0.03  # a search without a (trusted) prior must beat every other place by this much score
+_NODE_MARGIN = 2.0  # m: a whole-submap search covers the box of the submap's nodes plus this
+# A scan taken where the map ends sees partly unmapped space: its points there read 0.1 whatever the pose, and
+# drag the plain score of the right pose below min_score (bench-dense, wheeled maps: every covered failure with
+# a prior was such a scan, 17-26 % of its points in unknown cells, 0.40-0.49 searched at the reference pose).
+# The windowed passes therefore search down to _KNOWN_SEARCH_FLOOR and accept a refined pose whose plain score
+# misses the threshold when the points in known cells (at least _MIN_KNOWN_FRACTION of them) reach it on their own.
+# Only the first pass: in the wide one (4x the area) that let chance fits 2-4 m off through (bench-dense/aces).
+_KNOWN_SEARCH_FLOOR = 0.35
+_MIN_KNOWN_FRACTION = 0.5
+# Not for whole-submap searches: accepting known cells there (>= 80 % of the points) turned 2 of the 7 missed global
+# queries on bench-dense/aces into successes, but also 9 of 300 queries in places the map never saw into wrong ones.
+
+
+# ----------------------------------------------------------------------------------- results
+
+
+@dataclass
+class RelocalizationResult:
+    pose: np.ndarray  # (x, y, yaw) tracking frame in the map frame (refined when the refinement was trusted)
+    score: float  # score_at of ``pose`` on ``submap`` (mean probability, 0.1..0.9); 0 when nothing was found
+    path: str  # 'windowed' | 'fallback-filtered' | 'fallback-all' | 'global'
+    success: bool  # found, score >= the path's threshold, refinement consistent
+    submaps_considered: list[int]  # every submap searched, in search order
+    timings: dict[str, float]  # ms per TIMING_BUCKETS
+    total_ms: float
+    submap: int | None = None  # the submap the pose was found in
+    search_score: float = 0.0  # branch-and-bound score before refinement
+    reason: str = ""  # why it fell back / failed, '' on a clean windowed success
+    threshold: float = 0.0  # the score ``success`` was judged against
+    known_fraction: float = 1.0  # share of the refinement points in known cells at ``pose``
+    known_score: float = 0.0  # score_at over those points only
+    see_through: float = 0.0  # share of the scan's rays crossing a wall of the submap at ``pose`` (ray_consistency)
+
+    def to_dict(self) -> dict:
+        """JSON-ready (``carto relocalize --json``)."""
+        return {
+            "pose": {"x": float(self.pose[0]), "y": float(self.pose[1]), "yaw": float(self.pose[2])},
+            "score": round(float(self.score), 6),
+            "search_score": round(float(self.search_score), 6),
+            "threshold": float(self.threshold),
+            "known_fraction": round(float(self.known_fraction), 4),
+            "known_score": round(float(self.known_score), 6),
+            "see_through": round(float(self.see_through), 4),
+            "path": self.path,
+            "success": bool(self.success),
+            "submap": self.submap,
+            "submaps_considered": [int(i) for i in self.submaps_considered],
+            "reason": self.reason,
+            "timings_ms": {k: round(float(v), 3) for k, v in self.timings.items()},
+            "total_ms": round(float(self.total_ms), 3),
+        }
+
+
+@dataclass
+class _Candidate:
+    submap: int
+    grid_pose: np.ndarray  # B&B pose in the submap's grid frame
+    score: float
+    estimate: np.ndarray | None = None  # the search's centre in the grid frame (windowed searches)
+
+
+class _Timings:
+    """The four buckets; 'other' is whatever the three named ones leave of the total."""
+
+    def __init__(self):
+        self.t0 = time.perf_counter()
+        self.ms = {k: 0.0 for k in TIMING_BUCKETS[:3]}
+
+    def add(self, bucket: str, t_start: float) -> float:
+        now = time.perf_counter()
+        self.ms[bucket] += (now - t_start) * 1e3
+        return now
+
+    def finish(self) -> tuple[dict[str, float], float]:
+        total = (time.perf_counter() - self.t0) * 1e3
+        out = dict(self.ms)
+        out["other"] = max(0.0, total - sum(self.ms.values()))
+        return out, total
+
+
+# ----------------------------------------------------------------------------------- stack cache
+
+
+class StackCache:
+    """Precomputation stacks by submap id, least recently used dropped beyond ``budget_bytes``.
+
+    The stack just built or used is always kept, even alone above the budget.
+    """
+
+    def __init__(self, budget_bytes: int, depth: int):
+        self.budget_bytes = int(budget_bytes)
+        self.depth = int(depth)
+        self._stacks: OrderedDict[int, PrecomputationGridStack] = OrderedDict()
+        self.bytes = 0
+        self.hits = 0
+        self.misses = 0
+        self.evictions = 0
+        self.build_ms = 0.0
+
+    def get(self, index: int, grid) -> PrecomputationGridStack:
+        stack = self._stacks.get(index)
+        if stack is not None:
+            self._stacks.move_to_end(index)
+            self.hits += 1
+            return stack
+        self.misses += 1
+        t0 = time.perf_counter()
+        stack = PrecomputationGridStack(grid, self.depth)
+        self.build_ms += (time.perf_counter() - t0) * 1e3
+        self._stacks[index] = stack
+        self.bytes += stack.memory_bytes
+        while self.bytes > self.budget_bytes and len(self._stacks) > 1:
+            _, old = self._stacks.popitem(last=False)
+            self.bytes -= old.memory_bytes
+            self.evictions += 1
+        return stack
+
+    def __contains__(self, index: int) -> bool:
+        return index in self._stacks
+
+    def __len__(self) -> int:
+        return len(self._stacks)
+
+    def stats(self) -> dict:
+        return {"stacks": len(self._stacks), "bytes": self.bytes, "budget_bytes": self.budget_bytes,
+                "hits": self.hits, "misses": self.misses, "evictions": self.evictions,
+                "build_ms": round(self.build_ms, 3)}
+
+
+# ----------------------------------------------------------------------------------- relocalizer
+
+
+def _clamp(v: float, lo: float, hi: float) -> float:
+    return min(max(v, lo), hi)
+
+
+class Relocalizer:
+    """Answers relocalization queries against one loaded map (see the module docstring).
+
+    ``options`` defaults to the map's own; its ``relocalization`` section drives the search,
+    ``trajectory_builder_2d`` the scan preprocessing and ``pose_graph.constraint_builder.
+    ceres_scan_matcher`` the refinement. ``cache_budget_bytes`` defaults to
+    ``relocalization.cache_budget_mb``.
+    """
+
+    def __init__(self, loaded_map, options: Options | None = None, *, cache_budget_bytes: int | None = None):
+        self.map = loaded_map
+        self.options = loaded_map.options if options is None else options
+        self.ro = self.options.relocalization
+        if loaded_map.num_submaps == 0:
+            raise CartoError("the map has no submaps to relocalize in", getattr(loaded_map, "path", None))
+        budget = int(self.ro.cache_budget_mb * 1e6) if cache_budget_bytes is None else int(cache_budget_bytes)
+        self.cache = StackCache(budget, self.ro.branch_and_bound_depth)
+        self.laser_pose = (np.zeros(3) if loaded_map.laser_pose is None
+                           else np.asarray(loaded_map.laser_pose, dtype=np.float64).reshape(3))
+
+        m = loaded_map.num_submaps
+        # A map saved mid-trajectory holds its newest submaps as allocated while growing (up to 8x their known
+        # area: bench-dense/aces, stock options, 3024 x 4652 cells for 1264 x 1430 known); their precomputation
+        # stacks would be as big, and evict each other from the cache on every whole-map search.
+        self.grids = [_tight(s.grid) for s in loaded_map.submaps]
+        # map -> grid frame of each submap: local_pose ∘ inverse(global_pose)
+        self.map_to_grid = np.array([
+            transform.compose(s.local_pose, transform.inverse(loaded_map.submap_global_poses[i]))
+            for i, s in enumerate(loaded_map.submaps)]).reshape(m, 3)
+        self.grid_to_map = transform.inverse(self.map_to_grid).reshape(m, 3)
+        # Known bounding box of each grid, in its grid frame: (x0, y0, x1, y1); NaN when empty.
+        self.boxes = np.full((m, 4), np.nan)
+        for i, g in enumerate(self.grids):
+            kb = g.known_bounds
+            if kb is not None:
+                lo = g.origin + np.array(kb[:2], dtype=np.float64) * g.resolution
+                hi = g.origin + (np.array(kb[2:], dtype=np.float64) + 1.0) * g.resolution
+                self.boxes[i] = [lo[0], lo[1], hi[0], hi[1]]
+        self.searchable = [i for i in range(m) if not np.isnan(self.boxes[i, 0])]
+        self._searchable_set = set(self.searchable)
+        if not self.searchable:
+            raise CartoError("every submap of the map is empty", getattr(loaded_map, "path", None))
+        # Where the robot was while building each submap (its nodes), to order the search.
+        self.node_xy = [np.asarray(loaded_map.node_global_poses, dtype=np.float64)[
+            np.asarray(nodes, dtype=np.int64), :2] if len(nodes) else
+            transform.apply(self.grid_to_map[i], self.map.submaps[i].local_pose[None, :2])
+            for i, nodes in enumerate(loaded_map.submap_nodes)]
+        self.covering = self._covering_submaps()
+        # A whole-map search visits every covering submap: with stacks beyond the cache budget each such query
+        # rebuilds the evicted ones (LRU order is the worst case for a cyclic scan), ~0.1 s per million cells.
+        self.stack_bytes_needed = sum(stack_bytes(self.grids[i].num_cells, self.ro.branch_and_bound_depth)
+                                      for i in self.searchable)
+        self.warnings: list[str] = []
+        if self.stack_bytes_needed > budget:
+            self.warnings.append(
+                f"the map's precomputation grids need {self.stack_bytes_needed / 1e6:.0f} MB, more than "
+                f"relocalization.cache_budget_mb = {budget / 1e6:g}: searches over many submaps will rebuild them "
+                f"(--set relocalization.cache_budget_mb={int(self.stack_bytes_needed / 1e6) + 1} keeps them all)")
+        # Where a whole-submap search looks: the box of the submap's nodes plus a margin (the robot can only be
+        # where it was while mapping), as (centre x, centre y, half-width) in the grid frame; None: the whole grid.
+        self.node_windows: list[tuple[float, float, float] | None] = []
+        for i, nodes in enumerate(loaded_map.submap_nodes):
+            if len(nodes) == 0:
+                self.node_windows.append(None)
+                continue
+            xy = transform.apply(self.map_to_grid[i], self.node_xy[i]).reshape(-1, 2)
+            lo, hi = xy.min(axis=0) - _NODE_MARGIN, xy.max(axis=0) + _NODE_MARGIN
+            self.node_windows.append((float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2, float(max(hi - lo)) / 2))
+        self._track_xy = np.concatenate(self.node_xy).reshape(-1, 2)
+        self._track_submap = np.concatenate([np.full(len(p), i) for i, p in enumerate(self.node_xy)]).astype(np.int64)
+
+    def _covering_submaps(self) -> list[int]:
+        """A small set of submaps holding every node (greedy set cover, biggest first).
+
+        Consecutive submaps overlap by half (every scan goes into two), so about half of them
+        already hold every place the robot was: whole-map searches visit only those.
+        """
+        sets = {i: set(int(n) for n in self.map.submap_nodes[i]) for i in self.searchable}
+        uncovered = set().union(*sets.values()) if sets else set()
+        chosen: list[int] = []
+        while uncovered:
+            i = max(sets, key=lambda j: (len(sets[j] & uncovered), -j))
+            gain = sets[i] & uncovered
+            if not gain:
+                break
+            chosen.append(i)
+            uncovered -= gain
+        # Submaps without nodes (hand-made maps) are searched too.
+        chosen += [i for i in self.searchable if not sets[i]]
+        return sorted(chosen)
+
+    # ------------------------------------------------------------------ scan preprocessing
+
+    def preprocess(self, scan: Scan, laser_pose=None) -> tuple[np.ndarray, np.ndarray]:
+        """(search points, refinement points), both (n, 2) in the tracking frame."""
+        tb = self.options.trajectory_builder_2d
+        mount = self.laser_pose if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
+        data = crop_scan(scan, mount=mount, min_range=tb.min_range, max_range=tb.max_range,
+                         missing_data_ray_length=tb.missing_data_ray_length)
+        returns = voxel_filter(data.returns, tb.voxel_filter_size) if len(data.returns) else data.returns
+        f = tb.loop_closure_adaptive_voxel_filter
+        search = adaptive_voxel_filter(returns, max_length=f.max_length, min_num_points=f.min_num_points,
+                                       max_range=f.max_range)
+        f = tb.adaptive_voxel_filter
+        fine = adaptive_voxel_filter(returns, max_length=f.max_length, min_num_points=f.min_num_points,
+                                     max_range=f.max_range)
+        return np.ascontiguousarray(search, dtype=np.float64), np.ascontiguousarray(fine, dtype=np.float64)
+
+    # ------------------------------------------------------------------ submap filtering
+
+    def box_distances(self, xy) -> np.ndarray:
+        """Distance (m) from map point ``xy`` to every submap's known box; inf for empty submaps."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(2)
+        g = self.map_to_grid
+        c, s = np.cos(g[:, 2]), np.sin(g[:, 2])
+        px = c * xy[0] - s * xy[1] + g[:, 0]
+        py = s * xy[0] + c * xy[1] + g[:, 1]
+        b = self.boxes
+        with np.errstate(invalid="ignore"):
+            dx = np.maximum(np.maximum(b[:, 0] - px, px - b[:, 2]), 0.0)
+            dy = np.maximum(np.maximum(b[:, 1] - py, py - b[:, 3]), 0.0)
+        out = np.hypot(dx, dy)
+        out[np.isnan(out)] = np.inf
+        return out
+
+    def radius_for(self, sigma_xy: float, reliable: bool) -> float:
+        """Search radius from the prior's confidence: high (sigma small), medium (reliable), low."""
+        if not reliable:
+            return self.ro.low_confidence_radius
+        if sigma_xy <= self.ro.high_confidence_sigma_xy:
+            return self.ro.high_confidence_radius
+        return self.ro.medium_confidence_radius
+
+    def filter_by_distance(self, prior, radius: float) -> list[int]:
+        """Submaps whose known box is within ``radius`` of the prior, nearest track first."""
+        d = self.box_distances(np.asarray(prior, dtype=np.float64)[:2])
+        return self._order([i for i in self.searchable if d[i] <= radius], prior)
+
+    def filter_corridor(self, prior, forward_range: float | None = None, side_range: float | None = None) -> list[int]:
+        """Submaps whose known box meets the rectangle ±forward_range along the prior's heading, ±side_range across.
+
+        Separating-axis test of two oriented rectangles (the submap box is axis-aligned in its grid frame).
+        """
+        fr = self.ro.corridor_forward_range if forward_range is None else float(forward_range)
+        sr = self.ro.corridor_side_range if side_range is None else float(side_range)
+        prior = transform.as_pose(prior).reshape(3)
+        keep = []
+        for i in self.searchable:
+            # The corridor rectangle in the submap's grid frame.
+            centre = transform.compose(self.map_to_grid[i], prior)
+            c, s = math.cos(centre[2]), math.sin(centre[2])
+            axes_r = np.array([[c, s], [-s, c]])  # rectangle's axes (rows)
+            half_r = np.array([fr, sr])
+            x0, y0, x1, y1 = self.boxes[i]
+            box_c = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+            half_b = np.array([(x1 - x0) / 2, (y1 - y0) / 2])
+            d = box_c - centre[:2]
+            separated = False
+            # Box axes (x, y).
+            for k in range(2):
+                proj_r = abs(axes_r[0, k]) * half_r[0] + abs(axes_r[1, k]) * half_r[1]
+                if abs(d[k]) > half_b[k] + proj_r:
+                    separated = True
+                    break
+            if not separated:
+                for k in range(2):
+                    a = axes_r[k]
+                    proj_b = abs(a[0]) * half_b[0] + abs(a[1]) * half_b[1]
+                    if abs(d @ a) > half_r[k] + proj_b:
+                        separated = True
+                        break
+            if not separated:
+                keep.append(i)
+        return self._order(keep, prior)
+
+    def track_distances(self, xy) -> np.ndarray:
+        """Distance (m) from map point ``xy`` to the nearest node of every submap (where its scans were taken)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(2)
+        d = np.hypot(self._track_xy[:, 0] - xy[0], self._track_xy[:, 1] - xy[1])
+        out = np.full(self.map.num_submaps, np.inf)
+        np.minimum.at(out, self._track_submap, d)
+        return out
+
+    def _order(self, indices: Sequence[int], prior) -> list[int]:
+        """Nearest first, by the distance from the prior to the submap's nodes."""
+        key = self.track_distances(np.asarray(prior, dtype=np.float64)[:2])
+        return sorted(indices, key=lambda i: (key[i], i))
+
+    def check_prior(self, prior) -> float:
+        """Distance to the nearest submap; CartoError beyond ``max_prior_distance``."""
+        prior = transform.as_pose(prior).reshape(3)
+        if not np.all(np.isfinite(prior)):
+            raise CartoError(f"initial pose must be finite numbers, got {prior[0]:g},{prior[1]:g},{prior[2]:g}")
+        d = float(np.min(self.box_distances(prior[:2])))
+        if d > self.ro.max_prior_distance:
+            raise CartoError(f"initial pose {prior[0]:g},{prior[1]:g} is {d:.1f} m from the nearest submap "
+                             f"(more than relocalization.max_prior_distance = {self.ro.max_prior_distance:g} m)",
+                             getattr(self.map, "path", None))
+        return d
+
+    # ------------------------------------------------------------------ searches
+
+    def windows(self, sigma_xy: float, sigma_yaw: float) -> tuple[float, float]:
+        """Half-widths (m, rad) of the first windowed search: ``window_sigmas`` sigma plus a margin, clamped.
+
+        The margin (``_WINDOW_MARGIN``, 25 %) is there because a prior ``window_sigmas`` sigma off is
+        still a prior the caller promised, and the map itself is off from any outside reference by a
+        few decimetres (its drift): a window of exactly 3 sigma puts such a pose on its edge.
+        """
+        r = self.ro
+        lin = _clamp(_WINDOW_MARGIN * r.window_sigmas * sigma_xy, r.min_linear_search_window,
+                     r.max_linear_search_window)
+        ang = _clamp(_WINDOW_MARGIN * r.window_sigmas * sigma_yaw, r.min_angular_search_window,
+                     r.max_angular_search_window)
+        return lin, ang
+
+    def wide_windows(self, lin: float, ang: float) -> tuple[float, float]:
+        """The second, wider windowed pass: twice the first, at least 1 m / 20 deg, within the max windows x 2."""
+        r = self.ro
+        return (min(max(_WIDE_FACTOR * lin, 1.0), max(2.0 * r.max_linear_search_window, lin)),
+                min(max(_WIDE_FACTOR * ang, math.radians(20.0)), math.pi))
+
+    def _windowed(self, points, prior, submaps, lin, ang, min_score, tm: _Timings) -> _Candidate | None:
+        """Coarse to fine (``_window_levels``) within ±lin / ±ang of the prior in each submap, better only."""
+        best: _Candidate | None = None
+        for i in submaps:
+            t = time.perf_counter()
+            stack = self.cache.get(i, self.grids[i])
+            estimate = transform.compose(self.map_to_grid[i], prior)
+            t = tm.add("submap preparation", t)
+            floor = min_score if best is None else max(min_score, best.score)
+            r = branch_and_bound.match_multilevel(
+                stack, points, estimate, linear_search_window=lin, angular_search_window=ang,
+                min_score=floor, coarse_min_score=min_score, levels=_window_levels(stack.depth))
+            tm.add("pose search", t)
+            if r.found and (best is None or r.score > best.score):
+                best = _Candidate(i, r.pose, r.score, estimate)
+        return best
+
+    def _whole(self, points, submaps, min_score, tm: _Timings, *, prior=None, window: float | None = None,
+               margin: float = 0.0) -> list[_Candidate]:
+        """Coarse-to-fine searches of the submaps: whole, or within ±``window`` m (any heading) of ``prior``.
+
+        Returns every submap's best that comes within ``margin`` of the best overall (best first): with a
+        margin, later submaps are searched for anything that could rival the best, not only beat it,
+        which is what the ambiguity check needs.
+        """
+        found: list[_Candidate] = []
+        top = 0.0
+        for i in submaps:
+            t = time.perf_counter()
+            stack = self.cache.get(i, self.grids[i])
+            t = tm.add("submap preparation", t)
+            floor = max(min_score, top - margin) if found else min_score
+            if prior is not None and window is not None:
+                estimate = transform.compose(self.map_to_grid[i], prior)
+                lin = window
+            elif self.node_windows[i] is not None:
+                cx, cy, lin = self.node_windows[i]
+                estimate = np.array([cx, cy, 0.0])
+            else:
+                estimate = branch_and_bound.full_submap_center(stack)
+                nx, ny = stack.num_cells
+                lin = (nx + ny) * stack.resolution
+            if self.ro.multilevel_global_search:
+                r = branch_and_bound.match_multilevel(
+                    stack, points, estimate, linear_search_window=lin, angular_search_window=math.pi,
+                    min_score=floor, coarse_min_score=min_score, levels=_global_levels(stack.depth))
+            else:
+                r = branch_and_bound.match(stack, points, estimate, linear_search_window=lin,
+                                           angular_search_window=math.pi, min_score=floor)
+            tm.add("pose search", t)
+            if r.found:
+                found.append(_Candidate(i, r.pose, r.score, estimate))
+                top = max(top, r.score)
+        found.sort(key=lambda c: -c.score)
+        return [c for c in found if c.score >= top - margin]
+
+    def _rival(self, best: _Candidate, best_pose: np.ndarray, others: Sequence[_Candidate],
+               prior=None) -> tuple[_Candidate, np.ndarray] | None:
+        """The best of ``others`` at a different place than ``best_pose`` (> 1 m or > 10 deg away in the map).
+
+        With a prior, a rival farther from it than the best (by more than _DISTINCT_XY) is no rival:
+        the prior tells them apart.
+        """
+        for c in others:
+            if c is best:
+                continue
+            pose = transform.compose(self.grid_to_map[c.submap], c.grid_pose)
+            d = transform.relative(best_pose, pose)
+            if math.hypot(d[0], d[1]) > _DISTINCT_XY or abs(d[2]) > _DISTINCT_YAW:
+                if prior is not None and (math.hypot(*(pose[:2] - prior[:2]))
+                                          > math.hypot(*(best_pose[:2] - prior[:2])) + _DISTINCT_XY):
+                    continue
+                return c, pose
+        return None
+
+    def _refine(self, fine_points, cand: _Candidate, threshold: float, tm: _Timings, *, known_ok: bool = False,
+                sensor=(0.0, 0.0)):
+        """(map pose, score, success, reason, known fraction, known score, see-through fraction).
+
+        ``sensor``: the laser's position in the tracking frame, where the scan's rays start.
+
+        ``known_ok``: a score below ``threshold`` still succeeds when at least ``_MIN_KNOWN_FRACTION`` of the
+        points fall in known cells and their own mean reaches ``threshold`` (the rest see unmapped space).
+        """
+        t = time.perf_counter()
+        grid = self.grids[cand.submap]
+        c = self.options.pose_graph.constraint_builder.ceres_scan_matcher
+        ls = least_squares.match(grid, fine_points, cand.grid_pose, target_translation=cand.grid_pose[:2],
+                                 occupied_space_weight=c.occupied_space_weight,
+                                 translation_weight=c.translation_weight, rotation_weight=c.rotation_weight,
+                                 max_num_iterations=c.ceres_solver_options.max_num_iterations)
+        moved = transform.relative(cand.grid_pose, ls.pose)
+        consistent = (math.hypot(moved[0], moved[1]) <= self.ro.max_refinement_translation
+                      and abs(moved[2]) <= self.ro.max_refinement_rotation)
+        reason = ""
+        if consistent:
+            grid_pose = ls.pose
+        else:
+            grid_pose = cand.grid_pose
+            reason = (f"refinement moved {math.hypot(moved[0], moved[1]):.2f} m / "
+                      f"{math.degrees(abs(moved[2])):.1f} deg from the search's pose")
+        score = _score_at(grid, fine_points, grid_pose)
+        known, known_score = _known_score(grid, fine_points, grid_pose)
+        see_through = see_through_fraction(grid, fine_points, grid_pose, sensor)
+        tm.add("scan scoring", t)
+        ok = consistent and score >= threshold
+        if consistent and not ok and known_ok:
+            ok = known >= _MIN_KNOWN_FRACTION and known_score >= threshold
+            if not ok:
+                reason = (f"refined score {score:.3f} below {threshold:g} (known cells: {100 * known:.0f} % of the "
+                          f"points, scoring {known_score:.3f})")
+        elif consistent and not ok:
+            reason = f"refined score {score:.3f} below {threshold:g}"
+        if ok and see_through > self.ro.max_see_through:
+            ok = False
+            reason = (f"{100 * see_through:.0f} % of the scan's rays pass through walls of the map at the match "
+                      f"(more than relocalization.max_see_through = {self.ro.max_see_through:g})")
+        return (transform.compose(self.grid_to_map[cand.submap], grid_pose), score, ok, reason, known,
+                known_score, see_through)
+
+    # ------------------------------------------------------------------ the query
+
+    def relocalize(self, scan: Scan, prior=None, *, sigma_xy: float | None = None, sigma_yaw: float | None = None,
+                   corridor: bool = False, laser_pose=None) -> RelocalizationResult:
+        """Pose of ``scan`` in the map; ``prior`` (x, y, yaw) in the map frame or None for a global search.
+
+        ``sigma_xy`` (m) / ``sigma_yaw`` (rad) default to ``relocalization.default_sigma_*``;
+        ``laser_pose`` (laser in the tracking frame) defaults to the one stored in the map.
+        Raises CartoError for a prior farther than ``max_prior_distance`` from every submap.
+        """
+        tm = _Timings()
+        ro = self.ro
+        mount = self.laser_pose if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
+        search_pts, fine_pts = self.preprocess(scan, mount)
+        if len(search_pts) == 0:
+            raise CartoError(f"the scan at t={scan.time:.3f} has no returns within "
+                             f"{self.options.trajectory_builder_2d.min_range:g}..{self.options.trajectory_builder_2d.max_range:g} m")
+        considered: list[int] = []
+        reasons: list[str] = []
+        # Whole-submap searches look for anything above global_search_min_score and judge the *refined* score
+        # against global_min_score: the search's score, on the coarser loop-closure points, runs ~0.07 below it
+        # (bench-dense/aces: right answers at 0.57-0.59 searched, 0.65-0.74 refined; with the floor at 0.55, 13 of
+        # 100 global queries on the mapped route found nothing, 6 of which a floor of 0.5 finds).
+        search_floor = min(ro.global_search_min_score, ro.global_min_score)
+
+        def finish(cand: _Candidate | None, path: str, threshold: float, fallback_pose, *, label: str = "",
+                   rivals: Sequence[_Candidate] = (), known_ok: bool = False) -> RelocalizationResult:
+            if cand is None:
+                timings, total = tm.finish()
+                return RelocalizationResult(np.asarray(fallback_pose, dtype=np.float64), 0.0, path, False,
+                                            considered, timings, total, None, 0.0,
+                                            "; ".join(reasons + ["no match above the threshold"]), threshold)
+            pose, score, ok, reason, known, known_score, see = self._refine(
+                fine_pts, cand, threshold, tm, known_ok=known_ok, sensor=mount[:2])
+            if ok and rivals:
+                rival = self._rival(cand, pose, rivals, None if path == "global" else prior)
+                if rival is not None:
+                    c, p = rival
+                    ok = False
+                    reason = (f"ambiguous: submap {c.submap} scores {c.score:.3f} against {cand.score:.3f} at "
+                              f"{p[0]:.2f},{p[1]:.2f},{math.degrees(p[2]):.0f}deg (margin {_AMBIGUITY_MARGIN:g})")
+            if reason:
+                reasons.append(f"{label}: {reason}" if label else reason)
+            timings, total = tm.finish()
+            return RelocalizationResult(pose, score, path, ok, considered, timings, total, cand.submap, cand.score,
+                                        "; ".join(reasons), threshold, known, known_score, see)
+
+        def decide(cands: list[_Candidate], path: str, threshold: float, fallback_pose,
+                   label: str = "") -> RelocalizationResult:
+            """The best of whole-submap candidates, unless a different place scores within _AMBIGUITY_MARGIN of it."""
+            if not cands:
+                return finish(None, path, threshold, fallback_pose)
+            return finish(cands[0], path, threshold, fallback_pose, label=label, rivals=cands)
+
+        if prior is None:
+            t = time.perf_counter()
+            submaps = list(self.covering)
+            considered.extend(submaps)
+            tm.add("submap preparation", t)
+            cands = self._whole(search_pts, submaps, search_floor, tm, margin=_AMBIGUITY_MARGIN)
+            rest = [i for i in self.searchable if i not in set(submaps)]
+            if rest:
+                res = decide(cands, "global", ro.global_min_score, np.zeros(3), label="covering submaps")
+                if res.success:
+                    return res
+                # The covering submaps hold every place, not always its best version (a place seen again
+                # after the map drifted): the other submaps too, their candidates pooled with these.
+                considered.extend(rest)
+                more = self._whole(search_pts, rest, search_floor, tm, margin=_AMBIGUITY_MARGIN)
+                top = max([c.score for c in cands + more], default=0.0)
+                cands = sorted((c for c in cands + more if c.score >= top - _AMBIGUITY_MARGIN), key=lambda c: -c.score)
+            return decide(cands, "global", ro.global_min_score, np.zeros(3))
+
+        t = time.perf_counter()
+        prior = transform.as_pose(prior).astype(np.float64).reshape(3).copy()
+        self.check_prior(prior)
+        sxy = ro.default_sigma_xy if sigma_xy is None else float(sigma_xy)
+        syaw = ro.default_sigma_yaw if sigma_yaw is None else float(sigma_yaw)
+        if not (sxy > 0 and syaw > 0 and math.isfinite(sxy) and math.isfinite(syaw)):
+            raise CartoError(f"sigmas must be positive, got sigma_xy={sxy:g} m, sigma_yaw={syaw:g} rad")
+        reliable = sxy <= ro.max_reliable_sigma_xy and syaw <= ro.max_reliable_sigma_yaw
+        if corridor:
+            filtered = self.filter_corridor(prior)
+        else:
+            filtered = self.filter_by_distance(prior, self.radius_for(sxy, reliable))
+        tm.add("submap preparation", t)
+
+        if reliable and filtered:
+            lin, ang = self.windows(sxy, syaw)
+            nearest = filtered[:ro.max_windowed_submaps]
+            considered.extend(nearest)
+            # Pass 1: coarse-to-fine branch and bound in windows covering the prior's uncertainty with a margin.
+            floor = min(ro.min_score, _KNOWN_SEARCH_FLOOR)
+            cand = self._windowed(search_pts, prior, nearest, lin, ang, floor, tm)
+            edge = cand is not None and self._at_edge(cand, lin, ang)
+            if cand is not None and not edge:
+                res = finish(cand, "windowed", ro.min_score, prior, label="windowed search", known_ok=True)
+                if res.success:
+                    return res
+            elif cand is not None:
+                reasons.append(f"windowed search's best ({cand.score:.3f}) is at the edge of its window")
+            else:
+                reasons.append(f"windowed search found nothing above {floor:g}")
+            # Pass 2: twice the windows, coarse to fine; only something better than pass 1 replaces it.
+            wlin, wang = self.wide_windows(lin, ang)
+            wide = self._windowed(search_pts, prior, nearest, wlin, wang, floor, tm)
+            if wide is not None and (cand is None or wide.score > cand.score):
+                cand = wide
+            if cand is not None:
+                # Four times the area and twice the headings: more room for a chance fit, so the stricter
+                # score of the whole-submap searches (on bench/intel, sparse, the wide pass at min_score
+                # added 5 answers 0.6-1 m off, all scoring below global_min_score).
+                res = finish(cand, "windowed-wide", max(ro.min_score, ro.global_min_score), prior,
+                             label=f"wide windowed search (±{wlin:.1f} m / ±{math.degrees(wang):.0f} deg)")
+                if res.success:
+                    return res
+            else:
+                reasons.append(f"wide windowed search found nothing above {floor:g}")
+        elif not reliable:
+            reasons.append(f"prior unreliable (sigma_xy {sxy:g} m, sigma_yaw {math.degrees(syaw):.1f} deg)")
+        else:
+            reasons.append("no submap near the prior")
+
+        # Fallback 1: coarse-to-fine searches, any heading, within the search radius of the prior (the low-confidence
+        # one when the prior was reliable but wrong), in the covering submaps near it (they hold every scan taken
+        # there) -- bounded by that radius, not by the submaps' size.
+        t = time.perf_counter()
+        radius = max(self.radius_for(sxy, reliable), ro.low_confidence_radius) if reliable else self.radius_for(sxy, False)
+        if corridor:
+            near = filtered
+            radius = max(ro.corridor_forward_range, ro.corridor_side_range)
+        else:
+            near = self.filter_by_distance(prior, radius)
+        cover = set(self.covering)
+        near = [i for i in near if i in cover] or near
+        rest = [i for i in self._order(self.covering, prior) if i not in near]
+        # Only a reliable prior's fallbacks are bounded (an unreliable one starts here: this is its search). A count
+        # of submaps, not a time, so that a query gives the same answer on any machine.
+        limit = ro.fallback_max_submaps if reliable and filtered and ro.fallback_max_submaps > 0 else None
+        if limit is not None and len(near) + len(rest) > limit:
+            reasons.append(f"fallback limited to the nearest {limit} submaps (relocalization.fallback_max_submaps)")
+            near = near[:limit]
+            rest = rest[:limit - len(near)]
+        tm.add("submap preparation", t)
+        if near:
+            considered.extend(i for i in near if i not in considered)
+            cands = self._whole(search_pts, near, search_floor, tm, prior=prior, window=radius,
+                                margin=_AMBIGUITY_MARGIN)
+            if cands:
+                res = decide(cands, "fallback-filtered", ro.global_min_score, prior,
+                             label=f"fallback over {len(near)} nearby submaps")
+                if res.success:
+                    return res
+            else:
+                reasons.append(f"fallback over {len(near)} nearby submaps found nothing above {search_floor:g}")
+        # Fallback 2: every (covering) submap not searched yet, whole.
+        if not rest:
+            return finish(None, "fallback-all", ro.global_min_score, prior)
+        considered.extend(i for i in rest if i not in considered)
+        cands = self._whole(search_pts, rest, search_floor, tm, margin=_AMBIGUITY_MARGIN)
+        return decide(cands, "fallback-all", ro.global_min_score, prior)
+
+    def _at_edge(self, cand: _Candidate, lin: float, ang: float) -> bool:
+        """Whether a windowed answer lies in the outer part of its window (the optimum may be beyond it)."""
+        # The window is a square along the grid's axes around the estimate, and a range of headings.
+        dx = cand.grid_pose[0] - cand.estimate[0]
+        dy = cand.grid_pose[1] - cand.estimate[1]
+        dyaw = transform.normalize_angle(cand.grid_pose[2] - cand.estimate[2])
+        return max(abs(dx), abs(dy)) > _EDGE_FRACTION * lin or (abs(dyaw) > _EDGE_FRACTION * ang and ang < math.pi)
+
+    # ------------------------------------------------------------------ batch
+
+    def relocalize_many(self, recording, queries: Sequence["Query"], *, scan_topic: str | None = None,
+                        laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
+                        on_query=None) -> tuple[list["QueryResult"], "BatchSummary"]:
+        return relocalize_many(self, recording, queries, scan_topic=scan_topic, laser_pose=laser_pose,
+                               corridor=corridor, max_time_offset=max_time_offset, on_query=on_query)
+
+    def stats(self) -> dict:
+        return {"submaps": self.map.num_submaps, "searchable": len(self.searchable), "cache": self.cache.stats()}
+
+
+def _tight(grid):
+    """The grid cropped to its known cells, unless it already is (no copy then)."""
+    b = grid.known_bounds
+    if b is None or (b[0] == 0 and b[1] == 0 and b[2] == grid.num_cells[0] - 1 and b[3] == grid.num_cells[1] - 1):
+        return grid
+    return grid.cropped()
+
+
+def _global_levels(depth: int) -> tuple[tuple[float, int], ...]:
+    """Stages of a whole-submap search: 16-cell lattice (0.8 m at 0.05 m) over everything, then 4, then 1.
+
+    Measured on the loop-building map (19 submaps, ~105 points a scan), per query over all
+    submaps: (8, 1) 480 ms, (16, 1) 223 ms, (16, 4, 1) 174 ms, (32, 4, 1) 154 ms; over the
+    covering submaps (10) with coarse stages rejecting at the plain threshold, (16, 4, 1) 127 ms
+    against 2.2 s for the exact whole-submap search, with 5 against 4 wrong answers out of 32
+    (the exact search's wrong answers are ambiguous places, not search misses). The fine stage
+    only has to beat the best submap so far.
+    """
+    if depth >= 5:
+        return ((1.0, 4), (0.0, 2), (0.0, 0))
+    return branch_and_bound.default_levels(depth)
+
+
+def _window_levels(depth: int) -> tuple[tuple[float, int], ...]:
+    """Stages of a windowed search: the window on an 8-cell lattice, then 2, then 1.
+
+    Measured on bench-dense/intel (1500 mapped scans, 34 queries, windows ±1.9 m / ±19°, 3 submaps):
+    the exact branch and bound 28 ms p50, (3, 0) 5.5 ms with 1 answer off, (3, 1, 0) 5.7 ms with none,
+    (2, 0) 8.4 ms with none (shared machine, absolute times noisy).
+    """
+    if depth >= 4:
+        return ((1.0, 3), (0.0, 1), (0.0, 0))
+    return branch_and_bound.default_levels(depth)
+
+
+def _known_score(grid, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
+    """(share of ``points`` at ``pose`` that fall in known cells, their mean occupancy probability)."""
+    if len(points) == 0:
+        return 0.0, 0.0
+    p = np.asarray(grid.probability(grid.cell_index(transform.apply(pose, points)), unknown=np.nan), dtype=np.float64)
+    known = ~np.isnan(p)
+    n = int(known.sum())
+    return n / len(p), (float(p[known].mean()) if n else 0.0)
+
+
+def _score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
+    """Mean occupancy probability under ``points`` at ``pose`` (unknown counts as 0.1), as the constraint builder's."""
+    from carto_cli.mapping.constraint_builder import score_at
+
+    return score_at(grid, points, pose)
+
+
+# ----------------------------------------------------------------------------------- queries
+
+
+@dataclass(frozen=True)
+class Query:
+    """One line of a queries file: which scan (by time or index) and the prior (None: global)."""
+
+    time: float | None
+    index: int | None
+    prior: tuple[float, float, float] | None
+    sigma_xy: float | None = None
+    sigma_yaw: float | None = None
+    line: int = 0
+
+
+_NUM = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
+_ANGLE = re.compile(rf"^({_NUM})(deg)?$")
+_KEYS = {"t": "time", "time": "time", "stamp": "time", "index": "index", "scan": "index", "scan_index": "index",
+         "i": "index"}
+_NONE = {"-", "none", "null", "?"}
+
+
+def _number(text: str, what: str, fail) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise fail(f"{what} must be a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise fail(f"{what} must be finite, got {text!r}")
+    return v
+
+
+def _angle(text: str, what: str, fail) -> float:
+    m = _ANGLE.match(text.strip().lower())
+    if not m:
+        raise fail(f"{what} must be a number of radians (or degrees with a 'deg' suffix), got {text!r}")
+    v = float(m.group(1))
+    return math.radians(v) if m.group(2) else v
+
+
+def parse_pose(text: str) -> tuple[float, float, float]:
+    """'x,y,yaw' (yaw in radians, or degrees with a 'deg' suffix) -> (x, y, yaw), for ``--initial-pose``."""
+    def fail(msg):
+        return CartoError(f"--initial-pose: {msg}")
+    parts = [p for p in re.split(r"[,\s]+", text.strip()) if p]
+    if len(parts) != 3:
+        raise fail(f"expected x,y,yaw, got {text!r}")
+    return (_number(parts[0], "x", fail), _number(parts[1], "y", fail), _angle(parts[2], "yaw", fail))
+
+
+def read_queries(path: str | Path) -> list[Query]:
+    """Queries from a text file, one per line::
+
+        # comments and blank lines are ignored; fields split on whitespace and/or commas
+        t x y yaw [sigma_xy sigma_yaw]      <- optional header; 'index x y yaw ...' selects scans by index
+        1012.5  3.2  1.0  1.57
+        1013.0  3.2  1.0  90deg  0.3  5deg  <- per-query sigmas (m, rad or 'deg')
+        1020.0  -    -    -                 <- no prior: global search
+
+    Without a header the first column is a time (s, the recording's clock). Angles are
+    radians unless suffixed 'deg'. Errors name the line.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CartoError("no such queries file", path) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise CartoError(f"cannot read queries: {e}", path) from None
+    key = "time"
+    out: list[Query] = []
+    seen_data = False
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+
+        def fail(msg, n=n):
+            return CartoError(f"line {n}: {msg}", path)
+        fields = [f for f in re.split(r"[,\s]+", line) if f]
+        head = fields[0].lower()
+        if head in _KEYS or not re.match(rf"^{_NUM}$", head):
+            if seen_data:
+                raise fail(f"expected a query (time or index, x, y, yaw), got {raw.strip()!r}")
+            if head not in _KEYS:
+                raise fail(f"the first column must be a time or a scan index; a header names it 't' or 'index', "
+                           f"got {fields[0]!r}")
+            key = _KEYS[head]
+            names = [f.lower() for f in fields[1:]]
+            if names[:3] != ["x", "y", "yaw"] or any(f not in ("sigma_xy", "sigma_yaw") for f in names[3:]):
+                raise fail("header must be 't x y yaw [sigma_xy sigma_yaw]' or 'index x y yaw [sigma_xy sigma_yaw]'")
+            seen_data = True  # one header at most, and before the data
+            continue
+        seen_data = True
+        if len(fields) not in (4, 6):
+            raise fail(f"expected 4 fields (time or index, x, y, yaw) or 6 (+ sigma_xy sigma_yaw), got {len(fields)}")
+        if key == "time":
+            t, idx = _number(fields[0], "time", fail), None
+        else:
+            try:
+                idx, t = int(fields[0]), None
+            except ValueError:
+                raise fail(f"scan index must be a whole number, got {fields[0]!r}") from None
+            if idx < 0:
+                raise fail(f"scan index must be >= 0, got {idx}")
+        pose_fields = [f.lower() for f in fields[1:4]]
+        if all(f in _NONE for f in pose_fields):
+            prior = None
+        elif any(f in _NONE for f in pose_fields):
+            raise fail("give all of x, y, yaw or none of them ('-' for a global search)")
+        else:
+            prior = (_number(fields[1], "x", fail), _number(fields[2], "y", fail), _angle(fields[3], "yaw", fail))
+        sxy = syaw = None
+        if len(fields) == 6:
+            sxy = _number(fields[4], "sigma_xy", fail)
+            syaw = _angle(fields[5], "sigma_yaw", fail)
+            if sxy <= 0 or syaw <= 0:
+                raise fail("sigmas must be positive")
+        out.append(Query(t, idx, prior, sxy, syaw, n))
+    if not out:
+        raise CartoError("no queries in the file", path)
+    return out
+
+
+# ----------------------------------------------------------------------------------- scans
+
+
+def _scan_topic(recording, scan_topic):
+    from carto_cli.io.topics import select_topics
+
+    return select_topics(recording, scan_topic=scan_topic).scan
+
+
+def _scans_for(recording, queries: Sequence[Query], scan_topic=None, max_time_offset: float = 1.0):
+    """{query position: (scan index, Scan)} in one pass over the recording's scans."""
+    topic = _scan_topic(recording, scan_topic)
+    by_index: dict[int, list[int]] = {}
+    timed = sorted(((q.time, k) for k, q in enumerate(queries) if q.time is not None))
+    for k, q in enumerate(queries):
+        if q.index is not None:
+            by_index.setdefault(q.index, []).append(k)
+    found: dict[int, tuple[int, Scan]] = {}
+    j = 0
+    prev: tuple[int, Scan] | None = None
+    count = 0
+    last = None
+    for record in recording.records([topic]):
+        if not isinstance(record, Scan):
+            continue
+        i = count
+        count += 1
+        for k in by_index.get(i, ()):
+            found[k] = (i, record)
+        while j < len(timed) and record.time >= timed[j][0]:
+            t, k = timed[j]
+            if prev is not None and abs(prev[1].time - t) <= abs(record.time - t):
+                found[k] = prev
+            else:
+                found[k] = (i, record)
+            j += 1
+        prev = (i, record)
+        last = prev
+    if count == 0:
+        raise CartoError(f"the recording has no scans on {topic}", getattr(recording, "path", None))
+    while j < len(timed):
+        found[timed[j][1]] = last
+        j += 1
+    for k, q in enumerate(queries):
+        where = f"line {q.line}: " if q.line else ""
+        if q.index is not None and k not in found:
+            raise CartoError(f"{where}scan index {q.index} is beyond the recording's {count} scans",
+                             getattr(recording, "path", None))
+        if q.time is not None:
+            dt = abs(found[k][1].time - q.time)
+            if dt > max_time_offset:
+                raise CartoError(f"{where}no scan within {max_time_offset:g} s of t={q.time:.3f} "
+                                 f"(nearest is {dt:.3f} s away)", getattr(recording, "path", None))
+    return found
+
+
+def scan_at(recording, *, time: float | None = None, index: int | None = None, scan_topic: str | None = None,
+            max_time_offset: float = 1.0) -> tuple[int, Scan]:
+    """(index, scan) of the scan nearest ``time`` or at ``index`` (default: the first scan)."""
+    if time is not None and index is not None:
+        raise CartoError("give a time or a scan index, not both")
+    if index is not None and index < 0:
+        raise CartoError(f"scan index must be >= 0, got {index}")
+    q = Query(time, index if index is not None or time is not None else 0, None)
+    return _scans_for(recording, [q], scan_topic, max_time_offset)[0]
+
+
+# ----------------------------------------------------------------------------------- batch
+
+
+@dataclass
+class QueryResult:
+    query: Query
+    scan_index: int
+    scan_time: float
+    result: RelocalizationResult
+
+    def row(self) -> dict:
+        r = self.result
+        return {"t": f"{self.scan_time:.6f}", "scan_index": self.scan_index,
+                "x": f"{r.pose[0]:.4f}", "y": f"{r.pose[1]:.4f}", "yaw": f"{r.pose[2]:.5f}",
+                "score": f"{r.score:.4f}", "path": r.path, "ms": f"{r.total_ms:.2f}",
+                "success": int(bool(r.success)), "submap": "" if r.submap is None else r.submap}
+
+
+CSV_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "score", "path", "ms", "success", "submap")
+
+
+@dataclass
+class BatchSummary:
+    queries: int
+    successes: int
+    success_rate: float
+    p50_ms: float
+    p95_ms: float
+    p99_ms: float
+    max_ms: float
+    paths: dict[str, int] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)  # mean per bucket
+
+    def to_dict(self) -> dict:
+        return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+
+
+def summarize(results: Sequence[QueryResult]) -> BatchSummary:
+    ms = np.array([q.result.total_ms for q in results], dtype=np.float64)
+    ok = sum(bool(q.result.success) for q in results)
+    paths = {p: sum(q.result.path == p for q in results) for p in PATHS}
+    buckets = {b: float(np.mean([q.result.timings[b] for q in results])) if results else 0.0 for b in TIMING_BUCKETS}
+    pct = (lambda p: float(np.percentile(ms, p))) if len(ms) else (lambda p: 0.0)
+    return BatchSummary(len(results), ok, ok / len(results) if results else 0.0, pct(50), pct(95), pct(99),
+                        float(ms.max()) if len(ms) else 0.0, paths, buckets)
+
+
+def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query], *, scan_topic: str | None = None,
+                    laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
+                    on_query=None) -> tuple[list[QueryResult], BatchSummary]:
+    """Run every query against its scan (nearest to its time, or at its index), in file order."""
+    if not queries:
+        raise CartoError("no queries")
+    scans = _scans_for(recording, queries, scan_topic, max_time_offset)
+    results = []
+    for k, q in enumerate(queries):
+        i, scan = scans[k]
+        r = relocalizer.relocalize(scan, q.prior, sigma_xy=q.sigma_xy, sigma_yaw=q.sigma_yaw, corridor=corridor,
+                                   laser_pose=laser_pose)
+        results.append(QueryResult(q, i, scan.time, r))
+        if on_query is not None:
+            on_query(1)
+    return results, summarize(results)
+
+
+def write_results_csv(path: str | Path, results: Iterable[QueryResult]) -> Path:
+    """The rows as CSV (CSV_COLUMNS), written atomically."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(CSV_COLUMNS), lineterminator="\n")
+    w.writeheader()
+    for q in results:
+        w.writerow(q.row())
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        tmp.write_text(buf.getvalue(), encoding="utf-8")
+    return path

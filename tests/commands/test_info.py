@@ -1,0 +1,61 @@
+"""carto info's summary: rates, scan geometry, and the warnings it must raise."""
+import math
+
+import numpy as np
+
+from carto_cli.commands.info import format_info, inspect_recording
+from carto_cli.io.recording import Recording, TopicInfo
+from carto_cli.core.records import Odometry, Scan, Transform
+
+
+class ListRecording(Recording):
+    format = "test"
+
+    def __init__(self, records, transforms=()):
+        super().__init__("list.bag")
+        self._records = records
+        self._transforms = list(transforms)
+
+    def topics(self):
+        counts = {}
+        for r in self._records:
+            kind = "sensor_msgs/msg/LaserScan" if isinstance(r, Scan) else "nav_msgs/msg/Odometry"
+            counts.setdefault(r.topic, [kind, 0])[1] += 1
+        return [TopicInfo(n, t, c) for n, (t, c) in counts.items()]
+
+    def static_transforms(self):
+        return self._transforms
+
+    def records(self, topics=None):
+        return iter(r for r in self._records if topics is None or r.topic in topics)
+
+
+def scan(t, ranges):
+    r = np.asarray(ranges, np.float32)
+    return Scan(time=t, ranges=r, angles=np.linspace(-1, 1, len(r)).astype(np.float32), frame="laser",
+                topic="/scan", range_min=0.1, range_max=10.0)
+
+
+def test_rates_geometry_and_warnings():
+    times = [0.0, 0.1, 0.2, 0.3, 1.5, 1.6, 1.55, 1.7]  # a 1.2 s gap, and one step backwards
+    records = [scan(t, [1.0, np.nan, np.inf, 20.0, 2.0]) for t in times]
+    records += [Odometry(time=0.01 * k, x=0, y=0, yaw=0, topic="/odom") for k in range(50)]
+    tf = [Transform("base_link", "laser", (0.2, 0.0, 0.1), (0.0, 0.0, math.sin(0.1), math.cos(0.1)))]
+    info = inspect_recording(ListRecording(records, tf))
+    (s,) = [t for t in info.topics if t.kind == "scan"]
+    assert s.count == 8 and s.scan.beams_min == s.scan.beams_max == 5
+    assert s.backwards == 1 and s.gaps == 1 and 1.1 < s.max_gap < 1.3
+    warnings = " | ".join(info.warnings)
+    assert "backwards" in warnings and "gap" in warnings
+    assert "20.0% of ranges are NaN" in warnings and "20.0% of ranges are Inf" in warnings
+    assert "20.0% of ranges are out-of-limit" in warnings
+    assert info.has_odometry and not info.has_imu
+    (o,) = [t for t in info.topics if t.kind == "odometry"]
+    assert abs(o.rate_hz - 100.0) < 1e-6
+    text = format_info(info)
+    assert "base_link" in text and "laser" in text and "yaw 11.46°" in text
+
+
+def test_no_scans_is_a_warning():
+    info = inspect_recording(ListRecording([Odometry(time=0.0, x=0, y=0, yaw=0, topic="/odom")]))
+    assert any("no laser scans" in w for w in info.warnings)

@@ -1,0 +1,94 @@
+"""`carto map` end to end through the CLI: outputs, their formats, --load-state, --no-state, bad input."""
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from carto_cli.cli import app
+from carto_cli.io.map_file import load_map
+from carto_cli.io.trajectory import read_trajectory
+from carto_cli.io.recording_writers import write_recording
+from carto_cli.sim.recording import simulate
+from carto_cli.sim.trajectory import loop_trajectory
+from carto_cli.sim.world import loop_building
+
+runner = CliRunner()
+FAST = ["--set", "trajectory_builder_2d.submaps.num_range_data=20"]
+
+
+@pytest.fixture(scope="module")
+def sim_bag(tmp_path_factory):
+    world = loop_building()
+    sim = simulate(world, loop_trajectory(world), duration=20.0, beams=270, laser_pose=(0.15, 0.0, 0.0))
+    rec = sim.recording()
+    path = tmp_path_factory.mktemp("sim") / "sim.bag"
+    write_recording(rec.records(), path, "ros1", static_transforms=rec.static_transforms(),
+                    topics={t.name: t.msgtype for t in rec.topics()})
+    return path, sim
+
+
+def test_map_writes_every_output(tmp_path, sim_bag):
+    bag, sim = sim_bag
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), *FAST])
+    assert r.exit_code == 0, r.output
+    assert "scans" in r.stdout and "submaps" in r.stdout
+    meta = yaml.safe_load((out / "map.yaml").read_text())
+    assert meta["image"] == "map.pgm" and meta["resolution"] == pytest.approx(0.05)
+    assert meta["occupied_thresh"] == 0.65 and meta["free_thresh"] == 0.196 and meta["negate"] == 0
+    pgm = (out / "map.pgm").read_bytes()
+    assert pgm.startswith(b"P5")
+    header = pgm.split(b"\n", 4)
+    w, h = map(int, header[2].split())
+    pixels = np.frombuffer(pgm[-w * h:], np.uint8)
+    occupancy = (255 - pixels.astype(float)) / 255  # how map_server reads it (negate 0)
+    assert (occupancy > 0.65).sum() > 100 and (occupancy < 0.196).sum() > 1000  # walls and free space
+    assert (pixels == 205).sum() > 0  # unknown stays unknown
+    assert (occupancy < 0.196).sum() > 5 * (occupancy > 0.65).sum()  # a building is mostly free space
+    assert (out / "map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    traj = read_trajectory(out / "trajectory.tum")
+    assert len(traj) == sim.counts()["/scan"]  # a pose for every scan
+    m = load_map(out / "map.carto")
+    assert len(m.node_times) > 0 and len(m.submaps) > 0
+    assert np.allclose(m.laser_pose, [0.15, 0.0, 0.0])  # the mount came from the bag's static TF
+
+
+def test_load_state_continues_the_map(tmp_path, sim_bag):
+    bag, _ = sim_bag
+    first, second = tmp_path / "a", tmp_path / "b"
+    assert runner.invoke(app, ["map", str(bag), "-o", str(first), *FAST]).exit_code == 0
+    r = runner.invoke(app, ["map", str(bag), "-o", str(second), "--load-state", str(first / "map.carto"), *FAST])
+    assert r.exit_code == 0, r.output
+    m = load_map(second / "map.carto")
+    assert set(np.unique(m.node_trajectories).tolist()) == {0, 1}
+    lc = m.constraints.is_loop_closure
+    cross = m.node_trajectories[m.constraints.node[lc]] != m.submap_trajectories[m.constraints.submap[lc]]
+    assert cross.sum() > 0  # the new trajectory was linked to the old one
+    # The same drive mapped twice: the second trajectory lands on the first.
+    g, t = m.node_global_poses, m.node_trajectories
+    assert np.linalg.norm(g[t == 1][0, :2] - g[t == 0][0, :2]) < 0.3
+
+
+def test_no_state_and_no_loop_closure(tmp_path, sim_bag):
+    bag, _ = sim_bag
+    out = tmp_path / "o"
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--no-state", "--no-loop-closure", *FAST])
+    assert r.exit_code == 0, r.output
+    assert "0 loop closures" in r.stdout
+    assert not (out / "map.carto").exists() and (out / "map.pgm").exists()
+
+
+def test_bad_input_leaves_no_outputs(tmp_path, sim_bag):
+    bag, _ = sim_bag
+    out = tmp_path / "o"
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--set", "trajectory_builder_2d.submaps.num_range_data=0"])
+    assert r.exit_code == 2 and "num_range_data" in r.stderr
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--profile", "no-such-profile"])
+    assert r.exit_code == 2 and "no-such-profile" in r.stderr
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--laser-pose", "1,2"])
+    assert r.exit_code == 2 and "--laser-pose" in r.stderr
+    bad_state = tmp_path / "bad.carto"
+    bad_state.write_bytes(b"not a map")
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--load-state", str(bad_state)])
+    assert r.exit_code == 2 and "bad.carto" in r.stderr
+    assert not out.exists()

@@ -1,0 +1,72 @@
+import numpy as np
+import pytest
+
+from carto_cli.grid.probability_grid import (
+    MAX_VALUE,
+    VALUE_TO_CORRESPONDENCE_COST,
+    VALUE_TO_PROBABILITY,
+    ProbabilityGrid,
+    correspondence_cost_to_value,
+    probability_to_value,
+)
+
+
+def test_value_encoding_round_trips_and_clamps():
+    p = np.linspace(0.1, 0.9, 101)
+    np.testing.assert_allclose(VALUE_TO_PROBABILITY[probability_to_value(p)], p, atol=2e-5)
+    assert probability_to_value(0.0) == probability_to_value(0.1) == MAX_VALUE
+    assert probability_to_value(1.0) == probability_to_value(0.9) == 1
+    assert correspondence_cost_to_value(0.1) == 1
+    assert VALUE_TO_CORRESPONDENCE_COST[0] == pytest.approx(0.9)  # unknown reads as the worst cost
+    assert VALUE_TO_PROBABILITY[1] == pytest.approx(0.9) and VALUE_TO_PROBABILITY[MAX_VALUE] == pytest.approx(0.1)
+
+
+def test_cell_geometry():
+    g = ProbabilityGrid(0.1, (-1.0, 2.0), (20, 10))
+    assert g.num_cells == (20, 10) and g.cells.shape == (10, 20)
+    np.testing.assert_array_equal(g.cell_index([[-1.0, 2.0], [-0.95, 2.99], [0.99, 2.0]]), [[0, 0], [0, 9], [19, 0]])
+    np.testing.assert_allclose(g.cell_center([[0, 0]]), [[-0.95, 2.05]])
+    np.testing.assert_array_equal(g.contains([[0, 0], [19, 9], [20, 0], [-1, 3]]), [True, True, False, False])
+
+
+def test_probability_unknown_and_image():
+    g = ProbabilityGrid.centered((0.0, 0.0), 0.05, 40)
+    g.set_probability([[3, 4], [5, 6]], [0.7, 0.2])
+    np.testing.assert_allclose(g.probability([[3, 4], [5, 6]]), [0.7, 0.2], atol=1e-4)
+    assert np.isnan(g.probability([[0, 0], [-5, 2]])).all()
+    assert g.probability([[0, 0]], unknown=0.1)[0] == pytest.approx(0.1)
+    np.testing.assert_array_equal(g.is_known([[3, 4], [0, 0]]), [True, False])
+    img = g.to_probability_image()
+    assert img.dtype == np.float32 and img.shape == (40, 40)
+    assert img[4, 3] == pytest.approx(0.7, abs=1e-4) and np.isnan(img).sum() == 40 * 40 - 2
+    assert g.known_bounds == (3, 4, 5, 6)
+
+
+def test_grow_keeps_contents_in_world_coordinates():
+    g = ProbabilityGrid.centered((0.0, 0.0), 0.1, 10)
+    rng = np.random.default_rng(0)
+    cells = np.array([[i, j] for i in range(10) for j in range(10)])
+    probs = rng.uniform(0.1, 0.9, len(cells))
+    g.set_probability(cells, probs)
+    centres = g.cell_center(cells)
+    before = g.probability(g.cell_index(centres))
+    for far in ([5.0, 0.2], [-3.0, -7.0], [0.0, 12.0]):
+        nx, ny = g.num_cells
+        assert g.grow_to_include(np.array([far]))
+        assert g.contains(g.cell_index([far]))[0]
+        np.testing.assert_array_equal(g.probability(g.cell_index(centres)), before)
+        # Amortised: an axis that grows at least doubles.
+        assert g.num_cells[0] in (nx,) or g.num_cells[0] >= 2 * nx
+        assert g.num_cells[1] in (ny,) or g.num_cells[1] >= 2 * ny
+    assert not g.grow_to_include(np.array([[0.0, 0.0]]))
+    x0, y0, x1, y1 = g.known_bounds
+    np.testing.assert_allclose(g.cell_center([[x0, y0], [x1, y1]]), [centres.min(axis=0), centres.max(axis=0)])
+
+
+def test_cropped_keeps_known_cells_only():
+    g = ProbabilityGrid.centered((1.0, 1.0), 0.05, 100)
+    g.set_probability([[10, 20], [30, 25]], 0.8)
+    c = g.cropped()
+    assert c.num_cells == (21, 6)
+    np.testing.assert_allclose(c.probability(c.cell_index(g.cell_center([[10, 20], [30, 25]]))), 0.8, atol=1e-4)
+    assert c.known_bounds == (0, 0, 20, 5)

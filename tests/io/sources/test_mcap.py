@@ -1,0 +1,267 @@
+"""carto_cli.io.sources.mcap: standalone MCAP, ROS2 (cdr) and ROS1 encodings."""
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from support import SHARED
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, IndexType, Writer as McapWriter
+from mcap_ros1._vendor.genpy import dynamic
+from mcap_ros1.writer import Writer as Ros1McapWriter
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from carto_cli.core.errors import CartoError, FormatError, TopicError
+from carto_cli.io.sources import mcap as mcap_source
+from carto_cli.io.sources.mcap import McapRecording
+from carto_cli.io.recording import ReadOptions
+from carto_cli.core.records import Imu, Odometry, Scan, Transform, yaw_quaternion
+
+STANDALONE = (SHARED / "bags" / "ccny_laser_scan_matcher_demo_ros2_mcap"
+              / "ccny_laser_scan_matcher_demo_ros2_mcap.mcap")
+HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
+NOETIC = get_typestore(Stores.ROS1_NOETIC)
+NOETIC.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+
+
+# --- the real file ------------------------------------------------------------------------------
+
+@pytest.mark.skipif(not STANDALONE.exists(), reason="shared data not available")
+def test_mcap_of_a_ros2_bag_read_standalone():
+    with McapRecording(STANDALONE) as rec:
+        assert rec.format == "mcap"
+        assert [(t.name, t.msgtype, t.count) for t in rec.topics()] == [("/scan", "sensor_msgs/msg/LaserScan", 360)]
+        scans = list(rec.records())
+    assert len(scans) == 360 and scans[0].time == 1282836370.970876375
+    assert scans[0].num_beams == 681 and scans[0].frame == "/laser"
+
+
+# --- ROS1-encoded MCAP ----------------------------------------------------------------------------
+
+def genpy_types(msgtype):
+    """genpy classes from the noetic definition, as a ROS1 recorder writing MCAP would use."""
+    ros2_name = msgtype.replace("/", "/msg/", 1)
+    return dynamic.generate_dynamic(msgtype, NOETIC.generate_msgdef(ros2_name)[0])
+
+
+def stamp(msg, ns):
+    msg.header.stamp.secs, msg.header.stamp.nsecs = divmod(ns, 10**9)
+
+
+def test_ros1_encoded_mcap(tmp_path):
+    Laser = genpy_types("sensor_msgs/LaserScan")["sensor_msgs/LaserScan"]
+    odom_types = genpy_types("nav_msgs/Odometry")
+    imu_types = genpy_types("sensor_msgs/Imu")
+    tf_types = genpy_types("tf2_msgs/TFMessage")
+    path = tmp_path / "ros1.mcap"
+    with open(path, "wb") as f, Ros1McapWriter(f) as w:
+        tf = tf_types["tf2_msgs/TFMessage"]()
+        t = tf_types["geometry_msgs/TransformStamped"]()
+        t.header.frame_id, t.child_frame_id = "base_link", "laser"
+        t.transform.translation.x, t.transform.rotation.w = 0.25, 1.0
+        tf.transforms = [t]
+        w.write_message("/tf_static", tf, log_time=10**9)
+        for i in range(4):
+            ns = 10**9 + i * 10**8
+            scan = Laser()
+            stamp(scan, ns)
+            scan.header.frame_id = "/laser"
+            scan.angle_min, scan.angle_increment = -1.0, 0.5
+            scan.range_max = 30.0
+            scan.ranges = [1.0 + i, 2.0, float("nan"), 4.0, 5.0]
+            scan.intensities = [7.0] * 5
+            w.write_message("/scan", scan, log_time=ns)
+            odom = odom_types["nav_msgs/Odometry"]()
+            stamp(odom, ns + 5 * 10**7)
+            odom.header.frame_id, odom.child_frame_id = "odom", "base_link"
+            odom.pose.pose.position.x = float(i)
+            q = yaw_quaternion(0.3 * i)
+            o = odom.pose.pose.orientation
+            o.x, o.y, o.z, o.w = q
+            odom.twist.twist.linear.x, odom.twist.twist.angular.z = 0.5, 0.1
+            w.write_message("/odom", odom, log_time=ns + 5 * 10**7)
+            imu = imu_types["sensor_msgs/Imu"]()
+            stamp(imu, ns + 2 * 10**7)
+            imu.header.frame_id = "imu"
+            imu.orientation_covariance = [-1.0] + [0.0] * 8
+            imu.angular_velocity.z = 0.1
+            imu.linear_acceleration.z = 9.81
+            w.write_message("/imu", imu, log_time=ns + 2 * 10**7)
+    with McapRecording(path) as rec:
+        assert {(t.name, t.msgtype, t.count) for t in rec.topics()} == {
+            ("/scan", "sensor_msgs/msg/LaserScan", 4), ("/odom", "nav_msgs/msg/Odometry", 4),
+            ("/imu", "sensor_msgs/msg/Imu", 4), ("/tf_static", "tf2_msgs/msg/TFMessage", 1)}
+        assert rec.static_transforms() == [Transform("base_link", "laser", (0.25, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 0.0)]
+        recs = list(rec.records())
+    assert [type(r) for r in recs[:3]] == [Scan, Imu, Odometry]
+    assert [r.time for r in recs] == sorted(r.time for r in recs)
+    s, m, o = recs[3:6]
+    assert s.time == 1.1 and s.frame == "/laser" and s.topic == "/scan"
+    np.testing.assert_array_equal(s.ranges, np.float32([2.0, 2.0, np.nan, 4.0, 5.0]))
+    np.testing.assert_array_equal(s.angles, np.float32([-1.0, -0.5, 0.0, 0.5, 1.0]))
+    np.testing.assert_array_equal(s.intensities, np.float32([7.0] * 5))
+    assert m.orientation is None and m.angular_velocity[2] == 0.1 and m.time == 1.12
+    assert (o.x, o.vx, o.wz, o.frame, o.child_frame) == (1.0, 0.5, 0.1, "odom", "base_link")
+    assert o.yaw == pytest.approx(0.3, abs=1e-12)
+
+
+# --- files built with the mcap library directly -----------------------------------------------------
+
+def laser(ns, value, beams=20):
+    T = HUMBLE.types
+    return T["sensor_msgs/msg/LaserScan"](
+        header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                                        frame_id="laser"),
+        angle_min=-1.0, angle_max=1.0, angle_increment=0.1, time_increment=0.0, scan_time=0.1, range_min=0.0,
+        range_max=10.0, ranges=np.full(beams, value, dtype=np.float32), intensities=np.empty(0, dtype=np.float32))
+
+
+def write_mcap(path, messages, **writer_options):
+    """messages: (topic, log_time_ns, msgtype, message object) in the order to write them."""
+    with open(path, "wb") as f:
+        w = McapWriter(f, **writer_options)
+        w.start(profile="ros2", library="test")
+        schemas, channels = {}, {}
+        for topic, ns, msgtype, msg in messages:
+            if msgtype not in schemas:
+                schemas[msgtype] = w.register_schema(msgtype, "ros2msg",
+                                                     HUMBLE.generate_msgdef(msgtype, ros_version=2)[0].encode())
+            if topic not in channels:
+                channels[topic] = w.register_channel(topic, "cdr", schemas[msgtype])
+            w.add_message(channels[topic], log_time=ns, publish_time=ns, data=HUMBLE.serialize_cdr(msg, msgtype))
+        w.finish()
+    return path
+
+
+def scans_out_of_order():
+    order = [0, 2, 1, 3, 5, 4, 6, 7]
+    return [("/scan", 10**9 + k * 10**7, "sensor_msgs/msg/LaserScan", laser(10**9 + k * 10**7, float(k))) for k in order]
+
+
+@pytest.mark.parametrize("options", [
+    {},
+    {"use_statistics": False},
+    {"use_chunking": False},
+    {"use_chunking": False, "use_statistics": False, "index_types": IndexType.NONE, "repeat_channels": False,
+     "repeat_schemas": False, "use_summary_offsets": False},
+    {"chunk_size": 200, "compression": CompressionType.LZ4},
+], ids=["indexed", "no-statistics", "unchunked", "no-summary", "many-lz4-chunks"])
+def test_counts_and_log_time_order_with_or_without_index(tmp_path, options):
+    path = write_mcap(tmp_path / "s.mcap", scans_out_of_order(), **options)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    indexed = summary is not None and bool(summary.chunk_indexes)
+    assert indexed == options.get("use_chunking", True)
+    if "index_types" in options:
+        assert summary is None
+    with McapRecording(path) as rec:
+        assert [(t.name, t.count) for t in rec.topics()] == [("/scan", 8)]
+        got = list(rec.records())
+    assert [s.ranges[0] for s in got] == list(range(8))
+
+
+def test_pointcloud_in_mcap_uses_read_options(tmp_path):
+    T = HUMBLE.types
+    pts = np.zeros(4, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("i", "<f4")])
+    pts["x"], pts["y"], pts["z"] = [1, 2, 3, 4], [0, 0, 0, 0], [0.0, 0.5, -0.5, 2.0]
+    pf = T["sensor_msgs/msg/PointField"]
+    msg = T["sensor_msgs/msg/PointCloud2"](
+        header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=3, nanosec=0), frame_id="lidar"),
+        height=1, width=4, fields=[pf(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyzi")],
+        is_bigendian=False, point_step=16, row_step=64, data=np.frombuffer(pts.tobytes(), dtype=np.uint8),
+        is_dense=True)
+    path = write_mcap(tmp_path / "pc.mcap", [("/points", 3 * 10**9, "sensor_msgs/msg/PointCloud2", msg)])
+    with McapRecording(path, ReadOptions(min_z=-1.0, max_z=1.0)) as rec:
+        (s,) = list(rec.records())
+    np.testing.assert_array_equal(s.ranges, np.float32([1, 2, 3]))
+    assert s.angle_increment is None and s.time == 3.0
+
+
+def test_topic_errors(tmp_path):
+    T = HUMBLE.types
+    msgs = scans_out_of_order()[:2] + [("/chatter", 10**9, "std_msgs/msg/String", T["std_msgs/msg/String"](data="hi"))]
+    path = write_mcap(tmp_path / "t.mcap", msgs)
+    with McapRecording(path) as rec:
+        assert len(list(rec.records())) == 2  # other types are skipped, not decoded
+        with pytest.raises(TopicError, match="/nope"):
+            rec.records(["/nope"])
+        with pytest.raises(TopicError, match="std_msgs/msg/String"):
+            rec.records(["/chatter"])
+        assert len(list(rec.records(["/scan"]))) == 2
+
+
+def test_unknown_encoding_is_a_format_error(tmp_path):
+    path = tmp_path / "j.mcap"
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start()
+        sid = w.register_schema("sensor_msgs/msg/LaserScan", "jsonschema", b"{}")
+        cid = w.register_channel("/scan", "json", sid)
+        w.add_message(cid, log_time=1, publish_time=1, data=b"{}")
+        w.finish()
+    with McapRecording(path) as rec:
+        with pytest.raises(FormatError, match="no decoder for topic /scan"):
+            list(rec.records())
+
+
+def test_bad_schema_is_a_format_error_without_noise(tmp_path, capfd):
+    path = tmp_path / "b.mcap"
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start()
+        sid = w.register_schema("sensor_msgs/msg/LaserScan", "ros2msg", b"float32 ranges broken line here\n")
+        cid = w.register_channel("/scan", "cdr", sid)
+        w.add_message(cid, log_time=1, publish_time=1, data=b"\x00\x01\x00\x00")
+        w.finish()
+    with McapRecording(path) as rec:
+        with pytest.raises(FormatError, match="b.mcap"):
+            list(rec.records())
+    assert capfd.readouterr().err == ""
+
+
+def test_not_mcap(tmp_path):
+    with pytest.raises(CartoError, match="no such file"):
+        McapRecording(tmp_path / "missing.mcap")
+    (tmp_path / "x.mcap").write_bytes(b"#ROSBAG V2.0\n" + bytes(100))
+    with pytest.raises(FormatError, match="not an MCAP"):
+        McapRecording(tmp_path / "x.mcap")
+
+
+def test_truncated_mcap(tmp_path):
+    data = write_mcap(tmp_path / "s.mcap", scans_out_of_order(), chunk_size=300).read_bytes()
+    for cut in (0, 5, 8, 9, 40, len(data) // 3, len(data) // 2, len(data) - 100, len(data) - 8, len(data) - 1):
+        p = tmp_path / f"cut{cut}.mcap"
+        p.write_bytes(data[:cut])
+        with pytest.raises(FormatError) as info:
+            with McapRecording(p) as rec:
+                list(rec.records())
+        assert str(p) in str(info.value)
+
+
+def test_corrupt_chunk_found_mid_iteration(tmp_path):
+    path = write_mcap(tmp_path / "s.mcap", scans_out_of_order(), chunk_size=300, compression=CompressionType.NONE)
+    with open(path, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.message_start_time)
+    assert len(chunks) >= 4
+    target = chunks[len(chunks) // 2]
+    data = bytearray(path.read_bytes())
+    data[target.chunk_start_offset + target.chunk_length - 20] ^= 0xFF
+    path.write_bytes(bytes(data))
+    got = []
+    with McapRecording(path) as rec:
+        with pytest.raises(FormatError, match="corrupt or truncated MCAP"):
+            for s in rec.records():
+                got.append(s)
+    assert 0 < len(got) < 8
+
+
+def test_reorder_window_is_bounded(monkeypatch, tmp_path):
+    """An unindexed file is streamed through a bounded heap, never loaded whole."""
+    monkeypatch.setattr(mcap_source, "REORDER_WINDOW", 2)
+    msgs = scans_out_of_order()
+    path = write_mcap(tmp_path / "u.mcap", msgs, use_chunking=False, index_types=IndexType.NONE,
+                      use_statistics=False, repeat_channels=False, repeat_schemas=False, use_summary_offsets=False)
+    with McapRecording(path) as rec:
+        assert [s.ranges[0] for s in rec.records()] == list(range(8))

@@ -1,0 +1,284 @@
+import dataclasses
+import math
+import shutil
+
+import pytest
+import yaml
+
+import carto_cli.options as opts
+from carto_cli.core.errors import CartoError
+from carto_cli.options import (Options, apply_overrides, changed_options, dump_options_yaml, get_option,
+                               load_options, option_info, option_names, options_to_dict, profiles_dir)
+
+
+def _flatten(d, prefix=""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _flatten(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}"
+
+
+@pytest.fixture
+def profiles(tmp_path, monkeypatch):
+    """A private profiles directory holding a copy of the packaged default.yaml."""
+    d = tmp_path / "profiles"
+    d.mkdir()
+    shutil.copy(profiles_dir() / "default.yaml", d / "default.yaml")
+    monkeypatch.setattr(opts, "profiles_dir", lambda: d)
+    return d
+
+
+# --------------------------------------------------------------------------- defaults
+
+
+def test_cartographer_defaults():
+    o = Options()
+    tb, pg = o.trajectory_builder_2d, o.pose_graph
+    assert (tb.min_range, tb.max_range, tb.missing_data_ray_length) == (0.0, 30.0, 5.0)
+    assert tb.num_accumulated_range_data == 1 and tb.voxel_filter_size == 0.025
+    assert (tb.adaptive_voxel_filter.max_length, tb.adaptive_voxel_filter.min_num_points) == (0.5, 200)
+    assert (tb.loop_closure_adaptive_voxel_filter.max_length,
+            tb.loop_closure_adaptive_voxel_filter.min_num_points) == (0.9, 100)
+    assert tb.use_online_correlative_scan_matching is False and tb.use_imu_data is False
+    assert tb.real_time_correlative_scan_matcher.angular_search_window == pytest.approx(math.radians(20))
+    assert (tb.ceres_scan_matcher.occupied_space_weight, tb.ceres_scan_matcher.translation_weight,
+            tb.ceres_scan_matcher.rotation_weight) == (1.0, 10.0, 40.0)
+    assert tb.ceres_scan_matcher.ceres_solver_options.max_num_iterations == 20
+    assert (tb.motion_filter.max_time_seconds, tb.motion_filter.max_distance_meters) == (5.0, 0.2)
+    assert tb.motion_filter.max_angle_radians == pytest.approx(math.radians(1))
+    assert tb.pose_extrapolator.constant_velocity.pose_queue_duration == 0.001
+    assert tb.submaps.num_range_data == 90 and tb.submaps.grid_options_2d.resolution == 0.05
+    rdi = tb.submaps.range_data_inserter
+    assert (rdi.insert_free_space, rdi.hit_probability, rdi.miss_probability) == (True, 0.55, 0.49)
+    cb = pg.constraint_builder
+    assert pg.optimize_every_n_nodes == 90
+    assert (cb.sampling_ratio, cb.max_constraint_distance, cb.min_score, cb.global_localization_min_score) == \
+        (0.3, 15.0, 0.55, 0.6)
+    assert (cb.loop_closure_translation_weight, cb.loop_closure_rotation_weight) == (1.1e4, 1e5)
+    fcsm = cb.fast_correlative_scan_matcher
+    assert fcsm.linear_search_window == 7.0 and fcsm.branch_and_bound_depth == 7
+    assert fcsm.angular_search_window == pytest.approx(math.radians(30))
+    assert (cb.ceres_scan_matcher.occupied_space_weight, cb.ceres_scan_matcher.translation_weight,
+            cb.ceres_scan_matcher.rotation_weight) == (20.0, 10.0, 1.0)
+    assert (pg.matcher_translation_weight, pg.matcher_rotation_weight) == (5e2, 1.6e3)
+    op = pg.optimization_problem
+    assert op.huber_scale == 10.0 and op.ceres_solver_options.max_num_iterations == 50
+    assert (op.local_slam_pose_translation_weight, op.odometry_rotation_weight) == (1e5, 1e5)
+    assert (pg.max_num_final_iterations, pg.global_sampling_ratio,
+            pg.global_constraint_search_after_n_seconds) == (200, 0.003, 10.0)
+
+
+def test_default_yaml_lists_every_option_with_the_dataclass_default():
+    data = yaml.load((profiles_dir() / "default.yaml").read_text(), Loader=opts._Loader)
+    assert list(_flatten(data)) == option_names()
+    assert load_options() == Options()
+
+
+def test_option_names_and_info():
+    names = option_names()
+    assert len(names) == len(set(names)) > 50
+    assert "trajectory_builder_2d.submaps.num_range_data" in names
+    assert "pose_graph.optimization_problem.ceres_solver_options.max_num_iterations" in names
+    info = {i.name: i for i in option_info()}
+    hit = info["trajectory_builder_2d.submaps.range_data_inserter.hit_probability"]
+    assert hit.type == "float" and hit.default == 0.55 and hit.bounds == "> 0.5 and < 1"
+    assert info["trajectory_builder_2d.motion_filter.max_angle_radians"].unit == "rad"
+    assert all(i.doc for i in info.values())
+
+
+def test_options_are_frozen():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        Options().pose_graph.optimize_every_n_nodes = 3
+
+
+# --------------------------------------------------------------------------- --set
+
+
+def test_set_values_of_every_type():
+    o = load_options(overrides=[
+        "trajectory_builder_2d.submaps.num_range_data=35",
+        "trajectory_builder_2d.max_range=12",                      # int is fine for a float
+        "trajectory_builder_2d.use_online_correlative_scan_matching=true",
+        "pose_graph.constraint_builder.loop_closure_rotation_weight=1e7",   # YAML 1.1 would read a string
+        "pose_graph.optimization_problem.huber_scale=2.5E+1",
+    ])
+    tb = o.trajectory_builder_2d
+    assert tb.submaps.num_range_data == 35
+    assert tb.max_range == 12.0 and isinstance(tb.max_range, float)
+    assert tb.use_online_correlative_scan_matching is True
+    assert o.pose_graph.constraint_builder.loop_closure_rotation_weight == 1e7
+    assert o.pose_graph.optimization_problem.huber_scale == 25.0
+    assert changed_options(o) == {
+        "trajectory_builder_2d.max_range": 12.0,
+        "trajectory_builder_2d.use_online_correlative_scan_matching": True,
+        "trajectory_builder_2d.submaps.num_range_data": 35,
+        "pose_graph.constraint_builder.loop_closure_rotation_weight": 1e7,
+        "pose_graph.optimization_problem.huber_scale": 25.0,
+    }
+
+
+def test_later_set_wins():
+    o = load_options(overrides=["pose_graph.optimize_every_n_nodes=10", "pose_graph.optimize_every_n_nodes=20"])
+    assert o.pose_graph.optimize_every_n_nodes == 20
+
+
+def test_degrees_only_with_suffix_on_angles():
+    key = "trajectory_builder_2d.real_time_correlative_scan_matcher.angular_search_window"
+    assert get_option(load_options(overrides=[f"{key}=10deg"]), key) == pytest.approx(math.radians(10))
+    assert get_option(load_options(overrides=[f"{key}=0.2"]), key) == 0.2
+    assert get_option(load_options(overrides=[f"{key}= 45 deg"]), key) == pytest.approx(math.pi / 4)
+    with pytest.raises(CartoError, match=r"'deg' is only allowed on angles"):
+        load_options(overrides=["trajectory_builder_2d.max_range=20deg"])
+    with pytest.raises(CartoError, match=r"must be >= 0 and <= 3.14159"):
+        load_options(overrides=[f"{key}=200deg"])
+
+
+@pytest.mark.parametrize("item, message", [
+    ("trajectory_builder_2d.submaps.num_range_dat=3",
+     "unknown option; did you mean 'trajectory_builder_2d.submaps.num_range_data'"),
+    ("submaps.num_range_data=3", "did you mean 'trajectory_builder_2d.submaps.num_range_data'"),
+    ("pose_graph.min_score=0.6", "did you mean 'pose_graph.constraint_builder.min_score'"),
+    ("TRAJECTORY_BUILDER_2D.max_range=3", "did you mean 'trajectory_builder_2d.max_range'"),
+    ("trajectory_builder_2d.submaps.range_data_inserter.probability_grid_range_data_inserter.hit_probability=0.6",
+     "did you mean 'trajectory_builder_2d.submaps.range_data_inserter.hit_probability'"),
+    ("trajectory_builder_2d.submaps.num_range_data=3.5", "expected an integer, got 3.5"),
+    ("trajectory_builder_2d.submaps.num_range_data=true", "expected an integer, got true"),
+    ("trajectory_builder_2d.max_range=far", "expected a number, got 'far'"),
+    ("trajectory_builder_2d.max_range=.nan", "expected a finite number"),
+    ("trajectory_builder_2d.use_imu_data=1", "expected true or false, got 1"),
+    ("trajectory_builder_2d.submaps.range_data_inserter.hit_probability=0.5", "must be > 0.5 and < 1, got 0.5"),
+    ("trajectory_builder_2d.submaps.range_data_inserter.miss_probability=0.5", "must be > 0 and < 0.5"),
+    ("trajectory_builder_2d.submaps.grid_options_2d.resolution=0", "must be > 0, got 0 m"),
+    ("trajectory_builder_2d.submaps.num_range_data=0", "must be >= 1, got 0"),
+    ("pose_graph.constraint_builder.sampling_ratio=1.5", "must be >= 0 and <= 1"),
+    ("trajectory_builder_2d.submaps=3", "is a section, not a value; set one of its keys: num_range_data"),
+    ("trajectory_builder_2d.max_range.x=3", "'trajectory_builder_2d.max_range' is a value, not a section"),
+    ("trajectory_builder_2d.max_range", "--set expects key=value"),
+    ("trajectory_builder_2d.max_range=", "no value given"),
+    ("trajectory_builder_2d.min_range=40", "min_range (40 m) must be less than trajectory_builder_2d.max_range"),
+])
+def test_set_errors_name_the_key(item, message):
+    with pytest.raises(CartoError) as e:
+        load_options(overrides=[item])
+    text = str(e.value)
+    assert message in text
+    if "=" in item and item.split("=", 1)[1] and "min_range=40" not in item:
+        assert text.startswith(f"--set {item.split('=')[0]}")
+
+
+def test_apply_overrides_with_typed_dict():
+    o = apply_overrides(Options(), {"pose_graph.constraint_builder.min_score": 0.7,
+                                    "trajectory_builder_2d.submaps.num_range_data": 40})
+    assert o.pose_graph.constraint_builder.min_score == 0.7
+    assert o.trajectory_builder_2d.submaps.num_range_data == 40
+    with pytest.raises(CartoError, match="expected an integer"):
+        apply_overrides(Options(), {"trajectory_builder_2d.submaps.num_range_data": 40.0})
+
+
+# --------------------------------------------------------------------------- profiles
+
+
+def test_named_profile_layers_over_default_and_set_over_profile(profiles):
+    (profiles / "revo.yaml").write_text(
+        "trajectory_builder_2d:\n"
+        "  use_online_correlative_scan_matching: true\n"
+        "  submaps:\n"
+        "    num_range_data: 35\n"
+        "pose_graph:\n"
+        "  optimize_every_n_nodes: 35\n"
+        "  constraint_builder.min_score: 0.65   # dotted keys work in files too\n")
+    o = load_options("revo", ["pose_graph.optimize_every_n_nodes=50"])
+    assert o.trajectory_builder_2d.use_online_correlative_scan_matching is True
+    assert o.trajectory_builder_2d.submaps.num_range_data == 35
+    assert o.pose_graph.constraint_builder.min_score == 0.65
+    assert o.pose_graph.optimize_every_n_nodes == 50
+    # Untouched values keep their defaults.
+    assert o.trajectory_builder_2d.submaps.range_data_inserter.hit_probability == 0.55
+    assert opts.list_profiles() == ["default", "revo"]
+    assert load_options("default") == Options()
+
+
+def test_profile_path_is_read_directly(tmp_path):
+    p = tmp_path / "mine.yaml"
+    p.write_text("pose_graph: {optimize_every_n_nodes: 0}\n")
+    assert load_options(str(p)).pose_graph.optimize_every_n_nodes == 0
+    assert load_options(p).pose_graph.optimize_every_n_nodes == 0
+
+
+def test_empty_profile_and_empty_section(tmp_path):
+    p = tmp_path / "empty.yaml"
+    p.write_text("# nothing yet\n")
+    assert load_options(p) == Options()
+    p.write_text("trajectory_builder_2d:\n  submaps:\n")
+    assert load_options(p) == Options()
+
+
+def test_unknown_profile_name_suggests(profiles):
+    (profiles / "office.yaml").write_text("{}\n")
+    with pytest.raises(CartoError, match=r"unknown profile 'ofice'; did you mean 'office'\?.*default, office"):
+        load_options("ofice")
+
+
+def test_missing_profile_file(tmp_path):
+    p = tmp_path / "nope.yaml"
+    with pytest.raises(CartoError) as e:
+        load_options(p)
+    assert "no such profile file" in str(e.value) and e.value.path == str(p)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("trajectory_builder_2d:\n  submaps:\n    num_range_dat: 3\n",
+     "line 3: trajectory_builder_2d.submaps.num_range_dat: unknown option; "
+     "did you mean 'trajectory_builder_2d.submaps.num_range_data'?"),
+    ("pose_graph:\n  optimize_every_n_nodes: 1.5\n",
+     "line 2: pose_graph.optimize_every_n_nodes: expected an integer, got 1.5"),
+    ("pose_graph:\n  constraint_builder:\n    fast_correlative_scan_matcher:\n      angular_search_window: 30deg\n",
+     "angles in profile files are radians: write 0.5235987756 for 30deg"),
+    ("pose_graph:\n  optimize_every_n_nodes: 1\n  optimize_every_n_nodes: 2\n",
+     "line 3: 'pose_graph.optimize_every_n_nodes' is given twice (first on line 2)"),
+    ("pose_graph:\n  optimize_every_n_nodes: [1\n", "invalid YAML"),
+    ("- 1\n- 2\n", "line 1: expected a mapping of option names to values"),
+    ("pose_graph: 3\n", "line 1: pose_graph: is a section, not a value"),
+    ("trajectory_builder_2d:\n  submaps:\n    range_data_inserter:\n      miss_probability: 0.7\n",
+     "line 4: trajectory_builder_2d.submaps.range_data_inserter.miss_probability: must be > 0 and < 0.5, got 0.7"),
+])
+def test_file_errors_name_file_line_and_key(tmp_path, text, message):
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(CartoError) as e:
+        load_options(p)
+    assert message in str(e.value)
+    assert e.value.path == str(p)
+
+
+def test_cross_checks_apply_to_the_final_values(tmp_path):
+    p = tmp_path / "far.yaml"
+    p.write_text("trajectory_builder_2d: {min_range: 40.0}\n")
+    with pytest.raises(CartoError, match="must be less than"):
+        load_options(p)
+    o = load_options(p, ["trajectory_builder_2d.max_range=60"])
+    assert (o.trajectory_builder_2d.min_range, o.trajectory_builder_2d.max_range) == (40.0, 60.0)
+
+
+# --------------------------------------------------------------------------- output
+
+
+def test_dump_round_trips(tmp_path):
+    o = load_options(overrides=["trajectory_builder_2d.submaps.num_range_data=35",
+                                "pose_graph.constraint_builder.loop_closure_rotation_weight=1e-5",
+                                "trajectory_builder_2d.motion_filter.max_angle_radians=0.5deg"])
+    p = tmp_path / "dump.yaml"
+    p.write_text(dump_options_yaml(o))
+    assert load_options(p) == o
+    d = options_to_dict(o)
+    assert d["trajectory_builder_2d"]["submaps"]["num_range_data"] == 35
+    assert list(_flatten(d)) == option_names()
+
+
+def test_get_option():
+    o = Options()
+    assert get_option(o, "pose_graph.constraint_builder.min_score") == 0.55
+    assert get_option(o, "trajectory_builder_2d.submaps").num_range_data == 90
+    with pytest.raises(CartoError, match="did you mean 'pose_graph.constraint_builder.min_score'"):
+        get_option(o, "pose_graph.constraint_builder.min_scor")
