@@ -27,13 +27,13 @@ import time
 
 import numpy as np
 
+from carto_cli.core.transform import wrap_angle
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
 from carto_cli.matching import branch_and_bound as bnb
 from carto_cli.matching.precomputation import PrecomputationGridStack
 from carto_cli.sensor.range_filter import crop_polar
 from carto_cli.sim import Lidar, loop_building
-from carto_cli.core.transform import normalize_angle
 
 LIDAR = Lidar(beams=360, fov=2 * math.pi, max_range=15.0, noise=0.01, dropout=0.01)
 
@@ -96,7 +96,7 @@ def foreign_scans(n, rng):
 
 
 def close(a, b, linear, angular):
-    return np.hypot(*(a[:2] - b[:2])) <= linear and abs(normalize_angle(a[2] - b[2])) <= angular
+    return np.hypot(*(a[:2] - b[:2])) <= linear and abs(wrap_angle(a[2] - b[2])) <= angular
 
 
 def run(name, fn, queries, reference=None):
@@ -112,7 +112,7 @@ def run(name, fn, queries, reference=None):
     row = dict(name=name, median=np.median(times), mean=times.mean(), found=found.mean(), correct=correct.mean())
     if reference is not None:
         agree, near = [], []
-        for r, ref, (_, _, pts) in zip(results, reference, queries):
+        for r, ref in zip(results, reference):
             same = r.found == ref.found
             agree.append(same and (not r.found or (r.score == ref.score and np.allclose(r.pose, ref.pose, 0, 1e-12))))
             near.append(same and (not r.found or close(r.pose, ref.pose, 0.1, math.radians(1.0))))
@@ -185,7 +185,7 @@ def main():
             rows.append(row)
     if args.exhaustive:
         sub = queries[:args.exhaustive]
-        row, ex = run(f"exhaustive (first {len(sub)})", lambda p, i: bnb.exhaustive_match(stack, p, i), sub,
+        row, _ = run(f"exhaustive (first {len(sub)})", lambda p, i: bnb.exhaustive_match(stack, p, i), sub,
                       plain[:len(sub)])
         rows.append(row)
     if args.full_submap:

@@ -37,12 +37,12 @@ from __future__ import annotations
 import argparse
 import collections
 import datetime as _dt
+import hashlib
 import json
 import math
 import os
 import platform
 import re
-import hashlib
 import shlex
 import shutil
 import signal
@@ -78,7 +78,7 @@ FAMILIES = {
 FAMILY_PROFILES = {"bench": "sparse", "bench-dense": "wheeled", "sim": "wheeled", "ccny": "office"}
 
 
-def profile_for(case: "Case", profile: str | None) -> str | None:
+def profile_for(case: Case, profile: str | None) -> str | None:
     if profile in (None, "auto"):
         return FAMILY_PROFILES.get(case.family)
     return None if profile == "default" else profile
@@ -186,6 +186,7 @@ def relations_from_groundtruth(gt, *, step: int = 10, revisit_every: int = 5, mi
     """
     import numpy as np
 
+    from carto_cli.core import transform
     from carto_cli.evaluation.metrics import Relations
 
     t, xy, th = gt.t, gt.xy, gt.theta
@@ -193,7 +194,7 @@ def relations_from_groundtruth(gt, *, step: int = 10, revisit_every: int = 5, mi
     def rel(i, j):
         d = xy[j] - xy[i]
         c, s = np.cos(th[i]), np.sin(th[i])
-        dth = (th[j] - th[i] + np.pi) % (2 * np.pi) - np.pi
+        dth = transform.wrap_angle(th[j] - th[i])
         return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], dth])
 
     i1 = np.arange(0, len(t) - step, step)
@@ -201,7 +202,7 @@ def relations_from_groundtruth(gt, *, step: int = 10, revisit_every: int = 5, mi
     sub = np.arange(0, len(t), revisit_every)
     a, b = np.triu_indices(len(sub), k=1)
     a, b = sub[a], sub[b]
-    dyaw = np.abs((th[b] - th[a] + np.pi) % (2 * np.pi) - np.pi)
+    dyaw = np.abs(transform.wrap_angle(th[b] - th[a]))
     ok = (t[b] - t[a] >= min_dt) & (np.hypot(*(xy[b] - xy[a]).T) <= max_dist) & (dyaw <= math.radians(max_angle_deg))
     a, b = a[ok], b[ok]
     candidates = len(a)
@@ -221,7 +222,7 @@ def _pose_errors(a, b):
     from carto_cli.core import transform
 
     return (np.hypot(a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]),
-            np.degrees(np.abs(transform.normalize_angle(a[:, 2] - b[:, 2]))))
+            np.degrees(np.abs(transform.wrap_angle(a[:, 2] - b[:, 2]))))
 
 
 def loop_closure_check(graph, reference) -> dict:
@@ -302,8 +303,8 @@ def _relation_dict(r) -> dict:
 def _odometry_trajectory(recording, topic):
     import numpy as np
 
-    from carto_cli.io.trajectory import Trajectory
     from carto_cli.core.records import Odometry
+    from carto_cli.io.trajectory import Trajectory
 
     rows = [(r.time, r.x, r.y, r.yaw) for r in recording.records([topic]) if isinstance(r, Odometry)]
     if len(rows) < 2:
@@ -377,15 +378,15 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     t_import = time.perf_counter()
     import numpy as np
 
+    from carto_cli.core.timing import StageTimer, report_json, report_tree_text
     from carto_cli.evaluation.metrics import Relations, ate, read_relations, relation_error
     from carto_cli.io.map_image import render_png, write_png
-    from carto_cli.io.sources.open import open_recording
     from carto_cli.io.recording import ReadOptions
+    from carto_cli.io.sources.open import open_recording
     from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
-    from carto_cli.pipeline import build
     from carto_cli.options import load_options
-    from carto_cli.core.timing import StageTimer, report_json, report_tree_text
+    from carto_cli.pipeline import build
 
     import_s = time.perf_counter() - t_import
     import carto_cli
@@ -888,12 +889,12 @@ def loop_closure_table(results: list[dict]) -> str:
         cb = res.get("constraint_builder") or {}
         total = lc.get("total", 0)
 
-        def share(label):
+        def share(label, lc=lc):
             if lc.get(f"{label}_correct") is None:
                 return "—"
             return f"{lc[f'{label}_correct']} ({100 * lc[f'{label}_share']:.0f}%)"
 
-        def med(label):
+        def med(label, lc=lc):
             if lc.get(f"{label}_median_m") is None:
                 return "—"
             return f"{lc[f'{label}_median_m']:.3f} m / {lc[f'{label}_median_deg']:.2f}°"
@@ -1027,7 +1028,7 @@ def _changed_options(profile, overrides):
     try:
         from carto_cli.options import changed_options, load_options
 
-        return {k: v for k, v in changed_options(load_options(profile, overrides)).items()}
+        return dict(changed_options(load_options(profile, overrides)))
     except Exception as e:
         return f"{type(e).__name__}: {e}"
 

@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
+from carto_cli.core.transform import relative
 from carto_cli.mapping.constraints import ConstraintSet
 from carto_cli.mapping.optimization import NodePairs, optimize, residuals
-from carto_cli.core.transform import relative
 
 
 def chain(start, steps):

@@ -2,7 +2,8 @@
 """Relocalization benchmark: success rate and latency of ``carto relocalize`` on the bench cases.
 
     python bench/relocalization.py [--cases dense-intel,intel,...] [--queries 100] [--outside-queries 30]
-                                   [--global-queries 20] [--in-map-route 1.0] [--in-map-known 0.8] [--max-scans N] [--profile NAME] [--set key=value ...] [--seed 0]
+                                   [--global-queries 20] [--in-map-route 1.0] [--in-map-known 0.8] [--max-scans N]
+                                   [--profile NAME] [--set key=value ...] [--seed 0]
                                    [--doc docs/benchmarks.md | --no-doc] [--results DIR] [--map-cache DIR]
 
 Per case (every directory of ``$DATA/bench-dense`` as ``dense-<name>`` and of ``$DATA/bench``):
@@ -99,62 +100,51 @@ def discover_cases() -> list[tuple[str, str, Path]]:
     return out
 
 
-def _wrap(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
-
-
-def _percentile(values, p) -> float | None:
-    return float(np.percentile(values, p)) if len(values) else None
-
-
-def _stats(rows: list[dict]) -> dict:
+def _stats(rows: list[dict], outcomes: list) -> dict:
     """Success and latency over the in-map queries (the targets), false matches over all of them."""
+    from carto_cli.evaluation.relocalization import summarize_outcomes
+
     inside = [r for r in rows if r["in_map"]]
-    outside = [r for r in rows if not r["in_map"]]
-    ms = [r["ms"] for r in inside]
-    n = len(inside)
-    ok = sum(r["ok"] for r in inside)
-    paths: dict[str, int] = {}
-    for r in inside:
-        paths[r["path"]] = paths.get(r["path"], 0) + 1
-    return {"n": n, "success": ok, "success_rate": ok / n if n else None,
-            "false_matches": sum(r["claimed"] and not r["correct"] for r in inside),
+    s = summarize_outcomes([o for r, o in zip(rows, outcomes) if r["in_map"]])
+    out = summarize_outcomes([o for r, o in zip(rows, outcomes) if not r["in_map"]])
+    return {"n": s.queries, "success": s.successes, "success_rate": s.success_rate if s.queries else None,
+            "false_matches": s.false_matches,
             "success_global_fit": sum(r["ok_global_fit"] for r in inside),
             "success_submap_fit": sum(r["ok_submap_fit"] for r in inside),
             "false_submap_fit": sum(r["claimed"] and not r["ok_submap_fit"] for r in inside),
-            "claimed": sum(r["claimed"] for r in inside),
-            "p50_ms": _percentile(ms, 50), "p99_ms": _percentile(ms, 99), "max_ms": max(ms) if ms else None,
-            "mean_ms": float(np.mean(ms)) if ms else None, "paths": paths,
-            "outside": len(outside), "outside_claimed": sum(r["claimed"] for r in outside),
-            "outside_false": sum(r["claimed"] and not r["correct"] for r in outside),
-            "outside_p99_ms": _percentile([r["ms"] for r in outside], 99)}
+            "claimed": s.claimed,
+            "p50_ms": s.latency.p50_ms, "p99_ms": s.latency.p99_ms, "max_ms": s.latency.max_ms,
+            "mean_ms": s.latency.mean_ms, "paths": s.paths,
+            "outside": out.queries, "outside_claimed": out.claimed, "outside_false": out.false_matches,
+            "outside_p99_ms": out.latency.p99_ms}
 
 
 def explained(reloc, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
     """How well the map holds a scan at its reference ``pose`` (map frame): over the submaps whose known box
     contains the pose, the best share of ``points`` on known cells and the score there."""
     from carto_cli.core import transform
-    from carto_cli.relocalization.relocalizer import _known_score, _score_at
+    from carto_cli.matching.scoring import known_score, score_at
 
     best = (0.0, 0.0)
     for i in np.flatnonzero(reloc.box_distances(pose[:2]) <= 0.0):
         grid_pose = transform.compose(reloc.map_to_grid[i], pose)
-        known, _ = _known_score(reloc.grids[i], points, grid_pose)
+        known, _ = known_score(reloc.grids[i], points, grid_pose)
         if known > best[0]:
-            best = (known, _score_at(reloc.grids[i], points, grid_pose))
+            best = (known, score_at(reloc.grids[i], points, grid_pose))
     return best
 
 
 def run_case(name: str, family: str, path: Path, args) -> dict:
     from carto_cli.core import transform
     from carto_cli.evaluation.metrics import align_se2, interpolate_poses
+    from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, within
     from carto_cli.io.map_file import load_map, save_map
-    from carto_cli.io.sources.open import open_recording
     from carto_cli.io.recording import ReadOptions
+    from carto_cli.io.sources.open import open_recording
     from carto_cli.io.trajectory import read_trajectory
-    from carto_cli.pipeline import build
     from carto_cli.options import load_options
-    from carto_cli.relocalization.relocalizer import Query, Relocalizer, _scans_for, relocalize_many
+    from carto_cli.pipeline import build
+    from carto_cli.relocalization import Relocalizer
 
     profile = args.profile if args.profile else ("wheeled" if family == "bench-dense" else "sparse")
     options = load_options(profile, args.set)
@@ -202,7 +192,7 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
             T = np.array(align_se2(gxy, mxy))
             fit_xy = transform.apply(T, gxy)
             res_xy = np.hypot(*(fit_xy - mxy).T)
-            res_yaw = np.abs(_wrap(gth + T[2] - mth))
+            res_yaw = np.abs(transform.wrap_angle(gth + T[2] - mth))
             info["fit"] = {"poses": int(ok.sum()), "ate_rmse_m": float(np.sqrt(np.mean(res_xy ** 2))),
                            "ate_p95_m": float(np.percentile(res_xy, 95)), "ate_max_m": float(res_xy.max()),
                            "yaw_rmse_deg": float(np.degrees(np.sqrt(np.mean(res_yaw ** 2))))}
@@ -242,7 +232,7 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
             info["stacks_ms"] = (time.perf_counter() - t0) * 1e3
             info["stack_bytes"] = reloc.cache.bytes
             pool = np.arange(n_map, total)
-            scans = _scans_for(rec, [Query(None, int(i), None) for i in pool])
+            scans = scans_by_index(rec, pool)
             pool_ref, pool_ref_global, pool_known, pool_score, pool_track = [], [], [], [], []
             for j, i in enumerate(pool):
                 g = np.array([reference.xy[i, 0], reference.xy[i, 1], reference.theta[i]])
@@ -280,24 +270,23 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
             priors = ref_map + np.column_stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1, 1, k) * PERTURB_YAW])
 
             # Compile the numba kernels outside the measurement (one windowed and one global query).
-            relocalize_many(reloc, rec, [Query(None, int(idx[0]), tuple(priors[0]), PRIOR_SIGMA_XY, PRIOR_SIGMA_YAW),
-                                         Query(None, int(idx[0]), None)])
+            (i0, scan0), = scans_by_index(rec, [int(idx[0])])
+            run_probes(reloc, [Probe(i0, scan0, tuple(priors[0]), None, PRIOR_SIGMA_XY, PRIOR_SIGMA_YAW),
+                               Probe(i0, scan0, None)])
 
-            def measure(with_prior: bool, which) -> list[dict]:
+            def measure(with_prior: bool, which) -> tuple[list[dict], list]:
                 if len(which) == 0:
-                    return []
-                qs = [Query(None, int(idx[j]), tuple(map(float, priors[j])) if with_prior else None,
-                            PRIOR_SIGMA_XY if with_prior else None, PRIOR_SIGMA_YAW if with_prior else None)
-                      for j in which]
-                results, _ = relocalize_many(reloc, rec, qs)
+                    return [], []
+                picked = scans_by_index(rec, [int(idx[j]) for j in which])
+                probes = [Probe(i, scan, tuple(map(float, priors[j])) if with_prior else None, ref_map[j],
+                                PRIOR_SIGMA_XY if with_prior else None, PRIOR_SIGMA_YAW if with_prior else None)
+                          for j, (i, scan) in zip(which, picked)]
+                outcomes = run_probes(reloc, probes, tolerance=(OK_XY, OK_YAW))
                 rows = []
-                for j, q in zip(which, results):
-                    res = q.result
-                    d = transform.relative(ref_map[j], res.pose)
-                    exy, eyaw = math.hypot(d[0], d[1]), abs(float(_wrap(d[2])))
-                    correct = exy <= OK_XY and eyaw <= OK_YAW
-                    d = transform.relative(ref_global[j], res.pose)
-                    correct_global = math.hypot(d[0], d[1]) <= OK_XY and abs(float(_wrap(d[2]))) <= OK_YAW
+                for j, o in zip(which, outcomes):
+                    res = o.result
+                    correct = bool(o.correct)
+                    correct_global = within(ref_global[j], res.pose, (OK_XY, OK_YAW))
                     # Against the matched submap's own nodes near the query: where the map holds two
                     # inconsistent versions of a place (a tail not yet loop-closed), the blended local fit
                     # matches neither; this judges the pose against the version it was matched in.
@@ -307,13 +296,12 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
                         g_i = np.array([reference.xy[i, 0], reference.xy[i, 1], reference.theta[i]])
                         ref_s = local_fit(g_i, submap_rows[res.submap])
                         if ref_s is not None:
-                            d = transform.relative(ref_s, res.pose)
-                            correct_submap = math.hypot(d[0], d[1]) <= OK_XY and abs(float(_wrap(d[2]))) <= OK_YAW
-                    rows.append({"scan": int(q.scan_index), "t": q.scan_time, "claimed": bool(res.success),
+                            correct_submap = within(ref_s, res.pose, (OK_XY, OK_YAW))
+                    rows.append({"scan": int(o.probe.scan_index), "t": o.probe.scan.time, "claimed": bool(res.success),
                                  "correct": bool(correct), "ok": bool(res.success and correct),
                                  "ok_global_fit": bool(res.success and correct_global),
                                  "ok_submap_fit": bool(res.success and correct_submap),
-                                 "err_m": exy, "err_deg": math.degrees(eyaw), "ms": res.total_ms,
+                                 "err_m": o.error_xy, "err_deg": math.degrees(o.error_yaw), "ms": res.total_ms,
                                  "path": res.path, "score": res.score, "in_map": bool(in_map[j]),
                                  "ref_known": float(pool_known[sel[j]]), "ref_score": float(pool_score[sel[j]]),
                                  "ref_track_m": float(pool_track[sel[j]]),
@@ -323,17 +311,18 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
                                  "reference": [round(float(v), 4) for v in ref_map[j]],
                                  "prior": [round(float(v), 4) for v in priors[j]] if with_prior else None,
                                  "timings": {k: round(v, 2) for k, v in res.timings.items()}})
-                return rows
+                return rows, outcomes
 
             print(f"[{name}] {k} queries with a prior ({len(sel_in)} in the map) ...", file=sys.stderr, flush=True)
-            prior_rows = measure(True, np.arange(k))
+            prior_rows, prior_outcomes = measure(True, np.arange(k))
             # Global: the first --global-queries of each set (outside the map: how often it claims a wrong pose).
             g_in, g_out = min(args.global_queries, len(sel_in)), min(args.global_queries, len(sel_out))
             print(f"[{name}] {g_in} + {g_out} global queries ...", file=sys.stderr, flush=True)
-            global_rows = measure(False, np.concatenate([np.arange(g_in), len(sel_in) + np.arange(g_out)]))
+            global_rows, global_outcomes = measure(False,
+                                                   np.concatenate([np.arange(g_in), len(sel_in) + np.arange(g_out)]))
     info["rows"] = {"prior": prior_rows, "global": global_rows}
-    info["prior"] = _stats(prior_rows)
-    info["global"] = _stats(global_rows)
+    info["prior"] = _stats(prior_rows, prior_outcomes)
+    info["global"] = _stats(global_rows, global_outcomes)
     return info
 
 
@@ -361,7 +350,8 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
     from carto_cli.evaluation.profiling import cpu_model
 
     cpu = cpu_model()
-    rule = next((c["in_map_rule"] for c in cases if "in_map_rule" in c), {"route_m": IN_MAP_ROUTE, "known": IN_MAP_KNOWN})
+    rule = next((c["in_map_rule"] for c in cases if "in_map_rule" in c),
+                {"route_m": IN_MAP_ROUTE, "known": IN_MAP_KNOWN})
     cmd = "python bench/relocalization.py" + ("" if not argv else " " + " ".join(shlex.quote(a) for a in argv))
     out = [BEGIN, "", "## Relocalization", "",
            f"`{cmd}` — {_dt.date.today().isoformat()}, commit {commit}, {os.cpu_count()} cores ({cpu}), "
@@ -379,7 +369,8 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
            "first `--global-queries` of each set without a prior. Success = reported success and within 0.2 m / 2° "
            "of the reference, over the in-map queries; *false* = reported success outside that. Outside the map "
            "no answer is expected: the column counts claimed answers and, in brackets, the wrong ones among them "
-           "(a scan off the route that still sees mapped walls can be found). Latency = `total_ms` of each in-map query with the map's "
+           "(a scan off the route that still sees mapped walls can be found). Latency = `total_ms` of each in-map "
+           "query with the map's "
            "precomputation stacks built beforehand (a loaded map serving queries), numba compiled.",
            "",
            "Targets (issue 6): with a prior ≥ 99 % success, p50 ≤ 10 ms, p99 ≤ 50 ms; global ≥ 95 % success, "
@@ -457,7 +448,7 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     cases = discover_cases()
     if args.list:
-        for name, family, path in cases:
+        for name, _family, path in cases:
             print(f"{name}\t{path}")
         return 0
     if args.cases:

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import time as _time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 

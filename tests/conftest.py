@@ -1,5 +1,4 @@
 import pytest
-
 from support import STATIC_TF, synthetic_records
 
 

@@ -7,6 +7,7 @@ import pytest
 
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
 
+
 def _find_shared() -> Path:
     """The project's shared data: $CARTO_SHARED_DATA, else ../shared/data next to the checkout, else /work/shared/data."""
     import os

@@ -2,11 +2,10 @@ import json
 import subprocess
 import sys
 
-import pytest
+from support import SAMPLE_BAG, shared_path
 from typer.testing import CliRunner
 
 from carto_cli.cli import app
-from support import SAMPLE_BAG, shared_path
 
 runner = CliRunner()
 

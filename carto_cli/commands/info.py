@@ -1,14 +1,16 @@
-"""What is in a recording: topics, rates, scan geometry, TF, and the problems worth a warning."""
+"""`carto info`: what is in a recording: topics, rates, scan geometry, TF, and the problems worth a warning."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
 import math
-from typing import Callable
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from carto_cli.io.recording import Recording
 from carto_cli.core.records import Scan, Transform
+from carto_cli.io.recording import ReadOptions, Recording
+from carto_cli.io.sources.open import open_recording
 
 GAP_FACTOR = 3.0  # a gap is a period longer than this many median periods
 
@@ -131,6 +133,8 @@ def inspect_recording(recording: Recording, on_record: Callable[[], None] | None
     accumulators = {t.name: _TopicAccumulator() for t in infos}
     supported = [t.name for t in infos if t.kind in ("scan", "odometry", "imu")]
     for record in recording.records(supported):
+        if isinstance(record, Transform):  # static transforms are read apart, by static_transforms()
+            continue
         acc = accumulators.get(record.topic)
         if acc is None:  # a reader that names topics differently from topics(); keep it visible
             acc = accumulators[record.topic] = _TopicAccumulator()
@@ -157,7 +161,7 @@ def inspect_recording(recording: Recording, on_record: Callable[[], None] | None
         if report.gaps:
             warnings.append(
                 f"{name}: {report.gaps} gap(s) over {GAP_FACTOR:g}x the median period "
-                f"({report.median_period * 1e3:.1f} ms), longest {report.max_gap:.3f} s"
+                f"({(report.median_period or 0.0) * 1e3:.1f} ms), longest {report.max_gap:.3f} s"
             )
         s = acc.scan
         if s is not None and s.returns:
@@ -179,13 +183,23 @@ def inspect_recording(recording: Recording, on_record: Callable[[], None] | None
         format=recording.format,
         start=start,
         end=end,
-        duration=(end - start) if start is not None else None,
+        duration=(end - start) if start is not None and end is not None else None,
         topics=reports,
         static_transforms=[_transform_dict(tf) for tf in recording.static_transforms()],
         has_odometry=any(r.kind == "odometry" and r.count for r in reports),
         has_imu=any(r.kind == "imu" and r.count for r in reports),
         warnings=warnings,
     )
+
+
+def run_info(path: str | Path, read: ReadOptions | None = None, *,
+             on_total: Callable[[int], None] | None = None,
+             on_record: Callable[[], None] | None = None) -> RecordingInfo:
+    """Open the recording at ``path`` and summarise it; ``on_total`` hears how many messages will be read."""
+    with open_recording(path, read) as rec:
+        if on_total is not None:
+            on_total(sum(t.count for t in rec.topics() if t.kind in ("scan", "odometry", "imu")))
+        return inspect_recording(rec, on_record=on_record)
 
 
 def _fmt_time(t: float | None) -> str:
@@ -226,10 +240,10 @@ def format_info(info: RecordingInfo) -> str:
     lines.append(f"imu        {'yes' if info.has_imu else 'no'}")
     if info.static_transforms:
         from carto_cli.io.tf_tree import format_tree
-        from carto_cli.core.records import Transform
 
         lines.append("static tf")
-        tfs = [Transform(t["parent"], t["child"], tuple(t["translation"]), tuple(t["rotation"])) for t in info.static_transforms]
+        tfs = [Transform(t["parent"], t["child"], tuple(t["translation"]), tuple(t["rotation"]))
+               for t in info.static_transforms]
         lines.extend(f"  {line}" for line in format_tree(tfs))
     else:
         lines.append("static tf  none")

@@ -1,17 +1,18 @@
 """`carto map` as a library call: open, build, write every output. The CLI only parses arguments."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from carto_cli.io.map_image import render_png, write_map, write_png
-from carto_cli.io.sources.open import open_recording
-from carto_cli.io.recording import ReadOptions
-from carto_cli.io.topics import select_topics
 from carto_cli.io.trajectory import Trajectory, write_trajectory
-from carto_cli.pipeline import MapResult, build
 from carto_cli.options import Options
+from carto_cli.pipeline import MapResult, build, opened, read_options
+
+__all__ = ["MapOutputs", "compile_note", "default_outdir", "run_map", "summary_line", "write_outputs"]
+
+COMPILE_NOTE_MIN_S = 1.0  # below this, compiling kernels is not worth a mention
 
 
 @dataclass
@@ -37,9 +38,15 @@ def write_outputs(result: MapResult, outdir: Path, options: Options | None = Non
     return MapOutputs(pgm, yml, png, traj, state_path)
 
 
+def default_outdir(recording_path: Path) -> Path:
+    """``RECORDING_map`` next to the recording (its name up to the first dot)."""
+    recording_path = Path(recording_path)
+    return recording_path.parent / f"{recording_path.name.split('.')[0]}_map"
+
+
 def run_map(
     recording_path: Path,
-    outdir: Path,
+    outdir: Path | None,
     options: Options,
     *,
     scan_topic: str | None = None,
@@ -54,7 +61,10 @@ def run_map(
     state: bool = True,
     load_state: Path | None = None,
 ) -> tuple[MapResult, MapOutputs]:
-    """Map a recording and write every output; with ``load_state`` continue an existing map.carto."""
+    """Map a recording and write every output (to ``default_outdir`` when ``outdir`` is None); with
+    ``load_state`` continue an existing map.carto. ``timer`` is stopped once the outputs are written."""
+    if outdir is None:
+        outdir = default_outdir(recording_path)
     graph = None
     trajectory_id = 0
     recordings = [Path(recording_path).name]
@@ -65,15 +75,17 @@ def run_map(
         graph = loaded.to_pose_graph(options, timer=timer, loop_closure=loop_closure)
         trajectory_id = loaded.next_trajectory_id
         recordings = list(loaded.metadata.recordings) + recordings
-    tb = options.trajectory_builder_2d
-    with open_recording(recording_path, ReadOptions(min_z=tb.min_z, max_z=tb.max_z)) as rec:
-        selection = select_topics(rec, scan_topic, odom_topic, imu_topic)
+    with opened(recording_path, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic,
+                imu_topic=imu_topic) as source:
         if on_total is not None:
-            on_total(next(t.count for t in rec.topics() if t.name == selection.scan))
-        result = build(rec, options, selection=selection, laser_pose=laser_pose, timer=timer, on_scan=on_scan,
-                       use_odometry=use_odometry, loop_closure=loop_closure, graph=graph,
+            on_total(source.scan_count)
+        result = build(source.recording, options, selection=source.selection, laser_pose=laser_pose, timer=timer,
+                       on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure, graph=graph,
                        trajectory_id=trajectory_id)
-    return result, write_outputs(result, outdir, options, state=state, recordings=recordings)
+    outputs = write_outputs(result, outdir, options, state=state, recordings=recordings)
+    if timer is not None:
+        timer.stop()
+    return result, outputs
 
 
 def summary_line(result: MapResult) -> str:
@@ -81,3 +93,11 @@ def summary_line(result: MapResult) -> str:
     return (f"{s['scans']} scans, {s['nodes']} nodes, {s['submaps']} submaps, "
             f"{s.get('loop_closures', 0)} loop closures, "
             f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s")
+
+
+def compile_note(timer) -> str:
+    """' (incl. N s compiling kernels: ...)' when the run paid noticeably for numba, else ''."""
+    warm_up = timer.snapshot().find("jit warm-up")
+    if warm_up is not None and warm_up.total_ns > COMPILE_NOTE_MIN_S * 1e9:
+        return f" (incl. {warm_up.total_ns / 1e9:.0f} s compiling kernels: later runs load them from the cache)"
+    return ""

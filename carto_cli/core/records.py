@@ -5,8 +5,8 @@ radians. Arrays are numpy and never shared with the decoder's buffers.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,7 +46,7 @@ class Scan:
         a = self.angles.astype(np.float64)
         return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
 
-    def same_as(self, other: "Scan") -> bool:
+    def same_as(self, other: Scan) -> bool:
         """Equality of content, NaNs equal to NaNs (for round-trip checks)."""
         if not isinstance(other, Scan):
             return False
@@ -92,7 +92,7 @@ class Imu:
     frame: str = "imu"
     topic: str = ""
 
-    def same_as(self, other: "Imu") -> bool:
+    def same_as(self, other: Imu) -> bool:
         if not isinstance(other, Imu):
             return False
         o1, o2 = self.orientation, other.orientation

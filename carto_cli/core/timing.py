@@ -29,13 +29,21 @@ Not thread-safe: time background work in the thread that owns the timer.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
-__all__ = ["StageTimer", "NullTimer", "StageStats", "Snapshot", "report_tree_text", "report_json",
-           "SCHEMA_VERSION", "SCAN_STAGE"]
+__all__ = [
+    "SCAN_STAGE",
+    "SCHEMA_VERSION",
+    "NullTimer",
+    "Snapshot",
+    "StageStats",
+    "StageTimer",
+    "report_json",
+    "report_tree_text",
+]
 
 SCHEMA_VERSION = 1
 SCAN_STAGE = "scan"
@@ -43,7 +51,7 @@ SEP = "/"
 
 
 class _Node:
-    __slots__ = ("name", "children", "total_ns", "count", "scan_ns", "scan_mark", "samples", "sample_scans")
+    __slots__ = ("children", "count", "name", "sample_scans", "samples", "scan_mark", "scan_ns", "total_ns")
 
     def __init__(self, name: str):
         self.name = name
@@ -55,7 +63,7 @@ class _Node:
         self.samples: list[int] = []       # per-scan sums, only for scans in which the stage ran
         self.sample_scans: list[int] = []  # the matching scan indices
 
-    def child(self, name: str) -> "_Node":
+    def child(self, name: str) -> _Node:
         node = self.children.get(name)
         if node is None:
             if not name or SEP in name:
@@ -65,9 +73,9 @@ class _Node:
 
 
 class _Stage:
-    __slots__ = ("_timer", "_name")
+    __slots__ = ("_name", "_timer")
 
-    def __init__(self, timer: "StageTimer", name: str):
+    def __init__(self, timer: StageTimer, name: str):
         self._timer = timer
         self._name = name
 
@@ -96,7 +104,7 @@ class _Stage:
 class _Scan:
     __slots__ = ("_timer",)
 
-    def __init__(self, timer: "StageTimer"):
+    def __init__(self, timer: StageTimer):
         self._timer = timer
 
     def __enter__(self):
@@ -187,7 +195,7 @@ class StageTimer:
 
     # -- reading
 
-    def snapshot(self) -> "Snapshot":
+    def snapshot(self) -> Snapshot:
         """An immutable copy of the tree. Open stages and an open scan count up to now."""
         now = self._t_stop if self._t_stop is not None else self._clock()
         open_ns: dict[int, int] = {}
@@ -257,7 +265,7 @@ class NullTimer:
     def stop(self) -> None:
         pass
 
-    def snapshot(self) -> "Snapshot":
+    def snapshot(self) -> Snapshot:
         return Snapshot(wall_ns=0, scans=0, root=StageStats("total", "", 0, 0, 1, False), enabled=False)
 
 
@@ -274,7 +282,7 @@ class StageStats:
     in_scan: bool                  # inside the scan pseudo-stage (or that stage itself)
     samples_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # per scan where it ran
     sample_scans: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    children: list["StageStats"] = field(default_factory=list)
+    children: list[StageStats] = field(default_factory=list)
 
     def percentile_ms(self, q: float) -> float | None:
         if self.samples_ns.size == 0:
@@ -300,8 +308,9 @@ class Snapshot:
 
     def find(self, path: str) -> StageStats | None:
         """The stage at a '/'-separated path ('scan/matching'), or None."""
-        node = self.root
+        node: StageStats | None = self.root
         for part in path.split(SEP) if path else []:
+            assert node is not None
             node = next((c for c in node.children if c.name == part), None)
             if node is None:
                 return None

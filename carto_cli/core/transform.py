@@ -17,10 +17,26 @@ def as_pose(pose) -> np.ndarray:
     return np.asarray(pose, dtype=np.float64)
 
 
-def normalize_angle(theta):
-    """Wrap to [-pi, pi). Works on scalars and arrays."""
-    wrapped = np.mod(np.asarray(theta, dtype=np.float64) + math.pi, 2.0 * math.pi) - math.pi
+# The one home of angle wrapping. Every angle carto computes with is wrapped to [-pi, pi) by floored
+# modulo; the pair below differ only in what they accept (the scalar one skips numpy's per-call overhead
+# in code that runs several times per scan) and give bit-identical results on floats.
+_TWO_PI = 2.0 * math.pi
+
+
+def wrap_angle(theta):
+    """Wrap to [-pi, pi). Works on scalars and arrays (a scalar comes back as a float)."""
+    wrapped = np.mod(np.asarray(theta, dtype=np.float64) + math.pi, _TWO_PI) - math.pi
     return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
+
+
+def wrap_angle_scalar(theta: float) -> float:
+    """:func:`wrap_angle` for one plain float."""
+    return (theta + math.pi) % _TWO_PI - math.pi
+
+
+def unwrap_angle(theta: float, reference: float) -> float:
+    """``theta`` moved by whole turns to within half a turn of ``reference`` (for interpolating a yaw sequence)."""
+    return reference + math.remainder(theta - reference, _TWO_PI)
 
 
 def compose(a, b) -> np.ndarray:
@@ -30,7 +46,7 @@ def compose(a, b) -> np.ndarray:
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
-    return np.stack([x, y, normalize_angle(a[..., 2] + b[..., 2])], axis=-1)
+    return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
 
 
 def inverse(a) -> np.ndarray:
@@ -38,7 +54,7 @@ def inverse(a) -> np.ndarray:
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = -(c * a[..., 0] + s * a[..., 1])
     y = -(-s * a[..., 0] + c * a[..., 1])
-    return np.stack([x, y, normalize_angle(-a[..., 2])], axis=-1)
+    return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
 
 
 def relative(a, b) -> np.ndarray:

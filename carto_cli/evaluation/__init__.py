@@ -1,0 +1,1 @@
+"""Measuring what a run produced: trajectory metrics, CI gates, timing reports, relocalization evaluation."""

@@ -69,12 +69,14 @@ def compare_profiles(report: dict, baseline: dict, max_regression: float = 0.20,
             b, c, unit, floor = base["total_ms"], cur["total_ms"] * scale, "ms", noise_floor_ms_total
         limit = b * (1.0 + max_regression)
         passed = not (c > limit and c - b > floor)
-        msg = "" if passed else f"{path}: {b:.3f} -> {c:.3f} {unit} (+{100 * (c - b) / b:.0f}%, limit +{100 * max_regression:.0f}%)"
+        msg = "" if passed else (f"{path}: {b:.3f} -> {c:.3f} {unit} "
+                                 f"(+{100 * (c - b) / b:.0f}%, limit +{100 * max_regression:.0f}%)")
         results.append(GateResult(path, unit, b, c, limit, passed, msg))
     return results
 
 
-def accuracy_gates(evaluation_json: dict, max_trans_error: float | None, max_rot_error_deg: float | None) -> list[GateResult]:
+def accuracy_gates(evaluation_json: dict, max_trans_error: float | None,
+                   max_rot_error_deg: float | None) -> list[GateResult]:
     """Gate the mean relation error, else the ATE RMSE, of a `carto eval` result."""
     results = []
     source = None

@@ -21,21 +21,31 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli.core.errors import CartoError
+from carto_cli.core.transform import wrap_angle
 from carto_cli.io.trajectory import Trajectory, parse_table, read_trajectory
 
 __all__ = [
-    "ErrorStats", "Relations", "RelationResult", "AteResult", "RpeResult", "Evaluation",
-    "read_relations", "interpolate_poses", "align_se2", "relation_error", "ate", "rpe", "evaluate",
-    "to_json", "format_table", "TIME_TOLERANCE",
+    "TIME_TOLERANCE",
+    "AteResult",
+    "ErrorStats",
+    "Evaluation",
+    "RelationResult",
+    "Relations",
+    "RpeResult",
+    "align_se2",
+    "ate",
+    "evaluate",
+    "format_table",
+    "interpolate_poses",
+    "read_relations",
+    "relation_error",
+    "rpe",
+    "to_json",
 ]
 
 # Times written with 6-9 decimals and read back may land a rounding error outside
 # the trajectory's span; that is not a reason to skip the first or last relation.
 TIME_TOLERANCE = 1e-6
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 # --------------------------------------------------------------------------- statistics
@@ -53,7 +63,7 @@ class ErrorStats:
     max: float
 
     @classmethod
-    def of(cls, errors: np.ndarray) -> "ErrorStats":
+    def of(cls, errors: np.ndarray) -> ErrorStats:
         e = np.asarray(errors, dtype=np.float64)
         if e.size == 0:
             nan = math.nan
@@ -109,7 +119,7 @@ def interpolate_poses(traj: Trajectory, times, tolerance: float = TIME_TOLERANCE
     dt = t[i + 1] - t[i]
     a = (tc - t[i]) / dt
     xy = traj.xy[i] + a[:, None] * (traj.xy[i + 1] - traj.xy[i])
-    theta = traj.theta[i] + a * _wrap(traj.theta[i + 1] - traj.theta[i])
+    theta = traj.theta[i] + a * wrap_angle(traj.theta[i + 1] - traj.theta[i])
     if max_gap is not None:
         exact = (a == 0.0) | (a == 1.0)
         valid &= exact | (dt <= max_gap)
@@ -121,13 +131,13 @@ def _relative(xy1, th1, xy2, th2) -> tuple[np.ndarray, np.ndarray]:
     d = xy2 - xy1
     c, s = np.cos(th1), np.sin(th1)
     local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
-    return local, _wrap(th2 - th1)
+    return local, wrap_angle(th2 - th1)
 
 
 def _motion_errors(est_dxy, est_dth, ref_dxy, ref_dth) -> tuple[np.ndarray, np.ndarray]:
     """Translational (m) and rotational (deg) error magnitudes of relative motions."""
     trans = np.linalg.norm(est_dxy - ref_dxy, axis=1)
-    rot = np.degrees(np.abs(_wrap(est_dth - ref_dth)))
+    rot = np.degrees(np.abs(wrap_angle(est_dth - ref_dth)))
     return trans, rot
 
 
@@ -230,7 +240,7 @@ def ate(traj: Trajectory, groundtruth: Trajectory, align: bool = True, associate
     c, s = math.cos(phi), math.sin(phi)
     axy = np.stack([c * exy[:, 0] - s * exy[:, 1] + tx, s * exy[:, 0] + c * exy[:, 1] + ty], axis=1)
     trans = np.linalg.norm(axy - gxy, axis=1)
-    rot = np.degrees(np.abs(_wrap(eth + phi - gth)))
+    rot = np.degrees(np.abs(wrap_angle(eth + phi - gth)))
     return AteResult(ErrorStats.of(trans), ErrorStats.of(rot), int(trans.size), skipped, align, associate,
                      (tx, ty, phi), trans, rot)
 
@@ -323,7 +333,7 @@ def to_json(result: Evaluation | RelationResult | AteResult | RpeResult) -> dict
 
 
 def _rows(label: str, r, extra: str) -> list[tuple[str, ...]]:
-    rows = []
+    rows: list[tuple[str, ...]] = []
     for kind, stats, unit, spec in (("trans", r.translation, "m", ".4f"), ("rot", r.rotation, "deg", ".3f")):
         rows.append((f"{label} {kind} [{unit}]", str(stats.n), format(stats.mean, spec), format(stats.std, spec),
                      format(stats.rmse, spec), format(stats.median, spec), format(stats.max, spec),

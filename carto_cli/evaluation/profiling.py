@@ -1,4 +1,5 @@
-"""`carto profile`: the whole pipeline under the StageTimer, as one versioned JSON report.
+"""The timing report of `carto profile`: a StageTimer run as one versioned JSON report, its text form, the
+reference-kernel calibration and the machine it ran on (commands/profile.py runs the pipeline).
 
 Schema (``schema_version`` 1, see ``carto_cli/schemas/profile.schema.json``)::
 
@@ -30,8 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli import __version__
-from carto_cli.options import Options, changed_options
 from carto_cli.core.timing import StageTimer, report_json
+from carto_cli.options import Options, changed_options
 
 SCHEMA = "carto.profile"
 SCHEMA_VERSION = 1
@@ -123,7 +124,7 @@ def build_report(result, timer: StageTimer, options: Options, recording: str | P
         "recording": str(recording),
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": machine_info(),
-        "options_changed": {k: v for k, v in changed_options(options).items()},
+        "options_changed": dict(changed_options(options)),
         "counts": {
             "scans": scans,
             "nodes": int(result.stats["nodes"]),
@@ -174,7 +175,7 @@ def _tree_text(timing: dict) -> str:
                      fmt(node["p50_ms"], ".3f"), fmt(node["p95_ms"], ".3f"), fmt(node["p99_ms"], ".3f")))
         kids = node["children"]
         child_prefix = prefix + ("" if depth == 0 else ("   " if last else "│  "))
-        for i, k in enumerate(kids):
+        for k in kids:
             visit(k, child_prefix, False, depth + 1)
         if kids:
             self_share = node["self_share"]
@@ -207,49 +208,45 @@ def profile_relocalization(loaded_map, recording, *, every: int = 10, max_querie
     """
     from carto_cli.core.errors import CartoError
     from carto_cli.evaluation.metrics import interpolate_poses
-    from carto_cli.relocalization.relocalizer import TIMING_BUCKETS, Relocalizer
-    from carto_cli.io.topics import select_topics
+    from carto_cli.evaluation.relocalization import Probe, every_nth_scan, run_probes, summarize_outcomes
+    from carto_cli.relocalization import TIMING_BUCKETS, Latency, Relocalizer
 
     relocalizer = Relocalizer(loaded_map)
-    topic = select_topics(recording, scan_topic=scan_topic).scan
     rng = np.random.default_rng(seed)
     traj = loaded_map.trajectory
-    results = []
-    for i, record in enumerate(recording.records([topic])):
-        if i % every:
-            continue
-        prior = None
-        if traj is not None:
-            xy, th, valid = interpolate_poses(traj, np.array([record.time]))
-            if valid[0]:
-                dx, dy = rng.uniform(-perturb_xy, perturb_xy, 2)
-                prior = (xy[0, 0] + dx, xy[0, 1] + dy, th[0] + rng.uniform(-perturb_yaw, perturb_yaw))
-        results.append(relocalizer.relocalize(record, prior))
-        if len(results) >= max_queries:
-            break
-    if not results:
+
+    def probes():
+        for i, record in every_nth_scan(recording, every, scan_topic):
+            prior = None
+            if traj is not None:
+                xy, th, valid = interpolate_poses(traj, np.array([record.time]))
+                if valid[0]:
+                    dx, dy = rng.uniform(-perturb_xy, perturb_xy, 2)
+                    prior = (xy[0, 0] + dx, xy[0, 1] + dy, th[0] + rng.uniform(-perturb_yaw, perturb_yaw))
+            yield Probe(i, record, prior)
+
+    outcomes = run_probes(relocalizer, probes(), max_queries=max_queries)
+    if not outcomes:
         raise CartoError("no scans to relocalize", recording.path)
+    summary = summarize_outcomes(outcomes)
+    results = [o.result for o in outcomes if o.result is not None]
     first, rest = results[0], results[1:] or results[:1]
 
     def stats(values) -> dict:
-        v = np.asarray(values, dtype=np.float64)
-        return {"mean_ms": float(v.mean()), "p50_ms": float(np.percentile(v, 50)),
-                "p95_ms": float(np.percentile(v, 95)), "p99_ms": float(np.percentile(v, 99))}
+        lat = Latency.of(values)
+        return {"mean_ms": lat.mean_ms, "p50_ms": lat.p50_ms, "p95_ms": lat.p95_ms, "p99_ms": lat.p99_ms}
 
     total = stats([r.total_ms for r in rest])
     buckets = {b: stats([r.timings[b] for r in rest]) for b in TIMING_BUCKETS}
     for b in buckets.values():
         b["share"] = b["mean_ms"] / total["mean_ms"] if total["mean_ms"] > 0 else None
-    paths: dict[str, int] = {}
-    for r in results:
-        paths[r.path] = paths.get(r.path, 0) + 1
     return {
-        "queries": len(results),
-        "success_rate": sum(bool(r.success) for r in results) / len(results),
+        "queries": summary.queries,
+        "success_rate": summary.success_rate,
         "first_query_ms": first.total_ms,
         "total": total,
         "stages": buckets,
-        "paths": paths,
+        "paths": summary.paths,
     }
 
 

@@ -62,7 +62,7 @@ class ProbabilityGrid:
         self.version = 0
 
     @classmethod
-    def centered(cls, center, resolution: float = 0.05, num_cells: int = 100) -> "ProbabilityGrid":
+    def centered(cls, center, resolution: float = 0.05, num_cells: int = 100) -> ProbabilityGrid:
         """A ``num_cells`` square grid centred on ``center`` (Cartographer's initial submap size)."""
         center = np.asarray(center, dtype=np.float64)[:2]
         return cls(resolution, center - 0.5 * num_cells * resolution, (num_cells, num_cells))
@@ -174,7 +174,7 @@ class ProbabilityGrid:
         img[self.cells == UNKNOWN_VALUE] = np.nan
         return img
 
-    def copy(self) -> "ProbabilityGrid":
+    def copy(self) -> ProbabilityGrid:
         g = ProbabilityGrid.__new__(ProbabilityGrid)
         g.resolution = self.resolution
         g.origin = self.origin.copy()
@@ -183,7 +183,7 @@ class ProbabilityGrid:
         g.version = self.version
         return g
 
-    def cropped(self) -> "ProbabilityGrid":
+    def cropped(self) -> ProbabilityGrid:
         """A copy reduced to the known cells (what a finished submap keeps)."""
         b = self.known_bounds
         if b is None:

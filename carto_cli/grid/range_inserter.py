@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from carto_cli.core.timing import NullTimer
 from carto_cli.grid.probability_grid import (
     UNKNOWN_VALUE,
     UPDATE_MARKER,
@@ -33,7 +34,6 @@ from carto_cli.grid.probability_grid import (
     probability_to_value,
 )
 from carto_cli.sensor.range_filter import RangeData
-from carto_cli.core.timing import NullTimer
 
 SUBPIXEL_SCALE = 1000
 
@@ -186,7 +186,7 @@ def _apply_updates(cells, known_box, off_x, off_y, hits, free, box, hit_table, m
     Lattice cell (ix, iy) is grid cell (ix + off_x, iy + off_y); the grid must
     already contain ``box`` (see ``ProbabilityGrid.grow_to_include``).
     """
-    ny, nx = cells.shape
+    _, nx = cells.shape
     flat = cells.reshape(-1)
     updated = np.empty(hits.shape[0] + free.shape[0], dtype=np.int64)
     nu = 0
@@ -246,7 +246,8 @@ class ProbabilityGridRangeDataInserter:
         returns = np.ascontiguousarray(range_data.returns, dtype=np.float64).reshape(-1, 2)
         misses = np.ascontiguousarray(range_data.misses, dtype=np.float64).reshape(-1, 2)
         counts = []
-        cast = None  # lattice origin x, y, resolution, hits, free, box (array, list) of the last ray casting
+        # lattice origin x, y, resolution, hits, free, box (array, list) of the last ray casting
+        cast: tuple | None = None
         for grid in grids:
             res = grid.resolution
             gx, gy = float(grid.origin[0]), float(grid.origin[1])
@@ -261,6 +262,7 @@ class ProbabilityGridRangeDataInserter:
                                                  self.insert_free_space)
                     cast = (gx, gy, res, hits, free, box, box.tolist())
                 off = (0, 0)
+            assert cast is not None
             lx, ly, _, hits, free, box, (b0, b1, b2, b3) = cast
             with timer.stage("update"):
                 ny, nx = grid.cells.shape

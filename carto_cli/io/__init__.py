@@ -1,1 +1,2 @@
-"""Recording sources, writers and file formats."""
+"""Files in and out: recording sources, the map file, map images, trajectories, recording writers; every
+write atomic."""

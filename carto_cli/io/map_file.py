@@ -1,38 +1,9 @@
 """The map file (``map.carto``): everything ``carto relocalize`` and ``carto map --load-state`` need, in one file.
 
-Layout (version 1; all integers little-endian)::
-
-    offset  size  field
-    0       8     magic  b"CARTOMAP"                      } stable in every version, so any
-    8       4     format version (uint32)                 } reader can say which version it got
-    12      4     header length H (uint32)
-    16      8     total file length L (uint64)
-    24      4     CRC-32 of bytes 0..24
-    28      H     header: UTF-8 JSON (metadata, options, array directory)
-    28+H    D     array data: little-endian arrays, each stored, zstd or shuffle+zstd
-    L-32    32    SHA-256 of bytes 0..L-32
-
-Why this and not ``.npz`` or pickle:
-
-- Nothing on load executes code: the header is JSON, arrays are ``np.frombuffer`` of a
-  whitelisted set of plain numeric dtypes, and every offset, length and shape is checked
-  against the data before use. (Pickle is never used; ``.npz`` would still need its own
-  manifest, version, checksum and truncation handling, on top of zip's.)
-- Failures are told apart: the stated file length reveals truncation (the common failure:
-  an interrupted copy) before the checksum is even computed; the small CRC over the fixed
-  preamble tells a damaged length field from a short file; the SHA-256 catches any other
-  flipped bit. Each is a :class:`~carto_cli.core.errors.FormatError`; so is any inconsistency a
-  forged checksum could let through (malformed JSON, an array outside the data, a bad
-  dtype or shape, a decompression that does not give the declared size).
-- Per-array codec, chosen at save time: the smallest of stored, zstd (level 9) and zstd of
-  the byte-shuffled array (byte planes, HDF5's/Blosc's filter, which helps float columns).
-  Arrays under 256 bytes are stored. Measured on the Intel lab map (909 nodes, 11 submaps,
-  12.8 MB of raw arrays after cropping): zlib-6 2.50 MB (0.25 s), zlib-9 2.48 MB (0.72 s),
-  zstd-3 2.02 MB (0.04 s), zstd-9 1.71 MB (0.17 s), zstd-19 1.56 MB (2.8 s); decompression
-  is 0.01 s for zstd against 0.04 s for zlib. zstd-9 is smaller than zlib at any level and
-  faster; level 19 saves 9 % more for 17x the time. Shuffling saved 10 % on the CCNY map
-  (float loop-closure points dominate there) and nothing on Intel (grid cells dominate), so
-  it is tried per array rather than always. zstandard is already installed with mcap.
+A pose graph's state (:class:`~carto_cli.mapping.pose_graph_state.PoseGraphState`), the options and,
+optionally, the trajectory, as arrays in carto's container (``io/container.py``: checked preamble,
+JSON header, compressed arrays; magic ``b"CARTOMAP"``, format version 1). This module is the schema:
+which arrays, what they mean, and how a state is turned into them and back.
 
 Contents. Submap grids are stored cropped to their ``known_box`` (cells outside it are
 unknown, i.e. zero, by construction; if a grid ever had a non-zero cell outside its box
@@ -42,7 +13,9 @@ loop-closure points, which vary in length, are one concatenated (P, 2) array plu
 offsets; so are submaps' node lists. Options are the full effective options as a JSON
 object (``options_to_dict``); keys this carto does not know (from another version) are
 dropped on load and listed in ``LoadedMap.ignored_options``, while missing keys take
-their defaults.
+their defaults. What a state holds beyond this (odometry samples, key-frame poses, which
+submaps were searched, linked trajectories) is not stored: loading sets it as it was when
+the map was finished (see :meth:`LoadedMap.to_state`).
 
 Header keys: ``format``, ``format_version``, ``carto_version``, ``created`` (UTC, ISO 8601),
 ``recordings``, optionally ``laser_pose_source``, ``scan_topic``, ``stats``; ``options``;
@@ -62,44 +35,34 @@ Header keys: ``format``, ``format_version``, ``carto_version``, ``created`` (UTC
 """
 from __future__ import annotations
 
-import copy as _copy
 import dataclasses
 import datetime as _dt
-import hashlib
-import json
 import math
 import struct
 import typing
-import zlib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
 from carto_cli import __version__
 from carto_cli.core.errors import CartoError, FormatError
-from carto_cli.io.atomic import atomic_output
+from carto_cli.grid.probability_grid import ProbabilityGrid
+from carto_cli.io import container
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
-from carto_cli.grid.probability_grid import ProbabilityGrid
-from carto_cli.mapping.pose_graph import PoseGraph, SubmapEntry
+from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping.pose_graph_state import PoseGraphState, SubmapEntry
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options, apply_overrides, options_to_dict
 
-__all__ = ["MAGIC", "FORMAT_VERSION", "MapMetadata", "LoadedMap", "save_map", "load_map", "restore_pose_graph"]
+__all__ = ["FORMAT_VERSION", "MAGIC", "MAP_FORMAT", "LoadedMap", "MapMetadata", "load_map", "save_map"]
 
 MAGIC = b"CARTOMAP"
 FORMAT_VERSION = 1
-_PREAMBLE = struct.Struct("<8sIIQ")  # magic, version, header length, file length
-_PREAMBLE_SIZE = _PREAMBLE.size + 4  # + CRC-32 of the preamble
-_DIGEST_SIZE = 32
-_MAX_HEADER = 64 << 20  # a header is a few kB; anything near this is damage, not a map
-
-_ZSTD_LEVEL = 9
-_MIN_COMPRESS = 256  # bytes; smaller arrays are stored
-# The only dtypes a map file may declare: plain numbers, no objects, no structured types.
-_DTYPES = {"<f8", "<f4", "<i8", "<i4", "<u2", "|u1", "|b1"}
+MAP_FORMAT = container.ContainerFormat(MAGIC, FORMAT_VERSION, "map")
 
 
 # ---------------------------------------------------------------------------------------- result types
@@ -153,6 +116,23 @@ class LoadedMap:
         ids = np.concatenate([self.node_trajectories, self.submap_trajectories])
         return int(ids.max()) + 1 if ids.size else 0
 
+    def to_state(self) -> PoseGraphState:
+        """The saved graph as a state, sharing this object's arrays (``PoseGraph.from_state`` copies them).
+
+        What the file does not hold is set as it was when the map was finished: every node was a
+        loop-closure source, every finished submap was searched against every node, and trajectory
+        pairs joined by a loop closure are linked.
+        """
+        submaps = [SubmapEntry(submap, int(self.submap_trajectories[i]), self.submap_global_poses[i],
+                               [int(v) for v in self.submap_nodes[i]], searched=bool(submap.finished))
+                   for i, submap in enumerate(self.submaps)]
+        return PoseGraphState(
+            node_times=self.node_times, node_trajectories=self.node_trajectories,
+            node_local_poses=self.node_local_poses, node_global_poses=self.node_global_poses,
+            node_odometry=self.node_odometry, node_points=self.node_points,
+            node_searches=np.ones(self.num_nodes, dtype=bool), submaps=submaps, constraints=self.constraints,
+            connected=_linked_trajectories(self.constraints, self.node_trajectories, self.submap_trajectories))
+
     def to_pose_graph(self, options: Options | None = None, *, timer=None, loop_closure: bool = True,
                       seed: int = 0) -> PoseGraph:
         """A PoseGraph holding these nodes, submaps and constraints, ready for a new trajectory.
@@ -160,10 +140,21 @@ class LoadedMap:
         The graph owns copies: building on it never changes this object, and two graphs made
         from one LoadedMap are independent. ``options`` defaults to the map's own.
         """
-        graph = PoseGraph(self.options if options is None else options, timer=timer,
-                          loop_closure=loop_closure, seed=seed)
-        restore_pose_graph(graph, self)
-        return graph
+        return PoseGraph.from_state(self.options if options is None else options, self.to_state(), timer=timer,
+                                    loop_closure=loop_closure, seed=seed)
+
+
+def _linked_trajectories(cs: ConstraintSet, node_trajectories: np.ndarray,
+                         submap_trajectories: np.ndarray) -> set[frozenset]:
+    linked: set[frozenset] = set()
+    if len(cs):
+        loops = cs.is_loop_closure
+        node_traj = np.asarray(node_trajectories, dtype=np.int64)[cs.node[loops]]
+        sub_traj = np.asarray(submap_trajectories, dtype=np.int64)[cs.submap[loops]]
+        for a, b in set(zip(node_traj.tolist(), sub_traj.tolist())):
+            if a != b:
+                linked.add(frozenset((a, b)))
+    return linked
 
 
 # ---------------------------------------------------------------------------------------- saving
@@ -180,15 +171,16 @@ def save_map(path: str | Path, result_or_graph, options: Options, *, trajectory=
     if isinstance(recordings, (str, Path)):
         recordings = [recordings]
     graph, result = _graph_of(result_or_graph)
+    state = graph.to_state()
     meta: dict[str, Any] = {
         "carto_version": __version__,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z"),
         "recordings": [str(r) for r in recordings],
     }
     arrays: dict[str, np.ndarray] = {}
-    arrays.update(_node_arrays(graph))
-    arrays.update(_submap_arrays(graph))
-    arrays.update(_constraint_arrays(graph.constraints))
+    arrays.update(_node_arrays(state))
+    arrays.update(_submap_arrays(state))
+    arrays.update(_constraint_arrays(state.constraints))
 
     if trajectory is None and result is not None:
         trajectory = (result.times, result.poses)
@@ -198,7 +190,7 @@ def save_map(path: str | Path, result_or_graph, options: Options, *, trajectory=
         arrays["trajectory_pose"] = poses
     if result is not None:
         node_scans = np.asarray(result.node_scans, dtype=np.int64).reshape(-1)
-        if node_scans.shape[0] == graph.num_nodes:
+        if node_scans.shape[0] == state.num_nodes:
             arrays["node_scan"] = node_scans
         if result.laser_pose is not None:
             arrays["laser_pose"] = np.asarray(result.laser_pose, dtype=np.float64).reshape(3)
@@ -208,10 +200,7 @@ def save_map(path: str | Path, result_or_graph, options: Options, *, trajectory=
             meta["scan_topic"] = str(selection.scan)
         meta["stats"] = _json_safe_stats(result.stats)
 
-    data = _encode(meta, options_to_dict(options), arrays)
-    with atomic_output(path) as tmp:
-        tmp.write_bytes(data)
-    return path
+    return container.write(path, MAP_FORMAT, {**meta, "options": options_to_dict(options)}, arrays)
 
 
 def _graph_of(obj) -> tuple[PoseGraph, Any]:
@@ -236,7 +225,7 @@ def _trajectory_arrays(trajectory) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _json_safe_stats(stats: dict) -> dict:
-    out = {}
+    out: dict[str, Any] = {}
     for k, v in (stats or {}).items():
         if isinstance(v, (bool, np.bool_)):
             out[str(k)] = bool(v)
@@ -255,20 +244,20 @@ def _offsets(lengths) -> np.ndarray:
     return out
 
 
-def _node_arrays(graph: PoseGraph) -> dict[str, np.ndarray]:
-    n = graph.num_nodes
-    points = [np.asarray(p).reshape(-1, 2) for p in graph.node_points]
+def _node_arrays(state: PoseGraphState) -> dict[str, np.ndarray]:
+    n = state.num_nodes
+    points = [np.asarray(p).reshape(-1, 2) for p in state.node_points]
     dtype = np.result_type(*[p.dtype for p in points]) if points else np.dtype(np.float64)
     if dtype not in (np.float32, np.float64):
         dtype = np.dtype(np.float64)
     return {
-        "node_time": np.asarray(graph.node_times, dtype=np.float64).reshape(n),
-        "node_trajectory": np.asarray(graph.node_trajectory, dtype=np.int64).reshape(n),
-        "node_local_pose": graph.local_poses,
-        "node_global_pose": graph.global_poses,
+        "node_time": np.asarray(state.node_times, dtype=np.float64).reshape(n),
+        "node_trajectory": np.asarray(state.node_trajectories, dtype=np.int64).reshape(n),
+        "node_local_pose": state.node_local_poses,
+        "node_global_pose": state.node_global_poses,
         # Interpolated per node: the raw odometry stream is not kept, and a restored graph must
         # see the same odometry constraints the mapped one had.
-        "node_odometry": graph.node_odometry() if hasattr(graph, "node_odometry") else graph._odometry.array,
+        "node_odometry": state.odometry_at_nodes(),
         "node_points_offset": _offsets([len(p) for p in points]),
         "node_points": np.concatenate(points).astype(dtype, copy=False) if points else np.zeros((0, 2), dtype),
     }
@@ -291,8 +280,8 @@ def _crop_box(grid: ProbabilityGrid) -> tuple[int, int, int, int]:
     return (x0, y0, x1, y1)
 
 
-def _submap_arrays(graph: PoseGraph) -> dict[str, np.ndarray]:
-    entries = graph.submaps
+def _submap_arrays(state: PoseGraphState) -> dict[str, np.ndarray]:
+    entries = state.submaps
     m = len(entries)
     crops = [_crop_box(e.submap.grid) for e in entries]
     cells = [e.submap.grid.cells[y0:y1, x0:x1].reshape(-1) for e, (x0, y0, x1, y1) in zip(entries, crops)]
@@ -329,83 +318,15 @@ def _constraint_arrays(cs: ConstraintSet) -> dict[str, np.ndarray]:
     }
 
 
-def _shuffle(raw: bytes, itemsize: int) -> bytes:
-    """Byte planes: all first bytes, then all second bytes, ... (HDF5's and Blosc's shuffle filter)."""
-    if itemsize == 1:
-        return raw
-    return np.frombuffer(raw, np.uint8).reshape(-1, itemsize).T.tobytes()
-
-
-def _unshuffle(raw: bytes, itemsize: int) -> bytes:
-    if itemsize == 1:
-        return raw
-    return np.frombuffer(raw, np.uint8).reshape(itemsize, -1).T.tobytes()
-
-
-def _compress(raw: bytes, itemsize: int) -> tuple[str, bytes]:
-    """The smallest of: stored, zstd, zstd of the byte-shuffled array."""
-    if len(raw) < _MIN_COMPRESS:
-        return "none", raw
-    import zstandard
-
-    compressor = zstandard.ZstdCompressor(level=_ZSTD_LEVEL)
-    best = ("none", raw)
-    candidates = [("zstd", raw)]
-    if itemsize >= 4:  # pose, time and index columns; grid cells (uint16) never gained from it
-        candidates.append(("shuffle+zstd", _shuffle(raw, itemsize)))
-    for codec, data in candidates:
-        packed = compressor.compress(data)
-        if len(packed) < len(best[1]):
-            best = (codec, packed)
-    return best
-
-
-def _encode(meta: dict, options: dict, arrays: dict[str, np.ndarray]) -> bytes:
-    directory: dict[str, dict] = {}
-    blobs: list[bytes] = []
-    offset = 0
-    for name, array in arrays.items():
-        a = np.asarray(array)
-        le = a.dtype.newbyteorder("<") if a.dtype.byteorder not in ("|", "<") else a.dtype
-        if le.str not in _DTYPES:
-            raise TypeError(f"array {name}: dtype {a.dtype} cannot be stored in a map file")
-        raw = np.ascontiguousarray(a, dtype=le).tobytes()
-        codec, blob = _compress(raw, le.itemsize)
-        directory[name] = {"dtype": le.str, "shape": list(a.shape), "codec": codec,
-                           "offset": offset, "length": len(blob), "raw_length": len(raw)}
-        blobs.append(blob)
-        offset += len(blob)
-    header = {
-        "format": "carto map",
-        "format_version": FORMAT_VERSION,
-        **meta,
-        "options": options,
-        "arrays": directory,
-        "data_length": offset,
-    }
-    header_bytes = json.dumps(header, separators=(",", ":"), allow_nan=False).encode("utf-8")
-    total = _PREAMBLE_SIZE + len(header_bytes) + offset + _DIGEST_SIZE
-    preamble = _PREAMBLE.pack(MAGIC, FORMAT_VERSION, len(header_bytes), total)
-    body = b"".join([preamble, struct.pack("<I", zlib.crc32(preamble)), header_bytes, *blobs])
-    return body + hashlib.sha256(body).digest()
-
-
 # ---------------------------------------------------------------------------------------- loading
 
 
 def load_map(path: str | Path) -> LoadedMap:
     """Read and check a map file. Raises :class:`FormatError` for anything but a good, supported map."""
     path = Path(path)
+    data = container.read_bytes(path, MAP_FORMAT)
     try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise CartoError("no such map file", path) from None
-    except IsADirectoryError:
-        raise CartoError("is a directory, not a map file", path) from None
-    except OSError as e:
-        raise CartoError(f"cannot read map file: {e.strerror or e}", path) from None
-    try:
-        header, arrays = _decode(data, path)
+        header, arrays = container.decode(data, path, MAP_FORMAT)
         return _build(header, arrays, path)
     except FormatError:
         raise
@@ -415,106 +336,6 @@ def load_map(path: str | Path) -> LoadedMap:
             struct.error, UnicodeDecodeError, RecursionError) as e:
         # Only reachable past the checksum, i.e. by a file written wrongly (or forged), not by damage.
         raise FormatError(f"malformed map file: {type(e).__name__}: {e}", path) from None
-
-
-def _decode(data: bytes, path: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    n = len(data)
-    if n == 0:
-        raise FormatError("empty file, not a carto map file", path)
-    if n < len(MAGIC):
-        if MAGIC.startswith(data):
-            raise FormatError(f"truncated map file ({n} bytes)", path)
-        raise FormatError("not a carto map file", path)
-    if data[: len(MAGIC)] != MAGIC:
-        raise FormatError("not a carto map file", path)
-    if n < 12:
-        raise FormatError(f"truncated map file ({n} bytes)", path)
-    (version,) = struct.unpack_from("<I", data, 8)
-    if version != FORMAT_VERSION:
-        raise FormatError(f"map file version {version}, this carto reads {FORMAT_VERSION}", path)
-    if n < _PREAMBLE_SIZE:
-        raise FormatError(f"truncated map file ({n} bytes)", path)
-    _, _, header_length, total = _PREAMBLE.unpack_from(data, 0)
-    (crc,) = struct.unpack_from("<I", data, _PREAMBLE.size)
-    if zlib.crc32(data[: _PREAMBLE.size]) != crc:
-        raise FormatError("corrupt: damaged file preamble", path)
-    if n < total:
-        raise FormatError(f"truncated map file: {n} of {total} bytes", path)
-    if n > total:
-        raise FormatError(f"corrupt: {n - total} unexpected bytes after the end of the map", path)
-    if header_length > _MAX_HEADER or _PREAMBLE_SIZE + header_length + _DIGEST_SIZE > total:
-        raise FormatError("malformed header: impossible header length", path)
-    body_end = total - _DIGEST_SIZE
-    if hashlib.sha256(memoryview(data)[:body_end]).digest() != data[body_end:]:
-        raise FormatError("corrupt: checksum mismatch", path)
-
-    data_start = _PREAMBLE_SIZE + header_length
-    try:
-        header = json.loads(data[_PREAMBLE_SIZE:data_start].decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError) as e:
-        raise FormatError(f"malformed header: {e}", path) from None
-    if not isinstance(header, dict) or not isinstance(header.get("arrays"), dict):
-        raise FormatError("malformed header: no array directory", path)
-    if header.get("format_version") != FORMAT_VERSION:
-        raise FormatError("malformed header: format version differs from the preamble's", path)
-    data_length = body_end - data_start
-    if header.get("data_length") != data_length:
-        raise FormatError("malformed header: data length disagrees with the file", path)
-    payload = memoryview(data)[data_start:body_end]
-    arrays = {name: _array(name, spec, payload, path) for name, spec in header["arrays"].items()}
-    return header, arrays
-
-
-def _array(name: str, spec, payload: memoryview, path: Path) -> np.ndarray:
-    def bad(what: str) -> FormatError:
-        return FormatError(f"malformed header: array {name!r}: {what}", path)
-
-    if not isinstance(spec, dict):
-        raise bad("not a description")
-    dtype_str, shape, codec = spec.get("dtype"), spec.get("shape"), spec.get("codec")
-    offset, length, raw_length = spec.get("offset"), spec.get("length"), spec.get("raw_length")
-    if dtype_str not in _DTYPES:
-        raise bad(f"dtype {dtype_str!r} not allowed")
-    if not (isinstance(shape, list) and len(shape) <= 4
-            and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
-        raise bad(f"bad shape {shape!r}")
-    for v in (offset, length, raw_length):
-        if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-            raise bad("bad offset or length")
-    if offset + length > len(payload):
-        raise bad("extends past the data")
-    dtype = np.dtype(dtype_str)
-    expected = dtype.itemsize * math.prod(shape)
-    if raw_length != expected:
-        raise bad(f"{raw_length} bytes for shape {shape} of {dtype_str}")
-    blob = payload[offset: offset + length]
-    if codec == "none":
-        if length != raw_length:
-            raise bad("stored length differs from its size")
-        raw = bytes(blob)
-    elif codec in ("zstd", "shuffle+zstd"):
-        import zstandard
-
-        blob = bytes(blob)
-        try:
-            if zstandard.frame_content_size(blob) != raw_length:
-                raise bad("compressed size header differs from the declared size")
-            raw = zstandard.ZstdDecompressor().decompress(blob, max_output_size=raw_length)
-        except zstandard.ZstdError as e:
-            raise bad(f"cannot decompress: {e}") from None
-        if len(raw) != raw_length:
-            raise bad("decompressed size differs from the declared one")
-        if codec == "shuffle+zstd":
-            raw = _unshuffle(raw, dtype.itemsize)
-    else:
-        raise bad(f"unknown codec {codec!r}")
-    array = np.frombuffer(raw, dtype=dtype).reshape(shape)
-    if dtype_str == "|b1" and array.size and array.view(np.uint8).max() > 1:
-        raise bad("boolean values other than 0 and 1")
-    native = array.astype(dtype.newbyteorder("="), copy=False)
-    if not native.flags.writeable:
-        native = native.copy()
-    return native
 
 
 _REQUIRED = {
@@ -689,49 +510,3 @@ def _known_only(data: dict, cls, prefix: str, ignored: list[str], bad) -> dict:
         else:
             out[key] = value
     return out
-
-
-# ---------------------------------------------------------------------------------------- PoseGraph state
-
-
-def restore_pose_graph(graph: PoseGraph, loaded: LoadedMap) -> PoseGraph:
-    """Fill a fresh, empty ``graph`` with the nodes, submaps and constraints of ``loaded``.
-
-    Works on PoseGraph's internals (there is no public hook yet); every array and grid is
-    copied. Finished submaps are marked as already searched, and trajectory pairs joined by a
-    loop closure are marked connected in the constraint builder, as they were when saved.
-    """
-    if graph.num_nodes or graph.submaps or len(graph.constraints):
-        raise ValueError("restore_pose_graph needs an empty PoseGraph")
-    for i in range(loaded.num_nodes):
-        graph._local.append(loaded.node_local_poses[i])
-        graph._global.append(loaded.node_global_poses[i])
-        graph._odometry.append(loaded.node_odometry[i])
-    graph.node_times.extend(float(t) for t in loaded.node_times)
-    graph.node_trajectory.extend(int(t) for t in loaded.node_trajectories)
-    graph.node_points.extend(p.copy() for p in loaded.node_points)
-    if hasattr(graph, "node_searches"):
-        # Restored nodes were searched when they were mapped; the new trajectory's nodes search them again.
-        graph.node_searches.extend([True] * len(loaded.node_times))
-    for i, submap in enumerate(loaded.submaps):
-        copy = _copy.copy(submap)
-        copy.local_pose = submap.local_pose.copy()
-        copy.grid = submap.grid.copy()
-        trajectory = int(loaded.submap_trajectories[i])
-        entry = SubmapEntry(copy, trajectory, loaded.submap_global_poses[i].copy(),
-                            [int(v) for v in loaded.submap_nodes[i]])
-        if copy.finished:
-            entry._searched = True  # it was searched against every node when it was finished
-        graph._submap_index[(trajectory, copy.index)] = i
-        graph.submaps.append(entry)
-    graph.constraints = loaded.constraints.copy()
-    cs = graph.constraints
-    if len(cs):
-        loops = cs.is_loop_closure
-        node_traj = np.asarray(graph.node_trajectory, dtype=np.int64)[cs.node[loops]]
-        sub_traj = np.asarray(loaded.submap_trajectories, dtype=np.int64)[cs.submap[loops]]
-        for a, b in set(zip(node_traj.tolist(), sub_traj.tolist())):
-            if a != b:
-                graph.builder.connected.add(frozenset((a, b)))
-    graph._nodes_since_optimization = 0
-    return graph

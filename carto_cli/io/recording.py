@@ -2,12 +2,11 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
 
 from carto_cli.core.records import Record, Transform
-
 
 # Message types carto understands, by the kind of record they become.
 # Names are normalised to the ROS2 form 'pkg/msg/Type' (ROS1 'pkg/Type' is mapped).
@@ -92,7 +91,7 @@ class Recording(ABC):
         """The topic a format designates for ``kind`` when it has several (CARMEN's scan-time odometry)."""
         return None
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - a source that holds nothing open keeps this no-op
         pass
 
     def __enter__(self):

@@ -14,15 +14,15 @@ import itertools
 import os
 import shutil
 import tempfile
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
 from carto_cli.core.errors import CartoError
-from carto_cli.io.sources.messages import seconds_to_ns
-from carto_cli.io.recording import normalise_type
 from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, yaw_quaternion
+from carto_cli.io.recording import normalise_type
+from carto_cli.io.sources.messages import seconds_to_ns
 
 FORMATS = ("ros1", "ros2-sqlite3", "ros2-mcap", "mcap")
 
@@ -332,9 +332,9 @@ def _open_sink(fmt: str, path: Path):
     return _Ros2Sink(path, storage=fmt.split("-", 1)[1])
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _ros1_typestore():
-    from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     ts = get_typestore(Stores.ROS1_NOETIC)
     # rosbags' noetic store lacks tf2_msgs; this is its noetic definition (md5 9481...7eec).
@@ -344,7 +344,7 @@ def _ros1_typestore():
 
 # Cached: rosbags compiles (de)serialisers per typestore instance, which costs more
 # than writing a small bag; the stores are never modified after this.
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _ros2_typestore():
     from rosbags.typesys import Stores, get_typestore
 
@@ -374,7 +374,7 @@ class _Ros1Sink:
     def abort(self) -> None:
         try:
             self._writer.close()
-        except Exception:  # noqa: BLE001 - the half-written file is deleted anyway
+        except Exception:
             pass
 
 
@@ -402,7 +402,7 @@ class _Ros2Sink:
     def abort(self) -> None:
         try:
             self._writer.close()
-        except Exception:  # noqa: BLE001 - the half-written bag is deleted anyway
+        except Exception:
             pass
 
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Transform, strip_frame
+from carto_cli.core.transform import wrap_angle_scalar
 
 # Cartographer's usual tracking frames, in order of preference, when several roots exist.
 TRACKING_FRAMES = ("base_link", "base_footprint", "imu_link", "imu")
@@ -49,7 +50,7 @@ def laser_pose_from_tf(transforms: list[Transform], laser_frame: str,
         seen.add(frame)
     if tracking_frame is not None and frame != strip_frame(tracking_frame):
         raise CartoError(f"static TF does not connect '{laser_frame}' to tracking frame '{tracking_frame}'")
-    return (pose[0], pose[1], math.atan2(math.sin(pose[2]), math.cos(pose[2]))), frame
+    return (pose[0], pose[1], wrap_angle_scalar(pose[2])), frame
 
 
 def format_tree(transforms: list[Transform]) -> list[str]:

@@ -21,7 +21,8 @@ class TopicSelection:
 _FLAGS = {"scan": "--scan-topic", "odometry": "--odom-topic", "imu": "--imu-topic"}
 
 
-def choose_topic(recording: Recording, topics: list[TopicInfo], kind: str, wanted: str | None, required: bool) -> str | None:
+def choose_topic(recording: Recording, topics: list[TopicInfo], kind: str, wanted: str | None,
+                 required: bool) -> str | None:
     candidates = [t for t in topics if t.kind == kind and t.count > 0]
     if wanted is not None:
         by_name = {t.name: t for t in topics}
@@ -38,7 +39,8 @@ def choose_topic(recording: Recording, topics: list[TopicInfo], kind: str, wante
     if not candidates:
         if required:
             others = ", ".join(f"{t.name} ({t.msgtype})" for t in topics) or "no topics at all"
-            raise TopicError(f"no laser scan topic (LaserScan, MultiEchoLaserScan or PointCloud2); found {others}", recording.path)
+            raise TopicError(f"no laser scan topic (LaserScan, MultiEchoLaserScan or PointCloud2); found {others}",
+                             recording.path)
         return None
     if len(candidates) > 1:
         preferred = recording.preferred_topic(kind)
@@ -54,10 +56,10 @@ def select_topics(
     scan_topic: str | None = None,
     odom_topic: str | None = None,
     imu_topic: str | None = None,
-    require_scan: bool = True,
 ) -> TopicSelection:
     topics = recording.topics()
-    scan = choose_topic(recording, topics, "scan", scan_topic, require_scan)
+    scan = choose_topic(recording, topics, "scan", scan_topic, True)
+    assert scan is not None  # a required topic that is missing raised TopicError
     odom = choose_topic(recording, topics, "odometry", odom_topic, False)
     imu = choose_topic(recording, topics, "imu", imu_topic, False)
     return TopicSelection(scan=scan, odometry=odom, imu=imu)

@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli.core.errors import CartoError, FormatError
+from carto_cli.core.transform import wrap_angle
 from carto_cli.io.atomic import atomic_output
 
-__all__ = ["Trajectory", "read_trajectory", "write_trajectory", "parse_table", "TRAJECTORY_FORMATS"]
+__all__ = ["TRAJECTORY_FORMATS", "Trajectory", "parse_table", "read_trajectory", "write_trajectory"]
 
 TRAJECTORY_FORMATS = ("tum", "xyt")
 _COLUMNS = {8: "tum", 4: "xyt"}
@@ -41,13 +42,13 @@ class Trajectory:
             raise ValueError(f"inconsistent trajectory shapes {self.t.shape} {self.xy.shape} {self.theta.shape}")
 
     @classmethod
-    def from_arrays(cls, t, x, y, theta) -> "Trajectory":
+    def from_arrays(cls, t, x, y, theta) -> Trajectory:
         t = np.asarray(t, dtype=np.float64).reshape(-1)
         xy = np.stack([np.asarray(x, np.float64).reshape(-1), np.asarray(y, np.float64).reshape(-1)], axis=1)
         return cls(t, xy, np.asarray(theta, dtype=np.float64).reshape(-1))
 
     @classmethod
-    def from_poses(cls, t, poses) -> "Trajectory":
+    def from_poses(cls, t, poses) -> Trajectory:
         """From times and an (n, 3) array of ``x y theta``."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         return cls(np.asarray(t, dtype=np.float64).reshape(-1), poses[:, :2].copy(), poses[:, 2].copy())
@@ -143,6 +144,7 @@ def read_trajectory(path: str | Path) -> Trajectory:
 
 def _format_rows(traj: Trajectory, fmt: str) -> str:
     t, x, y, th = traj.t, traj.xy[:, 0], traj.xy[:, 1], traj.theta
+    cols: tuple[np.ndarray, ...]
     if fmt == "tum":
         header = "# t x y z qx qy qz qw\n"
         half = 0.5 * th
@@ -150,7 +152,7 @@ def _format_rows(traj: Trajectory, fmt: str) -> str:
         pattern = "%.9f %.6f %.6f %.1f %.1f %.1f %.12f %.12f\n"
     else:
         header = "# t x y theta\n"
-        cols = (t, x, y, np.arctan2(np.sin(th), np.cos(th)))
+        cols = (t, x, y, wrap_angle(th))
         pattern = "%.9f %.6f %.6f %.12f\n"
     table = np.column_stack(cols)
     return header + "".join(pattern % tuple(row) for row in table.tolist())

@@ -1,1 +1,2 @@
-"""Grids, submaps, local SLAM, the pose graph and map assembly."""
+"""The SLAM core: local SLAM (extrapolator, motion filter, submaps), the pose graph with its loop-closure
+search and optimization, and the Slam object tying them together. It knows no file."""

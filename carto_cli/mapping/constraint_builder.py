@@ -7,23 +7,24 @@ submap's one get a whole-submap search at ``global_sampling_ratio``. The fast
 matcher's pose is refined by least squares, then kept only if the refined pose
 still scores (geometric check) and stayed near the fast matcher's answer
 (consistency check: a refinement that wanders has slid along a corridor).
+
+As Cartographer's ``MaybeAddConstraint``, it never sees the pose graph: the graph hands
+it the node and the submap to try (:class:`NodeData`, :class:`SubmapData`).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from carto_cli.core import transform
+from carto_cli.core.timing import NullTimer
+from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import PrecomputationGridStack
+from carto_cli.matching.scoring import score_at
 from carto_cli.options import Options
-from carto_cli.core.timing import NullTimer
-
-if TYPE_CHECKING:
-    from carto_cli.mapping.pose_graph import PoseGraph
 
 # A refinement that moves the fast matcher's pose by more than this is not trusted.
 MAX_REFINEMENT_TRANSLATION = 0.3  # m
@@ -46,6 +47,28 @@ class FixedRatioSampler:
         return False
 
 
+@dataclass(frozen=True, slots=True)
+class NodeData:
+    """What a search needs of a node: its id, trajectory, pose in the map frame and loop-closure points."""
+
+    index: int
+    trajectory: int
+    global_pose: np.ndarray  # (3,)
+    points: np.ndarray  # (n, 2) in the tracking frame
+
+
+@dataclass(frozen=True, slots=True)
+class SubmapData:
+    """What a search needs of a finished submap: its id in the pose graph, trajectory, grid, and its
+    pose in its trajectory's local frame and in the map frame."""
+
+    index: int
+    trajectory: int
+    grid: ProbabilityGrid
+    local_pose: np.ndarray  # (3,)
+    global_pose: np.ndarray  # (3,)
+
+
 @dataclass(frozen=True)
 class LoopClosure:
     node: int
@@ -63,15 +86,6 @@ class ConstraintBuilderStats:
     found: int = 0
     rejected_refinement: int = 0
     accepted: int = 0
-
-
-def score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
-    """Mean occupancy probability under ``points`` placed at ``pose`` (unknown cells count as 0.1)."""
-    if len(points) == 0:
-        return 0.0
-    cells = grid.cell_index(transform.apply(pose, points))
-    p = grid.probability(cells, unknown=0.1)
-    return float(np.mean(np.where(np.isnan(p), 0.1, p)))
 
 
 class ConstraintBuilder:
@@ -98,46 +112,45 @@ class ConstraintBuilder:
     def memory_bytes(self) -> int:
         return sum(s.memory_bytes for s in self._stacks.values())
 
-    def maybe_add(self, graph: "PoseGraph", node: int, submap_index: int) -> LoopClosure | None:
-        entry = graph.submaps[submap_index]
-        node_trajectory = graph.node_trajectory[node]
-        linked = node_trajectory == entry.trajectory or \
-            frozenset((node_trajectory, entry.trajectory)) in self.connected
-        node_global = graph.global_poses[node]
+    def maybe_add(self, node: NodeData, submap: SubmapData) -> LoopClosure | None:
+        """Search ``node`` in ``submap`` if the candidate rules pick the pair; the loop closure found, or None."""
+        linked = node.trajectory == submap.trajectory or \
+            frozenset((node.trajectory, submap.trajectory)) in self.connected
         with self.timer.stage("candidate selection"):
             self.stats.candidates += 1
             if linked:
-                distance = float(np.hypot(*(node_global[:2] - entry.global_pose[:2])))
+                distance = float(np.hypot(*(node.global_pose[:2] - submap.global_pose[:2])))
                 if distance > self.cb.max_constraint_distance:
                     return None
-                sampler = self._samplers.setdefault(submap_index, FixedRatioSampler(self.cb.sampling_ratio))
+                sampler = self._samplers.setdefault(submap.index, FixedRatioSampler(self.cb.sampling_ratio))
                 if not sampler.pulse():
                     return None
             else:
-                sampler = self._global_samplers.setdefault(submap_index,
+                sampler = self._global_samplers.setdefault(submap.index,
                                                            FixedRatioSampler(self.global_sampling_ratio))
                 if not sampler.pulse():
                     return None
-        return self.search(graph, node, submap_index, global_search=not linked)
+        return self.search(node, submap, global_search=not linked)
 
-    def search(self, graph: "PoseGraph", node: int, submap_index: int, global_search: bool = False) -> LoopClosure | None:
-        entry = graph.submaps[submap_index]
-        grid = entry.submap.grid
-        points = graph.node_points[node]
+    def search(self, node: NodeData, submap: SubmapData, global_search: bool = False) -> LoopClosure | None:
+        """Match ``node`` against ``submap`` (near its current pose, or the whole submap) and check the result."""
+        grid = submap.grid
+        points = node.points
         if len(points) == 0:
             return None
-        stack = self.stack(submap_index, grid)
+        stack = self.stack(submap.index, grid)
         fc = self.cb.fast_correlative_scan_matcher
         self.stats.searched += 1
         with self.timer.stage("branch and bound"):
             if global_search:
                 self.stats.global_searches += 1
-                result = branch_and_bound.match_full_submap(stack, points, min_score=self.cb.global_localization_min_score)
+                result = branch_and_bound.match_full_submap(stack, points,
+                                                            min_score=self.cb.global_localization_min_score)
             else:
                 # Where the graph currently believes the node is, in the submap's grid frame.
                 estimate = transform.compose(
-                    entry.local_pose,
-                    transform.compose(transform.inverse(entry.global_pose), graph.global_poses[node]))
+                    submap.local_pose,
+                    transform.compose(transform.inverse(submap.global_pose), node.global_pose))
                 matcher = branch_and_bound.match_multilevel if fc.multilevel else branch_and_bound.match
                 result = matcher(stack, points, estimate,
                                  linear_search_window=fc.linear_search_window,
@@ -161,6 +174,6 @@ class ConstraintBuilder:
                 return None
         self.stats.accepted += 1
         if global_search:
-            self.connected.add(frozenset((graph.node_trajectory[node], entry.trajectory)))
-        relative = transform.compose(transform.inverse(entry.local_pose), ls.pose)
-        return LoopClosure(node, submap_index, relative, result.score, global_search)
+            self.connected.add(frozenset((node.trajectory, submap.trajectory)))
+        relative = transform.compose(transform.inverse(submap.local_pose), ls.pose)
+        return LoopClosure(node.index, submap.index, relative, result.score, global_search)

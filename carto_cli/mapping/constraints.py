@@ -12,8 +12,8 @@ capacity, amortised O(1) ``add``) and hands out views of the filled prefix.
 from __future__ import annotations
 
 import enum
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -63,14 +63,14 @@ class ConstraintSet:
 
     @classmethod
     def from_arrays(cls, submap, node, relative, translation_weight, rotation_weight,
-                    is_loop_closure=False) -> "ConstraintSet":
+                    is_loop_closure=False) -> ConstraintSet:
         submap = np.atleast_1d(np.asarray(submap, dtype=np.int64))
         out = cls(capacity=len(submap))
         out.extend(submap, node, relative, translation_weight, rotation_weight, is_loop_closure)
         return out
 
     @classmethod
-    def from_constraints(cls, constraints: Iterable[Constraint]) -> "ConstraintSet":
+    def from_constraints(cls, constraints: Iterable[Constraint]) -> ConstraintSet:
         out = cls()
         for c in constraints:
             out.add(c.submap, c.node, c.relative_pose, c.translation_weight, c.rotation_weight,
@@ -164,7 +164,7 @@ class ConstraintSet:
     def __iter__(self) -> Iterator[Constraint]:
         return (self[i] for i in range(self._n))
 
-    def select(self, which) -> "ConstraintSet":
+    def select(self, which) -> ConstraintSet:
         """A new set holding the constraints picked by a boolean mask or index array."""
         which = np.asarray(which)
         if which.dtype == bool and len(which) != self._n:
@@ -187,7 +187,7 @@ class ConstraintSet:
         self._n = kept
         return removed
 
-    def copy(self) -> "ConstraintSet":
+    def copy(self) -> ConstraintSet:
         return self.select(np.arange(self._n))
 
     def __repr__(self) -> str:

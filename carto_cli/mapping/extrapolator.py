@@ -18,13 +18,7 @@ from collections import deque
 
 import numpy as np
 
-
-_TWO_PI = 2.0 * math.pi
-
-
-def _wrap(a: float) -> float:
-    """Scalar angle wrapped to [-pi, pi) (plain floats: this runs several times per scan)."""
-    return (a + math.pi) % _TWO_PI - math.pi
+from carto_cli.core.transform import wrap_angle_scalar
 
 
 class PoseExtrapolator:
@@ -79,7 +73,7 @@ class PoseExtrapolator:
         else:
             vx, vy = self._linear_velocity_from_poses
         dt = time - t0
-        return np.array([last[0] + dt * vx, last[1] + dt * vy, _wrap(theta)])
+        return np.array([last[0] + dt * vx, last[1] + dt * vy, wrap_angle_scalar(theta)])
 
     def body_motion(self, time: float, duration: float = 0.0) -> tuple[float, float, float]:
         """(vx, vy, yaw rate) of the tracking frame at ``time``, velocity in its own frame.
@@ -113,7 +107,7 @@ class PoseExtrapolator:
         if dt < self.pose_queue_duration or dt <= 0.0:
             return
         self._linear_velocity_from_poses = ((p_new[0] - p_old[0]) / dt, (p_new[1] - p_old[1]) / dt)
-        self._angular_velocity_from_poses = _wrap(p_new[2] - p_old[2]) / dt
+        self._angular_velocity_from_poses = wrap_angle_scalar(p_new[2] - p_old[2]) / dt
 
     def _trim(self) -> None:
         if not self._poses:
@@ -133,7 +127,7 @@ class PoseExtrapolator:
     def _angular_velocity_without_imu(self) -> float:
         if len(self._odometry) >= 2:
             (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
-            return _wrap(p_new[2] - p_old[2]) / (t_new - t_old)
+            return wrap_angle_scalar(p_new[2] - p_old[2]) / (t_new - t_old)
         return self._angular_velocity_from_poses
 
     def _linear_velocity_from_odometry(self) -> tuple[float, float]:

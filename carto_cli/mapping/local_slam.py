@@ -23,16 +23,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from carto_cli.core import transform
+from carto_cli.core import kernels, transform
+from carto_cli.core.kernels import register_warm_up
+from carto_cli.core.records import Imu, Odometry, Scan
+from carto_cli.core.timing import NullTimer
 from carto_cli.mapping.extrapolator import PoseExtrapolator
 from carto_cli.mapping.motion_filter import MotionFilter
 from carto_cli.mapping.submaps import ActiveSubmaps, Submap
 from carto_cli.matching import correlative, least_squares
 from carto_cli.options import TrajectoryBuilder2D
-from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.sensor.range_filter import RangeData, accumulate, crop_polar, crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
-from carto_cli.core.timing import NullTimer
 
 
 @dataclass
@@ -65,19 +66,9 @@ class LocalSlamStats:
     finished_submaps: list = field(default_factory=list)
 
 
-_warmed_up = False
-
-
+@register_warm_up
 def warm_up() -> None:
-    """Load every numba kernel of the per-scan path once per process, on a toy scan.
-
-    The first call into numba costs about a second (runtime initialisation, then
-    each kernel's cache), whichever kernel it is: done here, it is timed as a
-    stage of its own instead of inflating the first scan's ``crop``.
-    """
-    global _warmed_up
-    if _warmed_up:
-        return
+    """The per-scan path's kernels (crop, voxel filters, insertion, both matchers) on a toy scan."""
     angles = np.linspace(-2.0, 2.0, 64)
     ranges = 2.0 + 0.5 * np.sin(3.0 * angles)
     ranges[0] = np.inf
@@ -85,10 +76,11 @@ def warm_up() -> None:
     points = adaptive_voxel_filter(voxel_filter(data.returns, 0.025), max_length=0.5, min_num_points=32)
     active = ActiveSubmaps(num_range_data=1)
     active.insert(data.transformed((0.1, 0.2, 0.3)))
-    grid = active.matching_submap.grid
+    submap = active.matching_submap
+    assert submap is not None
+    grid = submap.grid
     correlative.match(grid, points, np.zeros(3), angular_search_window=0.01)
     least_squares.match(grid, points, np.zeros(3))
-    _warmed_up = True
 
 
 class LocalSlam:
@@ -96,9 +88,7 @@ class LocalSlam:
         self.options = options
         self.laser_pose = transform.as_pose(laser_pose)
         self.timer = timer or NullTimer()
-        if not _warmed_up:
-            with self.timer.stage("jit warm-up"):
-                warm_up()
+        kernels.warm_up(self.timer)
         o = options
         self.extrapolator = PoseExtrapolator(
             pose_queue_duration=o.pose_extrapolator.constant_velocity.pose_queue_duration,
@@ -188,13 +178,13 @@ class LocalSlam:
                         initial = result.pose
                         score = result.score
                 with timer.stage("least squares"):
-                    c = o.ceres_scan_matcher
+                    ceres = o.ceres_scan_matcher
                     ls = least_squares.match(
                         matching.grid, points, initial, target_translation=prediction[:2],
-                        occupied_space_weight=c.occupied_space_weight,
-                        translation_weight=c.translation_weight,
-                        rotation_weight=c.rotation_weight,
-                        max_num_iterations=c.ceres_solver_options.max_num_iterations,
+                        occupied_space_weight=ceres.occupied_space_weight,
+                        translation_weight=ceres.translation_weight,
+                        rotation_weight=ceres.rotation_weight,
+                        max_num_iterations=ceres.ceres_solver_options.max_num_iterations,
                     )
                     pose = ls.pose
                     ls_cost = ls.cost
@@ -204,21 +194,21 @@ class LocalSlam:
         with timer.stage("extrapolate"):
             self.extrapolator.add_pose(scan.time, pose)
 
-        result = LocalSlamResult(scan.time, pose.copy(), points, score, ls_cost)
+        out = LocalSlamResult(scan.time, pose.copy(), points, score, ls_cost)
         with timer.stage("motion filter"):
             similar = self.motion_filter.is_similar(scan.time, pose)
         if similar:
-            return result
+            return out
         with timer.stage("insert"):
             local_data = data.transformed(pose)
             inserted = self.submaps.insert(local_data, timer)
         with timer.stage("preprocess"):
             with timer.stage("adaptive voxel"):
-                f = o.loop_closure_adaptive_voxel_filter
-                lc_points = adaptive_voxel_filter(data.returns, max_length=f.max_length,
-                                                  min_num_points=f.min_num_points, max_range=f.max_range)
-        result.insertion = InsertionResult(self.stats.nodes, inserted, local_data, lc_points)
+                lc = o.loop_closure_adaptive_voxel_filter
+                lc_points = adaptive_voxel_filter(data.returns, max_length=lc.max_length,
+                                                  min_num_points=lc.min_num_points, max_range=lc.max_range)
+        out.insertion = InsertionResult(self.stats.nodes, inserted, local_data, lc_points)
         self.stats.nodes += 1
         if inserted[0].finished:
             self.stats.finished_submaps.append(inserted[0].index)
-        return result
+        return out

@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from carto_cli.core.transform import wrap_angle_scalar
 
 
 class MotionFilter:
@@ -30,7 +31,7 @@ class MotionFilter:
         if (self.num_total > 1
                 and time - self._last_time <= self.max_time_seconds
                 and math.hypot(pose[0] - self._last_pose[0], pose[1] - self._last_pose[1]) <= self.max_distance_meters
-                and abs((pose[2] - self._last_pose[2] + math.pi) % (2.0 * math.pi) - math.pi) <= self.max_angle_radians):
+                and abs(wrap_angle_scalar(pose[2] - self._last_pose[2])) <= self.max_angle_radians):
             return True
         self._last_time = float(time)
         self._last_pose = pose.copy()

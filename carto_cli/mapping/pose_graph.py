@@ -10,37 +10,28 @@ with both in the local frame of the submap's trajectory).
 Nodes added after an optimization follow it: their global pose is their local
 pose carried by the correction of the submap they were inserted into, so a
 correction is never lost between optimizations.
+
+The graph's data goes in and out as one value, :class:`PoseGraphState` (``to_state`` /
+``from_state``); the constraint builder is handed the node and submap data it searches,
+never the graph.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from carto_cli.core import transform
-from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure
+from carto_cli.core.timing import NullTimer
+from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure, NodeData, SubmapData
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
 from carto_cli.mapping.optimization import NodePairs, OptimizationSummary, optimize, residuals
+from carto_cli.mapping.pose_graph_state import PoseGraphState, SubmapEntry, odometry_at_nodes
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options
-from carto_cli.core.timing import NullTimer
 
-
-@dataclass
-class SubmapEntry:
-    submap: Submap
-    trajectory: int
-    global_pose: np.ndarray
-    nodes: list[int] = field(default_factory=list)
-
-    @property
-    def local_pose(self) -> np.ndarray:
-        return self.submap.local_pose
-
-    @property
-    def finished(self) -> bool:
-        return self.submap.finished
+__all__ = ["PoseGraph", "PoseGraphStats"]
 
 
 class _Growing:
@@ -92,6 +83,61 @@ class PoseGraph:
         self.stats = PoseGraphStats()
         self._nodes_since_optimization = 0
 
+    # ------------------------------------------------------------------ state in and out
+
+    def to_state(self) -> PoseGraphState:
+        """The graph's data. Arrays are copies; submaps (grids) and node points are shared, so an
+        unfinished submap of a graph still mapping goes on changing in the state too."""
+        return PoseGraphState(
+            node_times=np.asarray(self.node_times, dtype=np.float64).reshape(self.num_nodes),
+            node_trajectories=np.asarray(self.node_trajectory, dtype=np.int64).reshape(self.num_nodes),
+            node_local_poses=self._local.array.copy(),
+            node_global_poses=self._global.array.copy(),
+            node_odometry=self._odometry.array.copy(),
+            node_points=list(self.node_points),
+            node_searches=np.asarray(self.node_searches, dtype=bool).reshape(self.num_nodes),
+            submaps=[SubmapEntry(e.submap, e.trajectory, e.global_pose.copy(), list(e.nodes), e.searched)
+                     for e in self.submaps],
+            constraints=self.constraints.copy(),
+            odometry_samples={t: (times.array[:, 0].copy(), poses.array.copy())
+                              for t, (times, poses) in self._odometry_samples.items()},
+            last_search_poses={t: pose.copy() for t, pose in self._last_search_pose.items()},
+            connected=set(self.builder.connected),
+            removed_loop_closures=list(self.removed_loop_closures),
+            nodes_since_optimization=self._nodes_since_optimization,
+        )
+
+    @classmethod
+    def from_state(cls, options: Options, state: PoseGraphState, *, timer=None, loop_closure: bool = True,
+                   seed: int = 0) -> PoseGraph:
+        """A graph holding ``state``, ready to grow (e.g. by a new trajectory). It owns copies of
+        everything in ``state``, so building on it never changes the state or whatever it came from."""
+        graph = cls(options, timer=timer, loop_closure=loop_closure, seed=seed)
+        graph._adopt(state.copy())
+        return graph
+
+    def _adopt(self, state: PoseGraphState) -> None:
+        for i in range(state.num_nodes):
+            self._local.append(state.node_local_poses[i])
+            self._global.append(state.node_global_poses[i])
+            self._odometry.append(state.node_odometry[i])
+        self.node_times = [float(t) for t in state.node_times]
+        self.node_trajectory = [int(t) for t in state.node_trajectories]
+        self.node_points = list(state.node_points)
+        self.node_searches = [bool(v) for v in state.node_searches]
+        for trajectory, (times, poses) in state.odometry_samples.items():
+            grown = self._odometry_samples[int(trajectory)] = (_Growing(1), _Growing(3))
+            for t, pose in zip(times, poses):
+                grown[0].append((float(t),))
+                grown[1].append(pose)
+        self._last_search_pose = dict(state.last_search_poses)
+        self.removed_loop_closures = list(state.removed_loop_closures)
+        self.submaps = list(state.submaps)
+        self._submap_index = {(e.trajectory, e.submap.index): i for i, e in enumerate(self.submaps)}
+        self.constraints = state.constraints
+        self.builder.connected = set(state.connected)
+        self._nodes_since_optimization = int(state.nodes_since_optimization)
+
     # ------------------------------------------------------------------ state
 
     @property
@@ -127,41 +173,15 @@ class PoseGraph:
             if time <= times.array[-1, 0]:
                 return  # out of order or duplicate: Cartographer drops these too
             prev = poses.array[-1, 2]
-            pose[2] = prev + math.remainder(pose[2] - prev, 2 * math.pi)  # unwrap for interpolation
+            pose[2] = transform.unwrap_angle(pose[2], prev)  # for interpolation
         times.append((float(time),))
         poses.append(pose)
 
     def node_odometry(self) -> np.ndarray:
         """(N, 3) odometry at every node: the explicit pose if one was given, else odometry interpolated
         at the node's time (Cartographer's InterpolateOdometry), NaN outside the odometry's time range."""
-        odom = self._odometry.array.copy()
-        if not self._odometry_samples:
-            return odom
-        node_times = np.asarray(self.node_times)
-        node_traj = np.asarray(self.node_trajectory)
-        for trajectory, (times, poses) in self._odometry_samples.items():
-            if times.n < 1:
-                continue
-            t = times.array[:, 0]
-            p = poses.array
-            want = np.flatnonzero((node_traj == trajectory) & np.isnan(odom[:, 0]))
-            if not len(want):
-                continue
-            nt = node_times[want]
-            inside = (nt >= t[0]) & (nt <= t[-1])
-            want, nt = want[inside], nt[inside]
-            if not len(want):
-                continue
-            if len(t) == 1:
-                odom[want] = p[0]
-                continue
-            hi = np.clip(np.searchsorted(t, nt, side="left"), 1, len(t) - 1)
-            lo = hi - 1
-            f = ((nt - t[lo]) / (t[hi] - t[lo]))[:, None]
-            out = p[lo] + f * (p[hi] - p[lo])
-            out[:, 2] = np.remainder(out[:, 2] + np.pi, 2 * np.pi) - np.pi
-            odom[want] = out
-        return odom
+        samples = {t: (times.array[:, 0], poses.array) for t, (times, poses) in self._odometry_samples.items()}
+        return odometry_at_nodes(self._odometry.array, self.node_times, self.node_trajectory, samples)
 
     def _is_key_node(self, local_pose: np.ndarray, trajectory: int) -> bool:
         cb = self.pg.constraint_builder
@@ -215,9 +235,9 @@ class PoseGraph:
         if self.loop_closure:
             with self.timer.stage("loop closure"):
                 front = self.submaps[indices[0]]
-                if front.finished and not getattr(front, "_searched", False):
+                if front.finished and not front.searched:
                     # A newly finished submap is searched by every earlier node not already in it.
-                    front._searched = True
+                    front.searched = True
                     self._search_submap_against_nodes(indices[0])
                 if self.node_searches[node]:
                     self._search_node_against_submaps(node)
@@ -244,11 +264,19 @@ class PoseGraph:
         self.constraints.add(lc.submap, lc.node, lc.relative_pose, cb.loop_closure_translation_weight,
                              cb.loop_closure_rotation_weight, ConstraintKind.INTER_SUBMAP)
 
+    def _node_data(self, node: int) -> NodeData:
+        return NodeData(node, self.node_trajectory[node], self.global_poses[node], self.node_points[node])
+
+    def _submap_data(self, index: int) -> SubmapData:
+        entry = self.submaps[index]
+        return SubmapData(index, entry.trajectory, entry.submap.grid, entry.local_pose, entry.global_pose)
+
     def _search_node_against_submaps(self, node: int) -> None:
+        node_data = self._node_data(node)
         for index, entry in enumerate(self.submaps):
             if not entry.finished or node in entry.nodes:
                 continue
-            lc = self.builder.maybe_add(self, node, index)
+            lc = self.builder.maybe_add(node_data, self._submap_data(index))
             if lc is not None:
                 self._add_loop_closure(lc)
 
@@ -264,8 +292,9 @@ class PoseGraph:
                            for t in range(int(traj.max()) + 1)])[traj]
         offset = self.global_poses[:, :2] - entry.global_pose[:2]
         far = np.hypot(offset[:, 0], offset[:, 1]) > self.pg.constraint_builder.max_constraint_distance
+        submap_data = self._submap_data(index)
         for node in np.flatnonzero(searching & ~(linked & far)).tolist():
-            lc = self.builder.maybe_add(self, node, index)
+            lc = self.builder.maybe_add(self._node_data(node), submap_data)
             if lc is not None:
                 self._add_loop_closure(lc)
 
@@ -318,11 +347,10 @@ class PoseGraph:
             if np.isfinite(odom).any():
                 odometry = NodePairs.consecutive(odom, traj, translation_weight=op.odometry_translation_weight,
                                                  rotation_weight=op.odometry_rotation_weight)
+            iterations = self.pg.max_num_final_iterations if final else op.ceres_solver_options.max_num_iterations
             result = optimize(
                 self.global_poses, self.submap_global_poses, self.constraints, odometry, local,
-                huber_scale=op.huber_scale,
-                max_num_iterations=self.pg.max_num_final_iterations if final else op.ceres_solver_options.max_num_iterations,
-                fixed_submaps=(0,),
+                huber_scale=op.huber_scale, max_num_iterations=iterations, fixed_submaps=(0,),
             )
         self._global.array[:] = result.node_poses
         for entry, pose in zip(self.submaps, result.submap_poses):

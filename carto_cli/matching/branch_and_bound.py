@@ -29,15 +29,17 @@ rather than inside one search.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
+from carto_cli.core.transform import wrap_angle
 from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY
 from carto_cli.matching.correlative import search_parameters
+from carto_cli.matching.kernels import discretize
 from carto_cli.matching.precomputation import PrecomputationGridStack, cell_value_to_probability
-from carto_cli.core.transform import normalize_angle
 
 
 class MatchResult(NamedTuple):
@@ -53,7 +55,9 @@ class MatchResult(NamedTuple):
 def _score(data, start, wnx, wny, pad, discrete, bbox, k, x, y):
     """Integer sum of level values under scan ``k`` shifted by (x, y) cells; 0 beyond the stored level."""
     n = discrete.shape[1]
-    total = 0
+    # int64 from the start: numba widens anyway, but run as Python (NUMBA_DISABLE_JIT) a plain 0 plus a
+    # uint8 cell stays uint8 and wraps at 255.
+    total = np.int64(0)
     x_lo = bbox[k, 0] + x + pad
     x_hi = bbox[k, 1] + x + pad
     y_lo = bbox[k, 2] + y + pad
@@ -265,27 +269,6 @@ def _exhaustive(data, starts, widths, heights, pads, discrete, bbox, bounds, ang
 
 
 @njit(cache=True, nogil=True)
-def _discretize(points, angles, x0, y0, ox, oy, inv_res):
-    """Cell indices (num_angles, n, 2) of the scan rotated by each angle and moved to (x0, y0).
-
-    Unlike the real-time matcher's helper this takes the angles themselves: a
-    multilevel stage rotates by a subset of the plain search's angles, and must
-    get bit-identical cells for them.
-    """
-    n = points.shape[0]
-    cells = np.empty((angles.shape[0], n, 2), dtype=np.int64)
-    for k in range(angles.shape[0]):
-        c = np.cos(angles[k])
-        s = np.sin(angles[k])
-        for i in range(n):
-            wx = c * points[i, 0] - s * points[i, 1] + x0
-            wy = s * points[i, 0] + c * points[i, 1] + y0
-            cells[k, i, 0] = np.int64(np.floor((wx - ox) * inv_res))
-            cells[k, i, 1] = np.int64(np.floor((wy - oy) * inv_res))
-    return cells
-
-
-@njit(cache=True, nogil=True)
 def _bounds(discrete, window, nx, ny):
     """Per scan: the box of its cells, and ``window`` (min_x, max_x, min_y, max_y) cut to the
     offsets at which the scan overlaps the grid.
@@ -354,7 +337,7 @@ def _prepare(stack: PrecomputationGridStack, points: np.ndarray, estimate, step:
     angle_index = np.ascontiguousarray(angle_index, dtype=np.int64)
     # Computed once here, so every search rotating by index a uses the very same float angle.
     angles = th0 + angle_index * step
-    discrete = _discretize(points, angles, x0, y0, stack.origin[0], stack.origin[1], 1.0 / stack.resolution)
+    discrete = discretize(points, angles, x0, y0, stack.origin[0], stack.origin[1], 1.0 / stack.resolution)
     nx, ny = stack.num_cells
     bbox, bounds = _bounds(discrete, np.asarray(window, dtype=np.int64), nx, ny)
     return _Problem((x0, y0, th0), step, angle_index, discrete, bbox, bounds)
@@ -384,7 +367,7 @@ def _threshold(min_score: float, n: int) -> int:
 
 def _not_found(estimate) -> MatchResult:
     x0, y0, th0 = (float(v) for v in estimate)
-    return MatchResult(False, 0.0, np.array([x0, y0, normalize_angle(th0)]))
+    return MatchResult(False, 0.0, np.array([x0, y0, wrap_angle(th0)]))
 
 
 def _result(problem: _Problem, stack, found, a, x, y, s, n) -> MatchResult:
@@ -392,7 +375,7 @@ def _result(problem: _Problem, stack, found, a, x, y, s, n) -> MatchResult:
         return _not_found(problem.estimate)
     x0, y0, th0 = problem.estimate
     res = stack.resolution
-    pose = np.array([x0 + x * res, y0 + y * res, normalize_angle(th0 + a * problem.step)])
+    pose = np.array([x0 + x * res, y0 + y * res, wrap_angle(th0 + a * problem.step)])
     return MatchResult(True, float(cell_value_to_probability(s / n)), pose)
 
 

@@ -23,7 +23,9 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from carto_cli.core.transform import wrap_angle_scalar
 from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
+from carto_cli.matching.kernels import discretize
 
 
 class CorrelativeResult(NamedTuple):
@@ -52,23 +54,6 @@ def search_parameters(points, resolution: float, linear_search_window: float,
         step,
         int(math.ceil(angular_search_window / step)),
     )
-
-
-@njit(cache=True)
-def _discretize(points, theta0, angular_step, num_angular, x0, y0, ox, oy, inv_res):
-    n = points.shape[0]
-    num_scans = 2 * num_angular + 1
-    cells = np.empty((num_scans, n, 2), dtype=np.int64)
-    for k in range(num_scans):
-        a = theta0 + (k - num_angular) * angular_step
-        c = np.cos(a)
-        s = np.sin(a)
-        for i in range(n):
-            wx = c * points[i, 0] - s * points[i, 1] + x0
-            wy = s * points[i, 0] + c * points[i, 1] + y0
-            cells[k, i, 0] = np.int64(np.floor((wx - ox) * inv_res))
-            cells[k, i, 1] = np.int64(np.floor((wy - oy) * inv_res))
-    return cells
 
 
 @njit(cache=True)
@@ -129,11 +114,12 @@ def match(grid, points, initial_pose, *, linear_search_window: float = 0.1,
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     x0, y0, th0 = (float(v) for v in np.asarray(initial_pose, dtype=np.float64))
     params = search_parameters(pts, grid.resolution, linear_search_window, angular_search_window)
-    discrete = _discretize(pts, th0, params.angular_step, params.num_angular_perturbations, x0, y0,
-                           grid.origin[0], grid.origin[1], 1.0 / grid.resolution)
+    num_angular = params.num_angular_perturbations
+    angles = th0 + np.arange(-num_angular, num_angular + 1) * params.angular_step
+    discrete = discretize(pts, angles, x0, y0, grid.origin[0], grid.origin[1], 1.0 / grid.resolution)
     k, dx, dy, score = _search(grid.cells, VALUE_TO_PROBABILITY, discrete, params.num_linear_perturbations,
                                params.num_angular_perturbations, params.angular_step, grid.resolution,
                                float(translation_delta_cost_weight), float(rotation_delta_cost_weight))
     dtheta = (k - params.num_angular_perturbations) * params.angular_step
-    pose = np.array([x0 + dx * grid.resolution, y0 + dy * grid.resolution, (th0 + dtheta + math.pi) % (2.0 * math.pi) - math.pi])
+    pose = np.array([x0 + dx * grid.resolution, y0 + dy * grid.resolution, wrap_angle_scalar(th0 + dtheta)])
     return CorrelativeResult(pose, float(score))

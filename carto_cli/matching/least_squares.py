@@ -22,6 +22,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from carto_cli.core.transform import wrap_angle_scalar
 from carto_cli.grid.probability_grid import VALUE_TO_CORRESPONDENCE_COST
 from carto_cli.matching.interpolation import cost_and_gradient
 
@@ -86,9 +87,12 @@ def _solve3(a, b):
     m02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
     det = a[0, 0] * m00 - a[0, 1] * m01 + a[0, 2] * m02
     x = np.empty(3)
-    x[0] = (b[0] * m00 - a[0, 1] * (b[1] * a[2, 2] - a[1, 2] * b[2]) + a[0, 2] * (b[1] * a[2, 1] - a[1, 1] * b[2])) / det
-    x[1] = (a[0, 0] * (b[1] * a[2, 2] - a[1, 2] * b[2]) - b[0] * m01 + a[0, 2] * (a[1, 0] * b[2] - b[1] * a[2, 0])) / det
-    x[2] = (a[0, 0] * (a[1, 1] * b[2] - b[1] * a[2, 1]) - a[0, 1] * (a[1, 0] * b[2] - b[1] * a[2, 0]) + b[0] * m02) / det
+    x[0] = (b[0] * m00 - a[0, 1] * (b[1] * a[2, 2] - a[1, 2] * b[2])
+            + a[0, 2] * (b[1] * a[2, 1] - a[1, 1] * b[2])) / det
+    x[1] = (a[0, 0] * (b[1] * a[2, 2] - a[1, 2] * b[2]) - b[0] * m01
+            + a[0, 2] * (a[1, 0] * b[2] - b[1] * a[2, 0])) / det
+    x[2] = (a[0, 0] * (a[1, 1] * b[2] - b[1] * a[2, 1]) - a[0, 1] * (a[1, 0] * b[2] - b[1] * a[2, 0])
+            + b[0] * m02) / det
     return x
 
 
@@ -184,7 +188,7 @@ def match(grid, points, initial_pose, target_translation=None, *, occupied_space
         grid.cells, VALUE_TO_CORRESPONDENCE_COST, grid.origin[0], grid.origin[1], 1.0 / grid.resolution, pts,
         x0, y0, th0, tx, ty, s_occ, float(translation_weight), float(rotation_weight), int(max_num_iterations),
         float(function_tolerance), float(gradient_tolerance), float(parameter_tolerance))
-    pose[2] = (pose[2] + math.pi) % (2.0 * math.pi) - math.pi  # normalize_angle, minus numpy's scalar overhead
+    pose[2] = wrap_angle_scalar(pose[2])
     return LeastSquaresResult(pose, float(cost), int(iterations), bool(converged), float(initial_cost))
 
 

@@ -174,7 +174,7 @@ class PrecomputationGridStack:
             self.data[self.starts[d]:self.starts[d] + sizes[d]] = level.ravel()
 
     @classmethod
-    def from_options(cls, grid, options) -> "PrecomputationGridStack":
+    def from_options(cls, grid, options) -> PrecomputationGridStack:
         """``options``: a ``FastCorrelativeScanMatcher`` options section (or anything with
         ``branch_and_bound_depth``)."""
         return cls(grid, options.branch_and_bound_depth)

@@ -20,7 +20,7 @@ from numba import njit
 from carto_cli.core import transform
 from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
 
-__all__ = ["see_through_fraction", "WALL_PROBABILITY", "WALL_MARGIN"]
+__all__ = ["WALL_MARGIN", "WALL_PROBABILITY", "see_through_fraction"]
 
 # Of the variants tried on bench-dense relocalization (1035 right and 41 wrong claimed matches; 0.65 / 0.8 x
 # 0.3 / 0.6 / 1.0 m), these spread the two apart most: right matches at most 0.11, a fifth of the wrong ones

@@ -1,0 +1,34 @@
+"""Relocalization: a scan's pose in a saved map, from a prior pose or from nothing.
+
+``relocalizer`` holds the search (an ordered list of stages), ``cache`` the LRU of precomputation
+stacks, ``queries`` the query files and scan selection, ``result`` what a query or a batch answers.
+"""
+from carto_cli.relocalization.cache import StackCache
+from carto_cli.relocalization.queries import (
+    Query,
+    iter_scans,
+    parse_pose,
+    read_queries,
+    scan_at,
+    scans_for_queries,
+    select_scan_topic,
+)
+from carto_cli.relocalization.relocalizer import Candidate, Relocalizer, relocalize_many
+from carto_cli.relocalization.result import (
+    CSV_COLUMNS,
+    PATHS,
+    TIMING_BUCKETS,
+    BatchSummary,
+    Latency,
+    QueryResult,
+    RelocalizationResult,
+    Timings,
+    summarize,
+    write_results_csv,
+)
+
+__all__ = [
+    "CSV_COLUMNS", "PATHS", "TIMING_BUCKETS", "BatchSummary", "Candidate", "Latency", "Query", "QueryResult",
+    "RelocalizationResult", "Relocalizer", "StackCache", "Timings", "iter_scans", "parse_pose", "read_queries",
+    "relocalize_many", "scan_at", "scans_for_queries", "select_scan_topic", "summarize", "write_results_csv",
+]

@@ -48,42 +48,38 @@ Poses are (x, y, yaw) of the tracking frame in the map frame. A submap's grid
 lives in its trajectory's local frame; a map pose P is at
 ``local_pose ∘ inverse(global_pose) ∘ P`` in the grid (as in the constraint builder).
 
+Each search of step 3 is one stage of :meth:`Relocalizer.relocalize`, tried in order until one
+answers: with a prior 'windowed' (pass 1), 'windowed-wide' (pass 2), 'fallback-filtered',
+'fallback-all'; without one 'global' over the covering submaps, then over the others.
+
 Precomputation stacks are built on first use and kept in an LRU cache under a
-memory budget (:class:`StackCache`).
+memory budget (:class:`~carto_cli.relocalization.cache.StackCache`); queries and scan
+selection live in ``queries.py``, results, timings and the batch CSV in ``result.py``.
 """
 from __future__ import annotations
 
-import csv
-import io
 import math
-import re
 import time
-from collections import OrderedDict
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
-from carto_cli.io.atomic import atomic_output
-from carto_cli.matching import branch_and_bound, least_squares
-from carto_cli.matching.precomputation import PrecomputationGridStack, stack_bytes
-from carto_cli.matching.ray_consistency import see_through_fraction
-from carto_cli.options import Options
 from carto_cli.core.records import Scan
+from carto_cli.matching import branch_and_bound, least_squares
+from carto_cli.matching.precomputation import stack_bytes
+from carto_cli.matching.ray_consistency import see_through_fraction
+from carto_cli.matching.scoring import known_score, score_at
+from carto_cli.options import Options
+from carto_cli.relocalization.cache import StackCache
+from carto_cli.relocalization.queries import Query, scans_for_queries
+from carto_cli.relocalization.result import BatchSummary, QueryResult, RelocalizationResult, Timings, summarize
 from carto_cli.sensor.range_filter import crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
 
-__all__ = [
-    "Relocalizer", "RelocalizationResult", "StackCache", "Query", "QueryResult", "BatchSummary",
-    "PATHS", "TIMING_BUCKETS", "read_queries", "parse_pose", "scan_at", "relocalize_many",
-    "write_results_csv", "summarize", "CSV_COLUMNS",
-]
-
-PATHS = ("windowed", "windowed-wide", "fallback-filtered", "fallback-all", "global")
-TIMING_BUCKETS = ("submap preparation", "pose search", "scan scoring", "other")
+__all__ = ["Candidate", "Relocalizer", "relocalize_many"]
 
 # Search tuning (not options: the issue-6 benchmark, bench/relocalization.py, is what they are set on).
 _WINDOW_MARGIN = 1.25  # first window = window_sigmas x sigma x this (a prior at 3 sigma is inside, not on the edge)
@@ -105,120 +101,43 @@ _MIN_KNOWN_FRACTION = 0.5
 # queries on bench-dense/aces into successes, but also 9 of 300 queries in places the map never saw into wrong ones.
 
 
-# ----------------------------------------------------------------------------------- results
-
-
 @dataclass
-class RelocalizationResult:
-    pose: np.ndarray  # (x, y, yaw) tracking frame in the map frame (refined when the refinement was trusted)
-    score: float  # score_at of ``pose`` on ``submap`` (mean probability, 0.1..0.9); 0 when nothing was found
-    path: str  # 'windowed' | 'fallback-filtered' | 'fallback-all' | 'global'
-    success: bool  # found, score >= the path's threshold, refinement consistent
-    submaps_considered: list[int]  # every submap searched, in search order
-    timings: dict[str, float]  # ms per TIMING_BUCKETS
-    total_ms: float
-    submap: int | None = None  # the submap the pose was found in
-    search_score: float = 0.0  # branch-and-bound score before refinement
-    reason: str = ""  # why it fell back / failed, '' on a clean windowed success
-    threshold: float = 0.0  # the score ``success`` was judged against
-    known_fraction: float = 1.0  # share of the refinement points in known cells at ``pose``
-    known_score: float = 0.0  # score_at over those points only
-    see_through: float = 0.0  # share of the scan's rays crossing a wall of the submap at ``pose`` (ray_consistency)
+class Candidate:
+    """A search's best pose in one submap, before refinement."""
 
-    def to_dict(self) -> dict:
-        """JSON-ready (``carto relocalize --json``)."""
-        return {
-            "pose": {"x": float(self.pose[0]), "y": float(self.pose[1]), "yaw": float(self.pose[2])},
-            "score": round(float(self.score), 6),
-            "search_score": round(float(self.search_score), 6),
-            "threshold": float(self.threshold),
-            "known_fraction": round(float(self.known_fraction), 4),
-            "known_score": round(float(self.known_score), 6),
-            "see_through": round(float(self.see_through), 4),
-            "path": self.path,
-            "success": bool(self.success),
-            "submap": self.submap,
-            "submaps_considered": [int(i) for i in self.submaps_considered],
-            "reason": self.reason,
-            "timings_ms": {k: round(float(v), 3) for k, v in self.timings.items()},
-            "total_ms": round(float(self.total_ms), 3),
-        }
-
-
-@dataclass
-class _Candidate:
     submap: int
     grid_pose: np.ndarray  # B&B pose in the submap's grid frame
     score: float
     estimate: np.ndarray | None = None  # the search's centre in the grid frame (windowed searches)
 
 
-class _Timings:
-    """The four buckets; 'other' is whatever the three named ones leave of the total."""
+@dataclass
+class _Search:
+    """One query on its way through the stages: its points, what it has searched, and what a stage hands on."""
 
-    def __init__(self):
-        self.t0 = time.perf_counter()
-        self.ms = {k: 0.0 for k in TIMING_BUCKETS[:3]}
-
-    def add(self, bucket: str, t_start: float) -> float:
-        now = time.perf_counter()
-        self.ms[bucket] += (now - t_start) * 1e3
-        return now
-
-    def finish(self) -> tuple[dict[str, float], float]:
-        total = (time.perf_counter() - self.t0) * 1e3
-        out = dict(self.ms)
-        out["other"] = max(0.0, total - sum(self.ms.values()))
-        return out, total
-
-
-# ----------------------------------------------------------------------------------- stack cache
-
-
-class StackCache:
-    """Precomputation stacks by submap id, least recently used dropped beyond ``budget_bytes``.
-
-    The stack just built or used is always kept, even alone above the budget.
-    """
-
-    def __init__(self, budget_bytes: int, depth: int):
-        self.budget_bytes = int(budget_bytes)
-        self.depth = int(depth)
-        self._stacks: OrderedDict[int, PrecomputationGridStack] = OrderedDict()
-        self.bytes = 0
-        self.hits = 0
-        self.misses = 0
-        self.evictions = 0
-        self.build_ms = 0.0
-
-    def get(self, index: int, grid) -> PrecomputationGridStack:
-        stack = self._stacks.get(index)
-        if stack is not None:
-            self._stacks.move_to_end(index)
-            self.hits += 1
-            return stack
-        self.misses += 1
-        t0 = time.perf_counter()
-        stack = PrecomputationGridStack(grid, self.depth)
-        self.build_ms += (time.perf_counter() - t0) * 1e3
-        self._stacks[index] = stack
-        self.bytes += stack.memory_bytes
-        while self.bytes > self.budget_bytes and len(self._stacks) > 1:
-            _, old = self._stacks.popitem(last=False)
-            self.bytes -= old.memory_bytes
-            self.evictions += 1
-        return stack
-
-    def __contains__(self, index: int) -> bool:
-        return index in self._stacks
-
-    def __len__(self) -> int:
-        return len(self._stacks)
-
-    def stats(self) -> dict:
-        return {"stacks": len(self._stacks), "bytes": self.bytes, "budget_bytes": self.budget_bytes,
-                "hits": self.hits, "misses": self.misses, "evictions": self.evictions,
-                "build_ms": round(self.build_ms, 3)}
+    mount: np.ndarray
+    search_pts: np.ndarray
+    fine_pts: np.ndarray
+    corridor: bool
+    tm: Timings
+    search_floor: float  # what whole-submap searches look down to
+    prior: np.ndarray | None = None
+    considered: list[int] = field(default_factory=list)
+    reasons: list[str] = field(default_factory=list)
+    # With a prior (see Relocalizer._read_prior).
+    sxy: float = 0.0
+    syaw: float = 0.0
+    reliable: bool = False
+    filtered: list[int] = field(default_factory=list)
+    # Pass 1 -> pass 2: the windows, the submaps searched, the floor and pass 1's best.
+    lin: float = 0.0
+    ang: float = 0.0
+    nearest: list[int] = field(default_factory=list)
+    floor: float = 0.0
+    windowed_best: Candidate | None = None
+    # Fallback-filtered -> fallback-all, global covering -> global rest: the submaps left, the candidates so far.
+    rest: list[int] = field(default_factory=list)
+    candidates: list[Candidate] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------------- relocalizer
@@ -305,7 +224,7 @@ class Relocalizer:
         Consecutive submaps overlap by half (every scan goes into two), so about half of them
         already hold every place the robot was: whole-map searches visit only those.
         """
-        sets = {i: set(int(n) for n in self.map.submap_nodes[i]) for i in self.searchable}
+        sets = {i: {int(n) for n in self.map.submap_nodes[i]} for i in self.searchable}
         uncovered = set().union(*sets.values()) if sets else set()
         chosen: list[int] = []
         while uncovered:
@@ -450,9 +369,9 @@ class Relocalizer:
         return (min(max(_WIDE_FACTOR * lin, 1.0), max(2.0 * r.max_linear_search_window, lin)),
                 min(max(_WIDE_FACTOR * ang, math.radians(20.0)), math.pi))
 
-    def _windowed(self, points, prior, submaps, lin, ang, min_score, tm: _Timings) -> _Candidate | None:
+    def _windowed(self, points, prior, submaps, lin, ang, min_score, tm: Timings) -> Candidate | None:
         """Coarse to fine (``_window_levels``) within ±lin / ±ang of the prior in each submap, better only."""
-        best: _Candidate | None = None
+        best: Candidate | None = None
         for i in submaps:
             t = time.perf_counter()
             stack = self.cache.get(i, self.grids[i])
@@ -464,18 +383,18 @@ class Relocalizer:
                 min_score=floor, coarse_min_score=min_score, levels=_window_levels(stack.depth))
             tm.add("pose search", t)
             if r.found and (best is None or r.score > best.score):
-                best = _Candidate(i, r.pose, r.score, estimate)
+                best = Candidate(i, r.pose, r.score, estimate)
         return best
 
-    def _whole(self, points, submaps, min_score, tm: _Timings, *, prior=None, window: float | None = None,
-               margin: float = 0.0) -> list[_Candidate]:
+    def _whole(self, points, submaps, min_score, tm: Timings, *, prior=None, window: float | None = None,
+               margin: float = 0.0) -> list[Candidate]:
         """Coarse-to-fine searches of the submaps: whole, or within ±``window`` m (any heading) of ``prior``.
 
         Returns every submap's best that comes within ``margin`` of the best overall (best first): with a
         margin, later submaps are searched for anything that could rival the best, not only beat it,
         which is what the ambiguity check needs.
         """
-        found: list[_Candidate] = []
+        found: list[Candidate] = []
         top = 0.0
         for i in submaps:
             t = time.perf_counter()
@@ -501,13 +420,13 @@ class Relocalizer:
                                            angular_search_window=math.pi, min_score=floor)
             tm.add("pose search", t)
             if r.found:
-                found.append(_Candidate(i, r.pose, r.score, estimate))
+                found.append(Candidate(i, r.pose, r.score, estimate))
                 top = max(top, r.score)
         found.sort(key=lambda c: -c.score)
         return [c for c in found if c.score >= top - margin]
 
-    def _rival(self, best: _Candidate, best_pose: np.ndarray, others: Sequence[_Candidate],
-               prior=None) -> tuple[_Candidate, np.ndarray] | None:
+    def _rival(self, best: Candidate, best_pose: np.ndarray, others: Sequence[Candidate],
+               prior=None) -> tuple[Candidate, np.ndarray] | None:
         """The best of ``others`` at a different place than ``best_pose`` (> 1 m or > 10 deg away in the map).
 
         With a prior, a rival farther from it than the best (by more than _DISTINCT_XY) is no rival:
@@ -525,7 +444,7 @@ class Relocalizer:
                 return c, pose
         return None
 
-    def _refine(self, fine_points, cand: _Candidate, threshold: float, tm: _Timings, *, known_ok: bool = False,
+    def refine(self, fine_points, cand: Candidate, threshold: float, tm: Timings, *, known_ok: bool = False,
                 sensor=(0.0, 0.0)):
         """(map pose, score, success, reason, known fraction, known score, see-through fraction).
 
@@ -551,16 +470,16 @@ class Relocalizer:
             grid_pose = cand.grid_pose
             reason = (f"refinement moved {math.hypot(moved[0], moved[1]):.2f} m / "
                       f"{math.degrees(abs(moved[2])):.1f} deg from the search's pose")
-        score = _score_at(grid, fine_points, grid_pose)
-        known, known_score = _known_score(grid, fine_points, grid_pose)
+        score = score_at(grid, fine_points, grid_pose)
+        known, kscore = known_score(grid, fine_points, grid_pose)
         see_through = see_through_fraction(grid, fine_points, grid_pose, sensor)
         tm.add("scan scoring", t)
         ok = consistent and score >= threshold
         if consistent and not ok and known_ok:
-            ok = known >= _MIN_KNOWN_FRACTION and known_score >= threshold
+            ok = known >= _MIN_KNOWN_FRACTION and kscore >= threshold
             if not ok:
                 reason = (f"refined score {score:.3f} below {threshold:g} (known cells: {100 * known:.0f} % of the "
-                          f"points, scoring {known_score:.3f})")
+                          f"points, scoring {kscore:.3f})")
         elif consistent and not ok:
             reason = f"refined score {score:.3f} below {threshold:g}"
         if ok and see_through > self.ro.max_see_through:
@@ -568,7 +487,7 @@ class Relocalizer:
             reason = (f"{100 * see_through:.0f} % of the scan's rays pass through walls of the map at the match "
                       f"(more than relocalization.max_see_through = {self.ro.max_see_through:g})")
         return (transform.compose(self.grid_to_map[cand.submap], grid_pose), score, ok, reason, known,
-                known_score, see_through)
+                kscore, see_through)
 
     # ------------------------------------------------------------------ the query
 
@@ -580,171 +499,212 @@ class Relocalizer:
         ``laser_pose`` (laser in the tracking frame) defaults to the one stored in the map.
         Raises CartoError for a prior farther than ``max_prior_distance`` from every submap.
         """
-        tm = _Timings()
+        tm = Timings()
         ro = self.ro
         mount = self.laser_pose if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
         search_pts, fine_pts = self.preprocess(scan, mount)
         if len(search_pts) == 0:
+            tb = self.options.trajectory_builder_2d
             raise CartoError(f"the scan at t={scan.time:.3f} has no returns within "
-                             f"{self.options.trajectory_builder_2d.min_range:g}..{self.options.trajectory_builder_2d.max_range:g} m")
-        considered: list[int] = []
-        reasons: list[str] = []
+                             f"{tb.min_range:g}..{tb.max_range:g} m")
         # Whole-submap searches look for anything above global_search_min_score and judge the *refined* score
         # against global_min_score: the search's score, on the coarser loop-closure points, runs ~0.07 below it
         # (bench-dense/aces: right answers at 0.57-0.59 searched, 0.65-0.74 refined; with the floor at 0.55, 13 of
         # 100 global queries on the mapped route found nothing, 6 of which a floor of 0.5 finds).
-        search_floor = min(ro.global_search_min_score, ro.global_min_score)
-
-        def finish(cand: _Candidate | None, path: str, threshold: float, fallback_pose, *, label: str = "",
-                   rivals: Sequence[_Candidate] = (), known_ok: bool = False) -> RelocalizationResult:
-            if cand is None:
-                timings, total = tm.finish()
-                return RelocalizationResult(np.asarray(fallback_pose, dtype=np.float64), 0.0, path, False,
-                                            considered, timings, total, None, 0.0,
-                                            "; ".join(reasons + ["no match above the threshold"]), threshold)
-            pose, score, ok, reason, known, known_score, see = self._refine(
-                fine_pts, cand, threshold, tm, known_ok=known_ok, sensor=mount[:2])
-            if ok and rivals:
-                rival = self._rival(cand, pose, rivals, None if path == "global" else prior)
-                if rival is not None:
-                    c, p = rival
-                    ok = False
-                    reason = (f"ambiguous: submap {c.submap} scores {c.score:.3f} against {cand.score:.3f} at "
-                              f"{p[0]:.2f},{p[1]:.2f},{math.degrees(p[2]):.0f}deg (margin {_AMBIGUITY_MARGIN:g})")
-            if reason:
-                reasons.append(f"{label}: {reason}" if label else reason)
-            timings, total = tm.finish()
-            return RelocalizationResult(pose, score, path, ok, considered, timings, total, cand.submap, cand.score,
-                                        "; ".join(reasons), threshold, known, known_score, see)
-
-        def decide(cands: list[_Candidate], path: str, threshold: float, fallback_pose,
-                   label: str = "") -> RelocalizationResult:
-            """The best of whole-submap candidates, unless a different place scores within _AMBIGUITY_MARGIN of it."""
-            if not cands:
-                return finish(None, path, threshold, fallback_pose)
-            return finish(cands[0], path, threshold, fallback_pose, label=label, rivals=cands)
-
+        s = _Search(mount, search_pts, fine_pts, corridor, tm,
+                    search_floor=min(ro.global_search_min_score, ro.global_min_score))
+        stages: tuple[Callable[[_Search], RelocalizationResult | None], ...]
         if prior is None:
-            t = time.perf_counter()
-            submaps = list(self.covering)
-            considered.extend(submaps)
-            tm.add("submap preparation", t)
-            cands = self._whole(search_pts, submaps, search_floor, tm, margin=_AMBIGUITY_MARGIN)
-            rest = [i for i in self.searchable if i not in set(submaps)]
-            if rest:
-                res = decide(cands, "global", ro.global_min_score, np.zeros(3), label="covering submaps")
-                if res.success:
-                    return res
-                # The covering submaps hold every place, not always its best version (a place seen again
-                # after the map drifted): the other submaps too, their candidates pooled with these.
-                considered.extend(rest)
-                more = self._whole(search_pts, rest, search_floor, tm, margin=_AMBIGUITY_MARGIN)
-                top = max([c.score for c in cands + more], default=0.0)
-                cands = sorted((c for c in cands + more if c.score >= top - _AMBIGUITY_MARGIN), key=lambda c: -c.score)
-            return decide(cands, "global", ro.global_min_score, np.zeros(3))
+            stages = (self._global_covering, self._global_rest)
+        else:
+            self._read_prior(s, prior, sigma_xy, sigma_yaw)
+            stages = (self._windowed_pass, self._wide_pass, self._fallback_filtered, self._fallback_all)
+        for stage in stages:
+            result = stage(s)
+            if result is not None:
+                return result
+        raise AssertionError("the last stage always answers")
 
+    def _read_prior(self, s: _Search, prior, sigma_xy: float | None, sigma_yaw: float | None) -> None:
+        """Check the prior and its sigmas, judge it reliable or not, and choose the submaps near it."""
+        ro = self.ro
         t = time.perf_counter()
-        prior = transform.as_pose(prior).astype(np.float64).reshape(3).copy()
-        self.check_prior(prior)
+        s.prior = transform.as_pose(prior).astype(np.float64).reshape(3).copy()
+        self.check_prior(s.prior)
         sxy = ro.default_sigma_xy if sigma_xy is None else float(sigma_xy)
         syaw = ro.default_sigma_yaw if sigma_yaw is None else float(sigma_yaw)
         if not (sxy > 0 and syaw > 0 and math.isfinite(sxy) and math.isfinite(syaw)):
             raise CartoError(f"sigmas must be positive, got sigma_xy={sxy:g} m, sigma_yaw={syaw:g} rad")
-        reliable = sxy <= ro.max_reliable_sigma_xy and syaw <= ro.max_reliable_sigma_yaw
-        if corridor:
-            filtered = self.filter_corridor(prior)
+        s.sxy, s.syaw = sxy, syaw
+        s.reliable = sxy <= ro.max_reliable_sigma_xy and syaw <= ro.max_reliable_sigma_yaw
+        if s.corridor:
+            s.filtered = self.filter_corridor(s.prior)
         else:
-            filtered = self.filter_by_distance(prior, self.radius_for(sxy, reliable))
-        tm.add("submap preparation", t)
+            s.filtered = self.filter_by_distance(s.prior, self.radius_for(sxy, s.reliable))
+        s.tm.add("submap preparation", t)
 
-        if reliable and filtered:
-            lin, ang = self.windows(sxy, syaw)
-            nearest = filtered[:ro.max_windowed_submaps]
-            considered.extend(nearest)
-            # Pass 1: coarse-to-fine branch and bound in windows covering the prior's uncertainty with a margin.
-            floor = min(ro.min_score, _KNOWN_SEARCH_FLOOR)
-            cand = self._windowed(search_pts, prior, nearest, lin, ang, floor, tm)
-            edge = cand is not None and self._at_edge(cand, lin, ang)
-            if cand is not None and not edge:
-                res = finish(cand, "windowed", ro.min_score, prior, label="windowed search", known_ok=True)
-                if res.success:
-                    return res
-            elif cand is not None:
-                reasons.append(f"windowed search's best ({cand.score:.3f}) is at the edge of its window")
+    # Each stage returns the query's answer, or None to hand on to the next one.
+
+    def _windowed_pass(self, s: _Search) -> RelocalizationResult | None:
+        """'windowed' (pass 1): coarse-to-fine branch and bound in windows covering the prior's uncertainty with a
+        margin, in the nearest filtered submaps; only for a reliable prior with submaps near it."""
+        ro = self.ro
+        if not (s.reliable and s.filtered):
+            if not s.reliable:
+                s.reasons.append(f"prior unreliable (sigma_xy {s.sxy:g} m, sigma_yaw {math.degrees(s.syaw):.1f} deg)")
             else:
-                reasons.append(f"windowed search found nothing above {floor:g}")
-            # Pass 2: twice the windows, coarse to fine; only something better than pass 1 replaces it.
-            wlin, wang = self.wide_windows(lin, ang)
-            wide = self._windowed(search_pts, prior, nearest, wlin, wang, floor, tm)
-            if wide is not None and (cand is None or wide.score > cand.score):
-                cand = wide
-            if cand is not None:
-                # Four times the area and twice the headings: more room for a chance fit, so the stricter
-                # score of the whole-submap searches (on bench/intel, sparse, the wide pass at min_score
-                # added 5 answers 0.6-1 m off, all scoring below global_min_score).
-                res = finish(cand, "windowed-wide", max(ro.min_score, ro.global_min_score), prior,
-                             label=f"wide windowed search (±{wlin:.1f} m / ±{math.degrees(wang):.0f} deg)")
-                if res.success:
-                    return res
-            else:
-                reasons.append(f"wide windowed search found nothing above {floor:g}")
-        elif not reliable:
-            reasons.append(f"prior unreliable (sigma_xy {sxy:g} m, sigma_yaw {math.degrees(syaw):.1f} deg)")
+                s.reasons.append("no submap near the prior")
+            return None
+        s.lin, s.ang = self.windows(s.sxy, s.syaw)
+        s.nearest = s.filtered[:ro.max_windowed_submaps]
+        s.considered.extend(s.nearest)
+        s.floor = min(ro.min_score, _KNOWN_SEARCH_FLOOR)
+        cand = s.windowed_best = self._windowed(s.search_pts, s.prior, s.nearest, s.lin, s.ang, s.floor, s.tm)
+        edge = cand is not None and self._at_edge(cand, s.lin, s.ang)
+        if cand is not None and not edge:
+            res = self._finish(s, cand, "windowed", ro.min_score, s.prior, label="windowed search", known_ok=True)
+            if res.success:
+                return res
+        elif cand is not None:
+            s.reasons.append(f"windowed search's best ({cand.score:.3f}) is at the edge of its window")
         else:
-            reasons.append("no submap near the prior")
+            s.reasons.append(f"windowed search found nothing above {s.floor:g}")
+        return None
 
-        # Fallback 1: coarse-to-fine searches, any heading, within the search radius of the prior (the low-confidence
-        # one when the prior was reliable but wrong), in the covering submaps near it (they hold every scan taken
-        # there) -- bounded by that radius, not by the submaps' size.
+    def _wide_pass(self, s: _Search) -> RelocalizationResult | None:
+        """'windowed-wide' (pass 2): twice the windows, coarse to fine; only something better than pass 1 replaces
+        it, and the answer is judged against the stricter whole-submap threshold."""
+        ro = self.ro
+        if not (s.reliable and s.filtered):
+            return None
+        wlin, wang = self.wide_windows(s.lin, s.ang)
+        wide = self._windowed(s.search_pts, s.prior, s.nearest, wlin, wang, s.floor, s.tm)
+        cand = s.windowed_best
+        if wide is not None and (cand is None or wide.score > cand.score):
+            cand = wide
+        if cand is None:
+            s.reasons.append(f"wide windowed search found nothing above {s.floor:g}")
+            return None
+        # Four times the area and twice the headings: more room for a chance fit, so the stricter
+        # score of the whole-submap searches (on bench/intel, sparse, the wide pass at min_score
+        # added 5 answers 0.6-1 m off, all scoring below global_min_score).
+        res = self._finish(s, cand, "windowed-wide", max(ro.min_score, ro.global_min_score), s.prior,
+                           label=f"wide windowed search (±{wlin:.1f} m / ±{math.degrees(wang):.0f} deg)")
+        return res if res.success else None
+
+    def _fallback_filtered(self, s: _Search) -> RelocalizationResult | None:
+        """'fallback-filtered': coarse-to-fine searches, any heading, within the search radius of the prior (the
+        low-confidence one when the prior was reliable but wrong), in the covering submaps near it (they hold every
+        scan taken there) -- bounded by that radius, not by the submaps' size."""
+        ro = self.ro
         t = time.perf_counter()
-        radius = max(self.radius_for(sxy, reliable), ro.low_confidence_radius) if reliable else self.radius_for(sxy, False)
-        if corridor:
-            near = filtered
+        radius = (max(self.radius_for(s.sxy, s.reliable), ro.low_confidence_radius) if s.reliable
+                  else self.radius_for(s.sxy, False))
+        if s.corridor:
+            near = s.filtered
             radius = max(ro.corridor_forward_range, ro.corridor_side_range)
         else:
-            near = self.filter_by_distance(prior, radius)
+            near = self.filter_by_distance(s.prior, radius)
         cover = set(self.covering)
         near = [i for i in near if i in cover] or near
-        rest = [i for i in self._order(self.covering, prior) if i not in near]
+        rest = [i for i in self._order(self.covering, s.prior) if i not in near]
         # Only a reliable prior's fallbacks are bounded (an unreliable one starts here: this is its search). A count
         # of submaps, not a time, so that a query gives the same answer on any machine.
-        limit = ro.fallback_max_submaps if reliable and filtered and ro.fallback_max_submaps > 0 else None
+        limit = ro.fallback_max_submaps if s.reliable and s.filtered and ro.fallback_max_submaps > 0 else None
         if limit is not None and len(near) + len(rest) > limit:
-            reasons.append(f"fallback limited to the nearest {limit} submaps (relocalization.fallback_max_submaps)")
+            s.reasons.append(f"fallback limited to the nearest {limit} submaps (relocalization.fallback_max_submaps)")
             near = near[:limit]
             rest = rest[:limit - len(near)]
-        tm.add("submap preparation", t)
-        if near:
-            considered.extend(i for i in near if i not in considered)
-            cands = self._whole(search_pts, near, search_floor, tm, prior=prior, window=radius,
-                                margin=_AMBIGUITY_MARGIN)
-            if cands:
-                res = decide(cands, "fallback-filtered", ro.global_min_score, prior,
-                             label=f"fallback over {len(near)} nearby submaps")
-                if res.success:
-                    return res
-            else:
-                reasons.append(f"fallback over {len(near)} nearby submaps found nothing above {search_floor:g}")
-        # Fallback 2: every (covering) submap not searched yet, whole.
-        if not rest:
-            return finish(None, "fallback-all", ro.global_min_score, prior)
-        considered.extend(i for i in rest if i not in considered)
-        cands = self._whole(search_pts, rest, search_floor, tm, margin=_AMBIGUITY_MARGIN)
-        return decide(cands, "fallback-all", ro.global_min_score, prior)
+        s.tm.add("submap preparation", t)
+        s.rest = rest
+        if not near:
+            return None
+        s.considered.extend(i for i in near if i not in s.considered)
+        cands = self._whole(s.search_pts, near, s.search_floor, s.tm, prior=s.prior, window=radius,
+                            margin=_AMBIGUITY_MARGIN)
+        if not cands:
+            s.reasons.append(f"fallback over {len(near)} nearby submaps found nothing above {s.search_floor:g}")
+            return None
+        res = self._decide(s, cands, "fallback-filtered", ro.global_min_score, s.prior,
+                           label=f"fallback over {len(near)} nearby submaps")
+        return res if res.success else None
 
-    def _at_edge(self, cand: _Candidate, lin: float, ang: float) -> bool:
+    def _fallback_all(self, s: _Search) -> RelocalizationResult:
+        """'fallback-all': every (covering) submap not searched yet, whole. Always answers."""
+        if not s.rest:
+            return self._finish(s, None, "fallback-all", self.ro.global_min_score, s.prior)
+        s.considered.extend(i for i in s.rest if i not in s.considered)
+        cands = self._whole(s.search_pts, s.rest, s.search_floor, s.tm, margin=_AMBIGUITY_MARGIN)
+        return self._decide(s, cands, "fallback-all", self.ro.global_min_score, s.prior)
+
+    def _global_covering(self, s: _Search) -> RelocalizationResult | None:
+        """'global', first the covering submaps, each over the box of its nodes; the answer when no other submap
+        is left, else only a success."""
+        t = time.perf_counter()
+        submaps = list(self.covering)
+        s.considered.extend(submaps)
+        s.tm.add("submap preparation", t)
+        s.candidates = self._whole(s.search_pts, submaps, s.search_floor, s.tm, margin=_AMBIGUITY_MARGIN)
+        s.rest = [i for i in self.searchable if i not in set(submaps)]
+        if not s.rest:
+            return self._decide(s, s.candidates, "global", self.ro.global_min_score, np.zeros(3))
+        res = self._decide(s, s.candidates, "global", self.ro.global_min_score, np.zeros(3), label="covering submaps")
+        return res if res.success else None
+
+    def _global_rest(self, s: _Search) -> RelocalizationResult:
+        """'global', then the other submaps: the covering ones hold every place, not always its best version (a
+        place seen again after the map drifted); their candidates are pooled with the covering ones'."""
+        s.considered.extend(s.rest)
+        more = self._whole(s.search_pts, s.rest, s.search_floor, s.tm, margin=_AMBIGUITY_MARGIN)
+        top = max([c.score for c in s.candidates + more], default=0.0)
+        cands = sorted((c for c in s.candidates + more if c.score >= top - _AMBIGUITY_MARGIN), key=lambda c: -c.score)
+        return self._decide(s, cands, "global", self.ro.global_min_score, np.zeros(3))
+
+    def _finish(self, s: _Search, cand: Candidate | None, path: str, threshold: float, fallback_pose, *,
+                label: str = "", rivals: Sequence[Candidate] = (), known_ok: bool = False) -> RelocalizationResult:
+        """The result of ``path``: ``cand`` refined and judged (not found without one)."""
+        if cand is None:
+            timings, total = s.tm.finish()
+            return RelocalizationResult(np.asarray(fallback_pose, dtype=np.float64), 0.0, path, False,
+                                        s.considered, timings, total, None, 0.0,
+                                        "; ".join(s.reasons + ["no match above the threshold"]), threshold)
+        pose, score, ok, reason, known, kscore, see = self.refine(
+            s.fine_pts, cand, threshold, s.tm, known_ok=known_ok, sensor=s.mount[:2])
+        if ok and rivals:
+            rival = self._rival(cand, pose, rivals, None if path == "global" else s.prior)
+            if rival is not None:
+                c, p = rival
+                ok = False
+                reason = (f"ambiguous: submap {c.submap} scores {c.score:.3f} against {cand.score:.3f} at "
+                          f"{p[0]:.2f},{p[1]:.2f},{math.degrees(p[2]):.0f}deg (margin {_AMBIGUITY_MARGIN:g})")
+        if reason:
+            s.reasons.append(f"{label}: {reason}" if label else reason)
+        timings, total = s.tm.finish()
+        return RelocalizationResult(pose, score, path, ok, s.considered, timings, total, cand.submap, cand.score,
+                                    "; ".join(s.reasons), threshold, known, kscore, see)
+
+    def _decide(self, s: _Search, cands: list[Candidate], path: str, threshold: float, fallback_pose,
+                label: str = "") -> RelocalizationResult:
+        """The best of whole-submap candidates, unless a different place scores within _AMBIGUITY_MARGIN of it."""
+        if not cands:
+            return self._finish(s, None, path, threshold, fallback_pose)
+        return self._finish(s, cands[0], path, threshold, fallback_pose, label=label, rivals=cands)
+
+    def _at_edge(self, cand: Candidate, lin: float, ang: float) -> bool:
         """Whether a windowed answer lies in the outer part of its window (the optimum may be beyond it)."""
         # The window is a square along the grid's axes around the estimate, and a range of headings.
-        dx = cand.grid_pose[0] - cand.estimate[0]
-        dy = cand.grid_pose[1] - cand.estimate[1]
-        dyaw = transform.normalize_angle(cand.grid_pose[2] - cand.estimate[2])
+        estimate = cand.estimate
+        assert estimate is not None  # windowed searches always record their centre
+        dx = cand.grid_pose[0] - estimate[0]
+        dy = cand.grid_pose[1] - estimate[1]
+        dyaw = transform.wrap_angle(cand.grid_pose[2] - estimate[2])
         return max(abs(dx), abs(dy)) > _EDGE_FRACTION * lin or (abs(dyaw) > _EDGE_FRACTION * ang and ang < math.pi)
 
     # ------------------------------------------------------------------ batch
 
-    def relocalize_many(self, recording, queries: Sequence["Query"], *, scan_topic: str | None = None,
+    def relocalize_many(self, recording, queries: Sequence[Query], *, scan_topic: str | None = None,
                         laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
-                        on_query=None) -> tuple[list["QueryResult"], "BatchSummary"]:
+                        on_query=None) -> tuple[list[QueryResult], BatchSummary]:
         return relocalize_many(self, recording, queries, scan_topic=scan_topic, laser_pose=laser_pose,
                                corridor=corridor, max_time_offset=max_time_offset, on_query=on_query)
 
@@ -787,268 +747,13 @@ def _window_levels(depth: int) -> tuple[tuple[float, int], ...]:
     return branch_and_bound.default_levels(depth)
 
 
-def _known_score(grid, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
-    """(share of ``points`` at ``pose`` that fall in known cells, their mean occupancy probability)."""
-    if len(points) == 0:
-        return 0.0, 0.0
-    p = np.asarray(grid.probability(grid.cell_index(transform.apply(pose, points)), unknown=np.nan), dtype=np.float64)
-    known = ~np.isnan(p)
-    n = int(known.sum())
-    return n / len(p), (float(p[known].mean()) if n else 0.0)
-
-
-def _score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
-    """Mean occupancy probability under ``points`` at ``pose`` (unknown counts as 0.1), as the constraint builder's."""
-    from carto_cli.mapping.constraint_builder import score_at
-
-    return score_at(grid, points, pose)
-
-
-# ----------------------------------------------------------------------------------- queries
-
-
-@dataclass(frozen=True)
-class Query:
-    """One line of a queries file: which scan (by time or index) and the prior (None: global)."""
-
-    time: float | None
-    index: int | None
-    prior: tuple[float, float, float] | None
-    sigma_xy: float | None = None
-    sigma_yaw: float | None = None
-    line: int = 0
-
-
-_NUM = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
-_ANGLE = re.compile(rf"^({_NUM})(deg)?$")
-_KEYS = {"t": "time", "time": "time", "stamp": "time", "index": "index", "scan": "index", "scan_index": "index",
-         "i": "index"}
-_NONE = {"-", "none", "null", "?"}
-
-
-def _number(text: str, what: str, fail) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise fail(f"{what} must be a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise fail(f"{what} must be finite, got {text!r}")
-    return v
-
-
-def _angle(text: str, what: str, fail) -> float:
-    m = _ANGLE.match(text.strip().lower())
-    if not m:
-        raise fail(f"{what} must be a number of radians (or degrees with a 'deg' suffix), got {text!r}")
-    v = float(m.group(1))
-    return math.radians(v) if m.group(2) else v
-
-
-def parse_pose(text: str) -> tuple[float, float, float]:
-    """'x,y,yaw' (yaw in radians, or degrees with a 'deg' suffix) -> (x, y, yaw), for ``--initial-pose``."""
-    def fail(msg):
-        return CartoError(f"--initial-pose: {msg}")
-    parts = [p for p in re.split(r"[,\s]+", text.strip()) if p]
-    if len(parts) != 3:
-        raise fail(f"expected x,y,yaw, got {text!r}")
-    return (_number(parts[0], "x", fail), _number(parts[1], "y", fail), _angle(parts[2], "yaw", fail))
-
-
-def read_queries(path: str | Path) -> list[Query]:
-    """Queries from a text file, one per line::
-
-        # comments and blank lines are ignored; fields split on whitespace and/or commas
-        t x y yaw [sigma_xy sigma_yaw]      <- optional header; 'index x y yaw ...' selects scans by index
-        1012.5  3.2  1.0  1.57
-        1013.0  3.2  1.0  90deg  0.3  5deg  <- per-query sigmas (m, rad or 'deg')
-        1020.0  -    -    -                 <- no prior: global search
-
-    Without a header the first column is a time (s, the recording's clock). Angles are
-    radians unless suffixed 'deg'. Errors name the line.
-    """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CartoError("no such queries file", path) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise CartoError(f"cannot read queries: {e}", path) from None
-    key = "time"
-    out: list[Query] = []
-    seen_data = False
-    for n, raw in enumerate(text.splitlines(), start=1):
-        line = raw.split("#", 1)[0].strip()
-        if not line:
-            continue
-
-        def fail(msg, n=n):
-            return CartoError(f"line {n}: {msg}", path)
-        fields = [f for f in re.split(r"[,\s]+", line) if f]
-        head = fields[0].lower()
-        if head in _KEYS or not re.match(rf"^{_NUM}$", head):
-            if seen_data:
-                raise fail(f"expected a query (time or index, x, y, yaw), got {raw.strip()!r}")
-            if head not in _KEYS:
-                raise fail(f"the first column must be a time or a scan index; a header names it 't' or 'index', "
-                           f"got {fields[0]!r}")
-            key = _KEYS[head]
-            names = [f.lower() for f in fields[1:]]
-            if names[:3] != ["x", "y", "yaw"] or any(f not in ("sigma_xy", "sigma_yaw") for f in names[3:]):
-                raise fail("header must be 't x y yaw [sigma_xy sigma_yaw]' or 'index x y yaw [sigma_xy sigma_yaw]'")
-            seen_data = True  # one header at most, and before the data
-            continue
-        seen_data = True
-        if len(fields) not in (4, 6):
-            raise fail(f"expected 4 fields (time or index, x, y, yaw) or 6 (+ sigma_xy sigma_yaw), got {len(fields)}")
-        if key == "time":
-            t, idx = _number(fields[0], "time", fail), None
-        else:
-            try:
-                idx, t = int(fields[0]), None
-            except ValueError:
-                raise fail(f"scan index must be a whole number, got {fields[0]!r}") from None
-            if idx < 0:
-                raise fail(f"scan index must be >= 0, got {idx}")
-        pose_fields = [f.lower() for f in fields[1:4]]
-        if all(f in _NONE for f in pose_fields):
-            prior = None
-        elif any(f in _NONE for f in pose_fields):
-            raise fail("give all of x, y, yaw or none of them ('-' for a global search)")
-        else:
-            prior = (_number(fields[1], "x", fail), _number(fields[2], "y", fail), _angle(fields[3], "yaw", fail))
-        sxy = syaw = None
-        if len(fields) == 6:
-            sxy = _number(fields[4], "sigma_xy", fail)
-            syaw = _angle(fields[5], "sigma_yaw", fail)
-            if sxy <= 0 or syaw <= 0:
-                raise fail("sigmas must be positive")
-        out.append(Query(t, idx, prior, sxy, syaw, n))
-    if not out:
-        raise CartoError("no queries in the file", path)
-    return out
-
-
-# ----------------------------------------------------------------------------------- scans
-
-
-def _scan_topic(recording, scan_topic):
-    from carto_cli.io.topics import select_topics
-
-    return select_topics(recording, scan_topic=scan_topic).scan
-
-
-def _scans_for(recording, queries: Sequence[Query], scan_topic=None, max_time_offset: float = 1.0):
-    """{query position: (scan index, Scan)} in one pass over the recording's scans."""
-    topic = _scan_topic(recording, scan_topic)
-    by_index: dict[int, list[int]] = {}
-    timed = sorted(((q.time, k) for k, q in enumerate(queries) if q.time is not None))
-    for k, q in enumerate(queries):
-        if q.index is not None:
-            by_index.setdefault(q.index, []).append(k)
-    found: dict[int, tuple[int, Scan]] = {}
-    j = 0
-    prev: tuple[int, Scan] | None = None
-    count = 0
-    last = None
-    for record in recording.records([topic]):
-        if not isinstance(record, Scan):
-            continue
-        i = count
-        count += 1
-        for k in by_index.get(i, ()):
-            found[k] = (i, record)
-        while j < len(timed) and record.time >= timed[j][0]:
-            t, k = timed[j]
-            if prev is not None and abs(prev[1].time - t) <= abs(record.time - t):
-                found[k] = prev
-            else:
-                found[k] = (i, record)
-            j += 1
-        prev = (i, record)
-        last = prev
-    if count == 0:
-        raise CartoError(f"the recording has no scans on {topic}", getattr(recording, "path", None))
-    while j < len(timed):
-        found[timed[j][1]] = last
-        j += 1
-    for k, q in enumerate(queries):
-        where = f"line {q.line}: " if q.line else ""
-        if q.index is not None and k not in found:
-            raise CartoError(f"{where}scan index {q.index} is beyond the recording's {count} scans",
-                             getattr(recording, "path", None))
-        if q.time is not None:
-            dt = abs(found[k][1].time - q.time)
-            if dt > max_time_offset:
-                raise CartoError(f"{where}no scan within {max_time_offset:g} s of t={q.time:.3f} "
-                                 f"(nearest is {dt:.3f} s away)", getattr(recording, "path", None))
-    return found
-
-
-def scan_at(recording, *, time: float | None = None, index: int | None = None, scan_topic: str | None = None,
-            max_time_offset: float = 1.0) -> tuple[int, Scan]:
-    """(index, scan) of the scan nearest ``time`` or at ``index`` (default: the first scan)."""
-    if time is not None and index is not None:
-        raise CartoError("give a time or a scan index, not both")
-    if index is not None and index < 0:
-        raise CartoError(f"scan index must be >= 0, got {index}")
-    q = Query(time, index if index is not None or time is not None else 0, None)
-    return _scans_for(recording, [q], scan_topic, max_time_offset)[0]
-
-
-# ----------------------------------------------------------------------------------- batch
-
-
-@dataclass
-class QueryResult:
-    query: Query
-    scan_index: int
-    scan_time: float
-    result: RelocalizationResult
-
-    def row(self) -> dict:
-        r = self.result
-        return {"t": f"{self.scan_time:.6f}", "scan_index": self.scan_index,
-                "x": f"{r.pose[0]:.4f}", "y": f"{r.pose[1]:.4f}", "yaw": f"{r.pose[2]:.5f}",
-                "score": f"{r.score:.4f}", "path": r.path, "ms": f"{r.total_ms:.2f}",
-                "success": int(bool(r.success)), "submap": "" if r.submap is None else r.submap}
-
-
-CSV_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "score", "path", "ms", "success", "submap")
-
-
-@dataclass
-class BatchSummary:
-    queries: int
-    successes: int
-    success_rate: float
-    p50_ms: float
-    p95_ms: float
-    p99_ms: float
-    max_ms: float
-    paths: dict[str, int] = field(default_factory=dict)
-    timings_ms: dict[str, float] = field(default_factory=dict)  # mean per bucket
-
-    def to_dict(self) -> dict:
-        return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
-
-
-def summarize(results: Sequence[QueryResult]) -> BatchSummary:
-    ms = np.array([q.result.total_ms for q in results], dtype=np.float64)
-    ok = sum(bool(q.result.success) for q in results)
-    paths = {p: sum(q.result.path == p for q in results) for p in PATHS}
-    buckets = {b: float(np.mean([q.result.timings[b] for q in results])) if results else 0.0 for b in TIMING_BUCKETS}
-    pct = (lambda p: float(np.percentile(ms, p))) if len(ms) else (lambda p: 0.0)
-    return BatchSummary(len(results), ok, ok / len(results) if results else 0.0, pct(50), pct(95), pct(99),
-                        float(ms.max()) if len(ms) else 0.0, paths, buckets)
-
-
 def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query], *, scan_topic: str | None = None,
                     laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
                     on_query=None) -> tuple[list[QueryResult], BatchSummary]:
     """Run every query against its scan (nearest to its time, or at its index), in file order."""
     if not queries:
         raise CartoError("no queries")
-    scans = _scans_for(recording, queries, scan_topic, max_time_offset)
+    scans = scans_for_queries(recording, queries, scan_topic, max_time_offset)
     results = []
     for k, q in enumerate(queries):
         i, scan = scans[k]
@@ -1058,16 +763,3 @@ def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query
         if on_query is not None:
             on_query(1)
     return results, summarize(results)
-
-
-def write_results_csv(path: str | Path, results: Iterable[QueryResult]) -> Path:
-    """The rows as CSV (CSV_COLUMNS), written atomically."""
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(CSV_COLUMNS), lineterminator="\n")
-    w.writeheader()
-    for q in results:
-        w.writerow(q.row())
-    path = Path(path)
-    with atomic_output(path) as tmp:
-        tmp.write_text(buf.getvalue(), encoding="utf-8")
-    return path

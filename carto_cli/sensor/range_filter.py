@@ -15,8 +15,8 @@ scan's own time: de-skewing.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from numba import njit
@@ -33,10 +33,10 @@ class RangeData:
     misses: np.ndarray  # (m, 2)
 
     @staticmethod
-    def empty() -> "RangeData":
+    def empty() -> RangeData:
         return RangeData(np.zeros(2), np.empty((0, 2)), np.empty((0, 2)))
 
-    def transformed(self, pose) -> "RangeData":
+    def transformed(self, pose) -> RangeData:
         x, y, theta = (float(v) for v in pose)
         c, s = math.cos(theta), math.sin(theta)
         ox, oy = float(self.origin[0]), float(self.origin[1])

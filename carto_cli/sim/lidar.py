@@ -8,8 +8,8 @@ a hit closer than ``min_range`` -> ``-inf``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np

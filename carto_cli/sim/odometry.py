@@ -8,12 +8,13 @@ frame, as a driver does, not at the robot's true pose.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from carto_cli.sim.trajectory import Trajectory, wrap_angle
+from carto_cli.core.transform import wrap_angle
+from carto_cli.sim.trajectory import Trajectory
 
 
 @dataclass(frozen=True)
@@ -26,7 +27,7 @@ class OdometryModel:
     noise_rotation_per_metre: float = math.radians(0.5)  # rad per sqrt(m) driven
 
     @classmethod
-    def perfect(cls) -> "OdometryModel":
+    def perfect(cls) -> OdometryModel:
         return cls(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
@@ -38,7 +39,7 @@ class ImuModel:
     gravity: float = 9.80665
 
     @classmethod
-    def perfect(cls) -> "ImuModel":
+    def perfect(cls) -> ImuModel:
         return cls(0.0, 0.0, 0.0)
 
 

@@ -8,19 +8,20 @@ topics are read and however often.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 
 from carto_cli.core.errors import TopicError
-from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
 from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
+from carto_cli.core.transform import wrap_angle
+from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
 from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.odometry import ImuModel, OdometryModel, gyro_and_accel, wheel_odometry
-from carto_cli.sim.trajectory import Trajectory, wrap_angle
+from carto_cli.sim.trajectory import Trajectory
 from carto_cli.sim.world import World
 
 SCAN_TOPIC, ODOM_TOPIC, IMU_TOPIC = "/scan", "/odom", "/imu"
@@ -134,7 +135,7 @@ class Simulation:
     def _rate(times: np.ndarray) -> float:
         return 1.0 / float(times[1] - times[0]) if len(times) > 1 else 1.0
 
-    def recording(self) -> "SimulatedRecording":
+    def recording(self) -> SimulatedRecording:
         return SimulatedRecording(self)
 
 
@@ -202,7 +203,8 @@ def simulate(
     imu_t = _sample_times(duration, imu_rate)
     gyro, accel = gyro_and_accel(trajectory, imu_t, imu_noise, np.random.default_rng(imu_seed))
     return Simulation(
-        world=world, trajectory=trajectory, lidar=lidar, laser_pose=tuple(float(v) for v in laser_pose),
+        world=world, trajectory=trajectory, lidar=lidar,
+        laser_pose=(float(laser_pose[0]), float(laser_pose[1]), float(laser_pose[2])),
         start_time=float(start_time), seed=seed,
         scan_times=start_time + _sample_times(duration, scan_rate),
         odometry=np.column_stack([start_time + odom_t, odom]).reshape(-1, 6),

@@ -14,11 +14,12 @@ end of a dead end) by slowing down, turning on the spot, and driving on.
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
+from carto_cli.core.transform import wrap_angle, wrap_angle_scalar
 from carto_cli.sim.world import World
 
 
@@ -28,11 +29,6 @@ class Limits:
     w_max: float = math.radians(45.0)  # rad/s
     a_max: float = 0.5  # m/s^2
     alpha_max: float = math.radians(180.0)  # rad/s^2
-
-
-def wrap_angle(a):
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def _arc(x, y, yaw, v, w, tau):
@@ -110,7 +106,7 @@ class Trajectory:
         lookahead: float = 0.5,
         sharp_turn: float = math.radians(100.0),
         max_duration: float = 24 * 3600.0,
-    ) -> "Trajectory":
+    ) -> Trajectory:
         """Drive along ``waypoints`` (m, 2) from the first to the last (around ``laps`` times if closed)."""
         path = _route(np.asarray(waypoints, dtype=np.float64).reshape(-1, 2), closed, laps)
         return cls(dt, *_drive(path, limits, dt, lookahead, sharp_turn, max_duration))
@@ -148,7 +144,11 @@ def _drive(path, lim: Limits, dt, lookahead, sharp_turn, max_duration):
     k = 0  # current segment
     stop = 0  # index into stops
     a_step, alpha_step = lim.a_max * dt, lim.alpha_max * dt
-    out_x, out_y, out_yaw, out_v, out_w = [], [], [], [], []
+    out_x: list[float] = []
+    out_y: list[float] = []
+    out_yaw: list[float] = []
+    out_v: list[float] = []
+    out_w: list[float] = []
     arrived = False
     for _ in range(int(max_duration / dt)):
         if arrived:
@@ -177,7 +177,7 @@ def _drive(path, lim: Limits, dt, lookahead, sharp_turn, max_duration):
             if math.hypot(tx - x, ty - y) < 1e-6:
                 err = 0.0
             else:
-                err = (math.atan2(ty - y, tx - x) - yaw + math.pi) % (2 * math.pi) - math.pi
+                err = wrap_angle_scalar(math.atan2(ty - y, tx - x) - yaw)
             w_des = max(-lim.w_max, min(lim.w_max, 2.0 * err))
             v_des = lim.v_max * math.cos(err) ** 2 if abs(err) < math.pi / 3 else 0.0
             if abs(v) < 0.05 and abs(err) > math.radians(10.0):
@@ -186,9 +186,11 @@ def _drive(path, lim: Limits, dt, lookahead, sharp_turn, max_duration):
             v_des = min(v_des, math.sqrt(2.0 * lim.a_max * max(to_stop, 0.0)) + (0.02 if to_stop > 0.01 else 0.0))
         v += max(-a_step, min(a_step, v_des - v))
         w += max(-alpha_step, min(alpha_step, w_des - w))
-        out_x.append(x), out_y.append(y), out_yaw.append(yaw), out_v.append(v), out_w.append(w)
+        for out, value in ((out_x, x), (out_y, y), (out_yaw, yaw), (out_v, v), (out_w, w)):
+            out.append(value)
         x, y, yaw = _arc_scalar(x, y, yaw, v, w, dt)
-    out_x.append(x), out_y.append(y), out_yaw.append(yaw), out_v.append(0.0), out_w.append(0.0)
+    for out, value in ((out_x, x), (out_y, y), (out_yaw, yaw), (out_v, 0.0), (out_w, 0.0)):
+        out.append(value)
     return out_x, out_y, out_yaw, out_v, out_w
 
 

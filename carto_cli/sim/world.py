@@ -6,8 +6,8 @@ which a robot can drive without touching a wall (see ``trajectory.follow``).
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -62,9 +62,9 @@ def box(cx: float, cy: float, w: float, h: float) -> np.ndarray:
 
 def wall(p0: Sequence[float], p1: Sequence[float], gaps: Iterable[tuple[float, float]] = ()) -> np.ndarray:
     """A straight wall from p0 to p1 with openings, each ``(centre, width)`` in metres from p0."""
-    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
-    length = float(np.hypot(*(p1 - p0)))
-    direction = (p1 - p0) / length
+    start_xy, end_xy = np.asarray(p0, float), np.asarray(p1, float)
+    length = float(np.hypot(*(end_xy - start_xy)))
+    direction = (end_xy - start_xy) / length
     cuts = sorted((c - w / 2, c + w / 2) for c, w in gaps)
     pieces, start = [], 0.0
     for a, b in cuts:
@@ -73,7 +73,7 @@ def wall(p0: Sequence[float], p1: Sequence[float], gaps: Iterable[tuple[float, f
         start = max(start, b)
     if start < length:
         pieces.append((start, length))
-    return np.array([[*(p0 + a * direction), *(p0 + b * direction)] for a, b in pieces]).reshape(-1, 4)
+    return np.array([[*(start_xy + a * direction), *(start_xy + b * direction)] for a, b in pieces]).reshape(-1, 4)
 
 
 def merge(*parts: np.ndarray) -> np.ndarray:
@@ -86,7 +86,7 @@ def room(w: float = 8.0, h: float = 6.0) -> World:
     """An empty rectangle [0, w] x [0, h]; the route circles it 1 m from the walls."""
     m = min(1.0, w / 4, h / 4)
     route = [(m, m), (w - m, m), (w - m, h - m), (m, h - m)]
-    return World(box(w / 2, h / 2, w, h), route=route, closed=True, name=f"room {w}x{h}")
+    return World(box(w / 2, h / 2, w, h), route=np.array(route), closed=True, name=f"room {w}x{h}")
 
 
 def corridor(length: float = 30.0, width: float = 2.0) -> World:
@@ -97,7 +97,7 @@ def corridor(length: float = 30.0, width: float = 2.0) -> World:
     """
     walls = box(length / 2, width / 2, length, width)
     route = [(1.0, width / 2), (length - 1.0, width / 2)]
-    return World(walls, route=route, closed=False, name=f"corridor {length}x{width}")
+    return World(walls, route=np.array(route), closed=False, name=f"corridor {length}x{width}")
 
 
 def loop_building(
@@ -153,7 +153,7 @@ def loop_building(
 
     h = c / 2
     route = [(h, h), (W - h, h), (W - h, H - h), (h, H - h)]
-    return World(merge(*segs), route=route, closed=True, name="loop building",
+    return World(merge(*segs), route=np.array(route), closed=True, name="loop building",
                  meta={"width": W, "height": H, "corridor_width": c})
 
 
@@ -190,5 +190,5 @@ def office(
     for x in door_at:
         route += [(x, c / 2), (x, c + rd / 2), (x, c / 2)]
     route.append((L - 0.7, c / 2))
-    return World(merge(*segs), route=route, closed=False, name="office",
+    return World(merge(*segs), route=np.array(route), closed=False, name="office",
                  meta={"corridor_width": c, "doors": door_at})

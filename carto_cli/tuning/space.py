@@ -21,9 +21,9 @@ from pathlib import Path
 from typing import Any
 
 from carto_cli.core.errors import CartoError
-from carto_cli.options import Options, _apply, _Layer, _read_yaml, _suggestion, option_info, profiles_dir
+from carto_cli.options import Layer, Options, apply_values, option_info, profiles_dir, read_yaml, suggestion
 
-__all__ = ["Param", "load_space", "default_space_path", "spaces_dir", "suggest_params", "base_values"]
+__all__ = ["Param", "base_values", "default_space_path", "load_space", "spaces_dir", "suggest_params"]
 
 _SPEC_KEYS = {"low", "high", "log", "int", "step", "choices"}
 
@@ -45,7 +45,8 @@ class Param:
             return any(value == c and type(value) is type(c) for c in self.choices)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             return False
-        return self.low <= value <= self.high
+        low, high = self.low, self.high
+        return low is not None and high is not None and low <= value <= high
 
     def describe(self) -> str:
         if self.kind == "categorical":
@@ -80,7 +81,7 @@ def _flatten(data: dict, prefix: str, leaves: dict[str, Any], fail) -> dict[str,
         elif any(n.startswith(full + ".") for n in leaves):
             raise fail(full, "is a section, not an option: give a range or choices for one of its options")
         else:
-            raise fail(full, f"unknown option{_suggestion(full)}")
+            raise fail(full, f"unknown option{suggestion(full)}")
     return out
 
 
@@ -89,7 +90,7 @@ def _check_value(name: str, value: Any, what: str, fail) -> Any:
     try:
         # This option's own type and bounds only: cross-option checks (min_range < max_range)
         # depend on the other values of a trial and are made when the trial applies them.
-        opts = _apply(Options(), {name: value}, _Layer(None, {}, cli=False), "")
+        opts = apply_values(Options(), {name: value}, Layer())
     except CartoError as e:
         # "key: must be >= 0, got -1" -> keep what follows the key.
         msg = e.message.split(": ", 1)[-1] if e.message.startswith(name) else e.message
@@ -102,13 +103,14 @@ def _check_value(name: str, value: Any, what: str, fail) -> Any:
 
 def load_space(space: Path | str | dict, *, where: str | Path | None = None) -> list[Param]:
     """The parameters of a space file (or of a dict in the same form), validated (see the module doc)."""
+    lines: dict[str, int]
     if isinstance(space, dict):
         data, lines, path = space, {}, where
     else:
         path = Path(space)
         if not path.is_file():
             raise CartoError("no such search-space file", path)
-        data, lines = _read_yaml(path)
+        data, lines = read_yaml(path)
 
     def fail(key: str, message: str) -> CartoError:
         line = lines.get(key)
@@ -185,7 +187,9 @@ def suggest_params(trial, params: list[Param]) -> dict[str, Any]:
         elif p.kind == "int":
             v = trial.suggest_int(p.name, p.low, p.high, log=p.log, step=int(p.step or 1))
         else:
-            v = trial.suggest_float(p.name, float(p.low), float(p.high), log=p.log, step=p.step)
+            low, high = p.low, p.high
+            assert low is not None and high is not None  # load_space gives every range both ends
+            v = trial.suggest_float(p.name, float(low), float(high), log=p.log, step=p.step)
         if infos[p.name].type == "float" and not isinstance(v, bool):
             v = float(v)
         out[p.name] = v

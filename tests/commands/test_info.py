@@ -2,10 +2,12 @@
 import math
 
 import numpy as np
+import pytest
 
-from carto_cli.commands.info import format_info, inspect_recording
-from carto_cli.io.recording import Recording, TopicInfo
+from carto_cli.commands.info import format_info, inspect_recording, run_info
+from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Scan, Transform
+from carto_cli.io.recording import Recording, TopicInfo
 
 
 class ListRecording(Recording):
@@ -59,3 +61,17 @@ def test_rates_geometry_and_warnings():
 def test_no_scans_is_a_warning():
     info = inspect_recording(ListRecording([Odometry(time=0.0, x=0, y=0, yaw=0, topic="/odom")]))
     assert any("no laser scans" in w for w in info.warnings)
+
+
+def test_run_info_opens_the_file_and_announces_what_it_will_read(written_recordings):
+    records, paths = written_recordings
+    totals, seen = [], []
+    info = run_info(paths["mcap"], on_total=totals.append, on_record=lambda: seen.append(1))
+    assert totals == [len(records)] and len(seen) == len(records)
+    assert info.format == "mcap" and info.has_odometry and info.has_imu
+    assert {t.name: t.count for t in info.topics} == {"/scan": 20, "/odom": 100, "/imu": 200, "/tf_static": 1}
+
+
+def test_run_info_on_a_missing_file(tmp_path):
+    with pytest.raises(CartoError, match="no such file"):
+        run_info(tmp_path / "missing.bag")

@@ -6,8 +6,8 @@ from typer.testing import CliRunner
 
 from carto_cli.cli import app
 from carto_cli.io.map_file import load_map
-from carto_cli.io.trajectory import read_trajectory
 from carto_cli.io.recording_writers import write_recording
+from carto_cli.io.trajectory import read_trajectory
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
@@ -92,3 +92,25 @@ def test_bad_input_leaves_no_outputs(tmp_path, sim_bag):
     r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--load-state", str(bad_state)])
     assert r.exit_code == 2 and "bad.carto" in r.stderr
     assert not out.exists()
+
+
+def test_run_map_as_a_library_call(sim_bag, tmp_path):
+    from carto_cli.commands.map import compile_note, default_outdir, run_map, summary_line
+    from carto_cli.core.timing import StageTimer
+    from carto_cli.options import load_options
+
+    bag, sim = sim_bag
+    copy = tmp_path / "drive.2024.bag"
+    copy.write_bytes(bag.read_bytes())
+    assert default_outdir(copy) == tmp_path / "drive_map"
+    timer, totals = StageTimer(), []
+    options = load_options(None, FAST[1:])
+    result, outputs = run_map(copy, None, options, timer=timer, on_total=totals.append, state=False)
+    assert outputs.yaml == tmp_path / "drive_map" / "map.yaml" and outputs.state is None
+    assert totals == [sim.counts()["/scan"]]
+    assert timer.snapshot().scans == result.stats["scans"]
+    before = timer.snapshot().wall_ns
+    assert timer.snapshot().wall_ns == before  # stopped once the outputs were written
+    assert summary_line(result).startswith(f"{result.stats['scans']} scans, ")
+    note = compile_note(timer)
+    assert note == "" or note.startswith(" (incl. ")

@@ -48,10 +48,10 @@ def test_apply_to_points(poses):
     np.testing.assert_allclose(tf.apply(tf.inverse(poses[0]), tf.apply(poses[0], pts)), pts, atol=1e-12)
 
 
-def test_normalize_angle():
-    assert tf.normalize_angle(3 * math.pi) == pytest.approx(-math.pi)
-    assert tf.normalize_angle(-math.pi) == pytest.approx(-math.pi)
-    assert tf.normalize_angle(0.5 + 4 * math.pi) == pytest.approx(0.5)
-    a = tf.normalize_angle(np.linspace(-20, 20, 101))
+def test_wrap_angle():
+    assert tf.wrap_angle(3 * math.pi) == pytest.approx(-math.pi)
+    assert tf.wrap_angle(-math.pi) == pytest.approx(-math.pi)
+    assert tf.wrap_angle(0.5 + 4 * math.pi) == pytest.approx(0.5)
+    a = tf.wrap_angle(np.linspace(-20, 20, 101))
     assert a.min() >= -math.pi and a.max() < math.pi
     np.testing.assert_allclose(np.cos(a), np.cos(np.linspace(-20, 20, 101)), atol=1e-12)

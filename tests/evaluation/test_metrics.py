@@ -4,12 +4,22 @@ import math
 
 import numpy as np
 import pytest
+from support import shared_path
 
 from carto_cli.core.errors import CartoError, FormatError
-from carto_cli.evaluation.metrics import (Relations, align_se2, ate, evaluate, format_table, interpolate_poses,
-                                read_relations, relation_error, rpe, to_json)
+from carto_cli.evaluation.metrics import (
+    Relations,
+    align_se2,
+    ate,
+    evaluate,
+    format_table,
+    interpolate_poses,
+    read_relations,
+    relation_error,
+    rpe,
+    to_json,
+)
 from carto_cli.io.trajectory import Trajectory, write_trajectory
-from support import shared_path
 
 
 def wrap(a):

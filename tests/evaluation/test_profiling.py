@@ -8,14 +8,14 @@ import pytest
 from typer.testing import CliRunner
 
 from carto_cli.cli import app
+from carto_cli.core.timing import StageTimer
 from carto_cli.evaluation.gates import accuracy_gates, calibration_scale, compare_profiles, write_junit
-from carto_cli.pipeline import build
-from carto_cli.options import load_options
 from carto_cli.evaluation.profiling import SCHEMA_PATH, build_report, calibrate
+from carto_cli.options import load_options
+from carto_cli.pipeline import build
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
-from carto_cli.core.timing import StageTimer
 
 
 @pytest.fixture(scope="module")
@@ -148,9 +148,9 @@ def test_cli_eval_gates(tmp_path):
 def test_relocalization_profile(tmp_path, report):
     from support import SAMPLE_BAG
 
+    from carto_cli.evaluation.profiling import profile_relocalization
     from carto_cli.io.map_file import load_map, save_map
     from carto_cli.io.sources.open import open_recording
-    from carto_cli.evaluation.profiling import profile_relocalization
 
     options = load_options("office")
     with open_recording(SAMPLE_BAG) as rec:

@@ -14,7 +14,6 @@ from carto_cli.grid.range_inserter import (
 )
 from carto_cli.sensor.range_filter import RangeData
 
-
 # --- ray casting ----------------------------------------------------------------------------
 
 def exact_cells(b, e, scale, closed):
@@ -111,7 +110,7 @@ def test_hits_excluded_from_their_own_ray_misses_included():
     ProbabilityGridRangeDataInserter().insert(rd, g)
     np.testing.assert_allclose(g.probability([[5, 0]]), [P_HIT])
     np.testing.assert_allclose(g.probability([[i, 0] for i in range(1, 5)]), P_MISS)
-    np.testing.assert_allclose(g.probability([[0, j] for j in range(0, 8)]), P_MISS)  # miss end cell (0, 7) too
+    np.testing.assert_allclose(g.probability([[0, j] for j in range(8)]), P_MISS)  # miss end cell (0, 7) too
     assert np.isnan(g.probability([[6, 0], [0, 8]])).all()
     assert (g.cells < UPDATE_MARKER).all()
     assert g.known_bounds == (0, 0, 5, 7)

@@ -3,19 +3,24 @@ import hashlib
 import json
 import struct
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from carto_cli import __version__
 from carto_cli.core.errors import CartoError, FormatError
-from carto_cli.io.map_file import FORMAT_VERSION, MAGIC, LoadedMap, load_map, save_map
+from carto_cli.io.container import decode
+from carto_cli.io.map_file import FORMAT_VERSION, MAGIC, MAP_FORMAT, LoadedMap, load_map, save_map
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.constraints import ConstraintKind
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options, apply_overrides, load_options
+
+DATA = Path(__file__).parent / "data"
 
 # Small submaps so a 40 s loop gives several finished submaps and loop closures in a few seconds.
 OVERRIDES = ["pose_graph.optimize_every_n_nodes=0", "trajectory_builder_2d.submaps.num_range_data=10"]
@@ -131,14 +136,16 @@ def test_to_pose_graph_restores_the_graph_and_mapping_can_continue(mapped):
     loaded = load_map(path)
     graph = loaded.to_pose_graph()
     assert graph.options == options
-    assert graph._submap_index == result.graph._submap_index
+    assert [(e.trajectory, e.submap.index) for e in graph.submaps] == \
+        [(e.trajectory, e.submap.index) for e in result.graph.submaps]
+    assert [e.searched for e in graph.submaps] == [e.finished for e in graph.submaps]
     assert_graph_state_equal(graph, loaded)
     # A graph saved from the restored graph loads to the same state.
     assert_graph_state_equal(graph, load_map(save_map(path.with_name("again.carto"), graph, options)))
 
     # The restored graph owns copies.
     graph.submaps[0].submap.grid.cells[:] = 7
-    graph._global.array[:] = 0
+    graph.global_poses[:] = 0
     assert_graph_state_equal(result.graph, loaded)
 
     # A new trajectory is added, searched against the old map and optimized with it.
@@ -150,7 +157,8 @@ def test_to_pose_graph_restores_the_graph_and_mapping_can_continue(mapped):
     new = Submap(node[:2], index=0, resolution=options.trajectory_builder_2d.submaps.grid_options_2d.resolution)
     graph.add_node(loaded.node_times[-1] + 1, node, loaded.node_points[5], [new], trajectory=t)
     assert graph.num_nodes == n + 1 and graph.node_trajectory[-1] == t
-    assert graph._submap_index[(t, 0)] == len(graph.submaps) - 1
+    assert (graph.submaps[-1].trajectory, graph.submaps[-1].submap.index) == (t, 0)
+    assert len(graph.submaps) == loaded.num_submaps + 1
     summary = graph.optimize(final=True)
     assert summary is not None
     assert np.allclose(graph.global_poses[:n], loaded.node_global_poses, atol=0.05)
@@ -170,6 +178,34 @@ def test_hand_built_graph_with_empty_submap_round_trips(tmp_path):
     assert np.array_equal(loaded.trajectory.poses, traj.poses)
     assert loaded.node_scans is None and loaded.laser_pose is None
     assert loaded.to_pose_graph().builder.connected == set()
+
+
+def test_a_map_written_by_format_version_1_still_loads():
+    """tests/io/data/hand_graph_v1.carto: ``_hand_graph()`` saved by the version-1 writer of commit 64a97d6
+    (with ``trajectory=(arange(3), zeros((3, 3)))`` and ``recordings=["hand.bag"]``)."""
+    loaded = load_map(DATA / "hand_graph_v1.carto")
+    assert_graph_state_equal(_hand_graph(), loaded)
+    meta = loaded.metadata
+    assert meta.format_version == 1 and meta.carto_version == "0.1.0"
+    assert meta.created == "2024-01-01T00:00:00Z" and meta.recordings == ("hand.bag",)
+    assert np.array_equal(loaded.trajectory.t, np.arange(3.0))
+    assert loaded.to_pose_graph().num_nodes == 3
+
+
+def test_the_writer_still_writes_format_version_1(tmp_path):
+    """The same graph saved today gives the version-1 file's arrays, codecs and header, byte for byte
+    (all but the creation time, the carto version and the options, which may grow)."""
+    path = save_map(tmp_path / "again.carto", _hand_graph(), Options(),
+                    trajectory=(np.arange(3.0), np.zeros((3, 3))), recordings=["hand.bag"])
+    old_header, old_arrays = decode((DATA / "hand_graph_v1.carto").read_bytes(), path, MAP_FORMAT)
+    new_header, new_arrays = decode(path.read_bytes(), path, MAP_FORMAT)
+    for header in (old_header, new_header):
+        for key in ("created", "carto_version", "options"):
+            header.pop(key)
+    assert json.dumps(new_header) == json.dumps(old_header)  # key order too
+    assert list(new_arrays) == list(old_arrays)
+    for name, array in old_arrays.items():
+        assert new_arrays[name].dtype == array.dtype and new_arrays[name].tobytes() == array.tobytes(), name
 
 
 def test_graph_without_trajectory_or_nodes(tmp_path):

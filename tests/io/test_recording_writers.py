@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from carto_cli.core.errors import CartoError, FormatError
+from carto_cli.core.records import Imu, Odometry, Scan, Transform
+from carto_cli.io.recording_writers import format_for_output, write_recording
 from carto_cli.io.sources.mcap import McapRecording
 from carto_cli.io.sources.rosbag import RosbagRecording
-from carto_cli.io.recording_writers import format_for_output, write_recording
-from carto_cli.core.records import Imu, Odometry, Scan, Transform
 
 FORMATS = {"ros1": "out.bag", "ros2-sqlite3": "out_db3", "ros2-mcap": "out_mcap", "mcap": "out.mcap"}
 TOPIC_TYPES = {"/scan": "sensor_msgs/msg/LaserScan", "/front/scan": "sensor_msgs/msg/LaserScan",

@@ -3,10 +3,10 @@ import os
 
 import numpy as np
 import pytest
+from support import shared_path
 
 from carto_cli.core.errors import CartoError, FormatError
 from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
-from support import shared_path
 
 
 def sample(n=50, seed=1) -> Trajectory:

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from carto_cli.core import transform as tf
-from carto_cli.mapping.extrapolator import PoseExtrapolator
 from carto_cli.core.records import Imu, Odometry
+from carto_cli.mapping.extrapolator import PoseExtrapolator
 
 
 def test_identity_before_any_pose_and_hold_with_one():

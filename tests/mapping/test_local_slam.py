@@ -11,16 +11,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from support import SAMPLE_BAG
 
+from carto_cli.core.timing import StageTimer, report_json
 from carto_cli.evaluation.metrics import ate, rpe
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.trajectory import Trajectory
-from carto_cli.pipeline import build
 from carto_cli.options import load_options
+from carto_cli.pipeline import build
 from carto_cli.sim import Trajectory as SimTrajectory
 from carto_cli.sim import follow_route, loop_building, office, simulate
-from carto_cli.core.timing import StageTimer, report_json
-from support import SAMPLE_BAG
 
 P = "trajectory_builder_2d."
 # What data without odometry needs (see the CCNY test and carto_cli.mapping.local_slam):

@@ -4,12 +4,14 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from reference.optimization import block_matrix_to_sparse, huber_rho, jacobian_blocks, sparse_jacobian
 
-from carto_cli.mapping import optimization as opt
-from carto_cli.mapping.constraints import Constraint, ConstraintKind, ConstraintSet
-from carto_cli.mapping.optimization import NodePairs, node_pairs_from_options, optimize, residuals, solver_kwargs
-from carto_cli.options import Options
 from carto_cli.core.transform import compose, relative
+from carto_cli.mapping.constraints import Constraint, ConstraintKind, ConstraintSet
+from carto_cli.mapping.optimization import NodePairs, optimize, residuals
+from carto_cli.mapping.optimization.block_cholesky import BlockSystem
+from carto_cli.mapping.optimization.levenberg_marquardt import damped
+from carto_cli.mapping.optimization.problem import Edges, build_edges, cost_kernel, free_columns, model_kernel
 
 # Cartographer's default weights (pose_graph.lua).
 MATCHER = (5e2, 1.6e3)
@@ -77,9 +79,9 @@ def random_problem(seed=1, n=30, m=4, k=120):
 
 def test_jacobian_matches_finite_differences():
     nodes, submaps, cs, pairs = random_problem()
-    edges = opt._build_edges(len(nodes), len(submaps), cs, [pairs])
+    edges = build_edges(len(nodes), len(submaps), cs, [pairs])
     x = np.concatenate([submaps, nodes])
-    r0, ja, jb = opt._jacobian_blocks(x, edges)
+    r0, ja, jb = jacobian_blocks(x, edges)
     assert np.abs(r0).max() > 0.1  # not trivially at a minimum
     eps = 1e-6
     for blocks, of_start in ((ja, True), (jb, False)):
@@ -97,29 +99,29 @@ def _perturbed_residual(x, edges, of_start, d, eps):
     """
     k = len(edges)
     poses = np.concatenate([x[edges.start], x[edges.end]])
-    private = opt._Edges(np.arange(k), np.arange(k) + k, edges.measured, edges.translation_weight,
+    private = Edges(np.arange(k), np.arange(k) + k, edges.measured, edges.translation_weight,
                          edges.rotation_weight, edges.robust)
     poses[np.arange(k) if of_start else np.arange(k) + k, d] += eps
-    return opt._jacobian_blocks(poses, private)[0]
+    return jacobian_blocks(poses, private)[0]
 
 
 def test_kernels_assemble_the_robust_normal_equations_and_solve_them():
     nodes, submaps, cs, pairs = random_problem(seed=2)
-    edges = opt._build_edges(len(nodes), len(submaps), cs, [pairs])
+    edges = build_edges(len(nodes), len(submaps), cs, [pairs])
     x = np.concatenate([submaps, nodes])
-    column = opt._free_columns(edges, len(x), np.array([0, 7]))
+    column = free_columns(edges, len(x), np.array([0, 7]))
     huber = 1.0
-    system = opt._BlockSystem(edges, column, int(column.max() + 1))
+    system = BlockSystem(edges, column, int(column.max() + 1))
     cost, h_blocks, rhs = system.linearize(x, edges, huber)
 
-    u, ja, jb = opt._jacobian_blocks(x, edges)
-    rho, rho1 = opt._huber_rho(np.sum(u * u, axis=1), edges.robust, huber)
+    u, ja, jb = jacobian_blocks(x, edges)
+    rho, rho1 = huber_rho(np.sum(u * u, axis=1), edges.robust, huber)
     assert np.count_nonzero(rho1 < 1) > 10  # the Huber tail is exercised
     scale = np.sqrt(rho1)
-    jac = opt._sparse_jacobian(ja * scale[:, None, None], jb * scale[:, None, None], edges, column)
+    jac = sparse_jacobian(ja * scale[:, None, None], jb * scale[:, None, None], edges, column)
     r = (u * scale[:, None]).ravel()
 
-    h = system.to_sparse(h_blocks).toarray()
+    h = block_matrix_to_sparse(system, h_blocks).toarray()
     jtj = (jac.T @ jac).toarray()
     np.testing.assert_allclose(h, jtj, atol=1e-9 * np.abs(jtj).max())
     g = np.empty_like(rhs)
@@ -127,28 +129,28 @@ def test_kernels_assemble_the_robust_normal_equations_and_solve_them():
     np.testing.assert_allclose(g.ravel(), jac.T @ r, atol=1e-9 * np.abs(g).max())
     assert cost == pytest.approx(0.5 * rho.sum(), rel=1e-12)
     args = (*edges.kernel_args, huber)
-    assert opt._cost_kernel(x, *args) == pytest.approx(cost, rel=1e-12)
+    assert cost_kernel(x, *args) == pytest.approx(cost, rel=1e-12)
 
     radius = 10.0
-    step = system.solve(h_blocks, rhs, radius)
-    damped = jtj + np.diag(np.clip(np.diag(jtj), 1e-6, 1e32) / radius)
-    expected = spla.spsolve(sp.csc_matrix(damped), -g.ravel())
+    step = system.solve(damped(system, h_blocks, radius), rhs)
+    reference = jtj + np.diag(np.clip(np.diag(jtj), 1e-6, 1e32) / radius)
+    expected = spla.spsolve(sp.csc_matrix(reference), -g.ravel())
     unpermuted = np.empty_like(step)
     unpermuted[system.perm] = step
     np.testing.assert_allclose(unpermuted.ravel(), expected, rtol=1e-8, atol=1e-10)
-    model = opt._model_kernel(x, *args, system.rs, system.re, step)
+    model = model_kernel(x, *args, system.rs, system.re, step)
     assert model == pytest.approx(float(np.sum((jac @ unpermuted.ravel()) ** 2)), rel=1e-10)
 
 
 def test_block_cholesky_reports_an_indefinite_system():
     nodes, submaps, cs, pairs = random_problem(seed=3)
-    edges = opt._build_edges(len(nodes), len(submaps), cs, [pairs])
+    edges = build_edges(len(nodes), len(submaps), cs, [pairs])
     x = np.concatenate([submaps, nodes])
-    column = opt._free_columns(edges, len(x), np.array([0]))
-    system = opt._BlockSystem(edges, column, int(column.max() + 1))
+    column = free_columns(edges, len(x), np.array([0]))
+    system = BlockSystem(edges, column, int(column.max() + 1))
     _, h_blocks, rhs = system.linearize(x, edges, math.inf)
-    assert system.solve(-h_blocks, rhs, 1e4) is None
-    assert system.solve(h_blocks, rhs, 1e4) is not None  # the workspace was left clean
+    assert system.solve(damped(system, -h_blocks, 1e4), rhs) is None
+    assert system.solve(damped(system, h_blocks, 1e4), rhs) is not None  # the workspace was left clean
 
 
 # --------------------------------------------------------------------------- optimisation
@@ -262,7 +264,7 @@ def test_gauge_fixed_poses_and_a_disconnected_trajectory():
 
 
 def test_iteration_limit_and_degenerate_inputs():
-    gt, sub_gt, init, sub_init, cs, local = two_lap_graph()
+    _, _, init, sub_init, cs, local = two_lap_graph()
     one = optimize(init, sub_init, cs, None, local, max_num_iterations=1)
     assert one.summary.iterations == 1 and one.summary.termination == "max_iterations"
     assert not one.summary.converged
@@ -278,19 +280,6 @@ def test_iteration_limit_and_degenerate_inputs():
         optimize(init[:3], sub_init[:1], ConstraintSet.from_arrays([1], [0], [(0, 0, 0)], 1, 1))
     with pytest.raises(ValueError, match="huber_scale"):
         optimize(init, sub_init, cs, huber_scale=0.0)
-
-
-def test_solver_settings_and_node_pairs_follow_the_options():
-    pose_graph = Options().pose_graph
-    assert solver_kwargs(pose_graph) == {"huber_scale": 10.0, "max_num_iterations": 50}
-    assert solver_kwargs(pose_graph, final=True)["max_num_iterations"] == pose_graph.max_num_final_iterations
-    poses = np.array([(0, 0, 0), (1, 0, 0.1), (2, 0, 0.2)])
-    odometry, local = node_pairs_from_options(pose_graph, poses, poses + 0.5, trajectory_ids=[0, 0, 1])
-    problem = pose_graph.optimization_problem
-    assert local.first.tolist() == [0] and odometry.first.tolist() == [0]
-    assert local.translation_weight[0] == problem.local_slam_pose_translation_weight
-    assert odometry.rotation_weight[0] == problem.odometry_rotation_weight
-    assert node_pairs_from_options(pose_graph, poses)[0] is None
 
 
 # --------------------------------------------------------------------------- ConstraintSet

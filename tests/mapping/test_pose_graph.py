@@ -11,10 +11,10 @@ from carto_cli.core import transform
 from carto_cli.evaluation.metrics import ate
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.constraints import ConstraintKind
-from carto_cli.pipeline import build
 from carto_cli.mapping.pose_graph import PoseGraph
-from carto_cli.mapping.submaps import Submap
+from carto_cli.mapping.pose_graph_state import PoseGraphState
 from carto_cli.options import load_options
+from carto_cli.pipeline import build
 from carto_cli.sim import loop_building, loop_trajectory, simulate
 
 CB = "pose_graph.constraint_builder."
@@ -174,6 +174,53 @@ def test_no_optimization_runs_without_loop_closure():
         g.add_node(float(i), (1.1 * i, 0.0, 0.0), np.zeros((0, 2)), [sm])
     assert g.stats.optimizations == 0
     np.testing.assert_allclose(g.global_poses[:, 0], 1.1 * np.arange(6))
+
+
+def assert_states_equal(a: PoseGraphState, b: PoseGraphState):
+    for name in ("node_times", "node_trajectories", "node_local_poses", "node_global_poses", "node_odometry",
+                 "node_searches"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), name
+    assert len(a.node_points) == len(b.node_points)
+    assert all(np.array_equal(p, q) for p, q in zip(a.node_points, b.node_points))
+    assert len(a.submaps) == len(b.submaps)
+    for e, f in zip(a.submaps, b.submaps):
+        assert (e.trajectory, e.nodes, e.searched, e.finished) == (f.trajectory, f.nodes, f.searched, f.finished)
+        assert np.array_equal(e.global_pose, f.global_pose) and np.array_equal(e.local_pose, f.local_pose)
+        assert e.submap.grid.cells.tobytes() == f.submap.grid.cells.tobytes()
+    for column in ("submap", "node", "relative", "translation_weight", "rotation_weight", "is_loop_closure"):
+        assert np.array_equal(getattr(a.constraints, column), getattr(b.constraints, column)), column
+    assert a.odometry_samples.keys() == b.odometry_samples.keys()
+    for t in a.odometry_samples:
+        assert all(np.array_equal(x, y) for x, y in zip(a.odometry_samples[t], b.odometry_samples[t]))
+    assert a.last_search_poses.keys() == b.last_search_poses.keys()
+    assert (a.connected, a.removed_loop_closures, a.nodes_since_optimization) == \
+        (b.connected, b.removed_loop_closures, b.nodes_since_optimization)
+
+
+def test_a_graph_restored_from_its_state_is_the_same_graph(two_laps):
+    _, _, mapped = two_laps
+    state = mapped.graph.to_state()
+    assert state.num_nodes == mapped.graph.num_nodes and state.odometry_samples
+    assert all(e.searched for e in state.submaps if e.finished)
+    first = PoseGraph.from_state(mapped.graph.options, state)
+    assert_states_equal(first.to_state(), state)
+    np.testing.assert_array_equal(first.node_odometry(), mapped.graph.node_odometry())
+    # It owns copies: changing it leaves the state (and the mapped graph) alone.
+    first.global_poses[:] = 0
+    first.submaps[0].submap.grid.cells[:] = 3
+    assert_states_equal(mapped.graph.to_state(), state)
+
+    # Two graphs restored from one state grow and optimize identically.
+    a = PoseGraph.from_state(mapped.graph.options, state)
+    b = PoseGraph.from_state(mapped.graph.options, a.to_state())
+    for graph in (a, b):
+        node = graph.num_nodes - 1
+        graph.add_odometry(graph.node_times[-1] + 0.1, graph.node_odometry()[node])
+        graph.add_node(graph.node_times[-1] + 0.2, graph.local_poses[node], graph.node_points[node],
+                       [graph.submaps[-1].submap])
+        graph.optimize(final=True)
+    assert_states_equal(a.to_state(), b.to_state())
 
 
 @pytest.mark.parametrize("profile", ["wheeled", "sparse"])

@@ -133,6 +133,7 @@ TRUTHS = [np.array([12.0, 1.25, 0.3]), np.array([22.75, 9.0, 1.9])]
 OFFSETS = [(1.3, 0.0, math.radians(12)), (-0.7, 1.1, -math.radians(12)), (0.9, -0.94, math.radians(25))]
 
 
+@pytest.mark.slow_without_jit
 @pytest.mark.parametrize("truth", TRUTHS, ids=["bottom", "right"])
 @pytest.mark.parametrize("offset", OFFSETS, ids=["x+", "xy-", "xy+"])
 def test_finds_a_known_offset_in_a_building(building, truth, offset):
@@ -148,6 +149,7 @@ def test_finds_a_known_offset_in_a_building(building, truth, offset):
     assert_same(bnb.match_multilevel(stack, pts, initial), result)
 
 
+@pytest.mark.slow_without_jit
 def test_full_submap_search_localises_without_a_prior(building):
     world, grid, stack = building
     truth = TRUTHS[1]
@@ -158,6 +160,7 @@ def test_full_submap_search_localises_without_a_prior(building):
     assert abs(result.pose[2] - truth[2]) < 3 * bnb.angular_step(pts, grid.resolution)
 
 
+@pytest.mark.slow_without_jit
 def test_min_score_rejects_a_scan_of_a_different_place(building):
     _, _, stack = building
     # A heptagonal hall: no wall of it lines up with the building's corridors and rooms for long.
@@ -174,8 +177,9 @@ def test_min_score_rejects_a_scan_of_a_different_place(building):
     assert not bnb.match_full_submap(stack, pts).found
 
 
+@pytest.mark.slow_without_jit
 def test_pruning_scores_a_small_part_of_the_window(building):
-    world, grid, stack = building
+    world, _, stack = building
     truth = TRUTHS[0]
     pts = scan(world, truth, np.random.default_rng(4))
     problem = bnb._window_problem(stack, pts, truth + np.array(OFFSETS[0]), 7.0, math.radians(30))
@@ -186,6 +190,7 @@ def test_pruning_scores_a_small_part_of_the_window(building):
     assert found and scored.sum() < 0.01 * window
 
 
+@pytest.mark.slow_without_jit
 def test_single_level_multilevel_is_the_plain_search(building):
     world, _, stack = building
     pts = scan(world, TRUTHS[0], np.random.default_rng(5))

@@ -2,10 +2,11 @@ import math
 
 import numpy as np
 import pytest
-
 from room_sim import build_room_grid, scan_points
+
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching.correlative import match, search_parameters
+from carto_cli.matching.kernels import discretize
 
 TRUTH = np.array([3.0, 2.8, 0.3])
 
@@ -15,6 +16,22 @@ def room():
     rng = np.random.default_rng(11)
     poses = [TRUTH + rng.normal(0, [0.1, 0.1, 0.05]) for _ in range(10)]
     return build_room_grid(poses), scan_points(TRUTH, noise=0.01, rng=rng)
+
+
+def test_scans_are_discretised_per_angle_as_numpy_would():
+    """The kernel both matchers share: rotate, translate, floor to cells, in this operation order."""
+    rng = np.random.default_rng(4)
+    pts = rng.normal(0, 5, (200, 2))
+    angles = 0.3 + np.arange(-7, 8) * 0.013
+    x0, y0, ox, oy, res = 1.7, -2.2, -30.0, -25.0, 0.05
+    cells = discretize(pts, angles, x0, y0, ox, oy, 1.0 / res)
+    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    wx = c * pts[:, 0] - s * pts[:, 1] + x0
+    wy = s * pts[:, 0] + c * pts[:, 1] + y0
+    expected = np.stack([np.floor((wx - ox) * (1.0 / res)), np.floor((wy - oy) * (1.0 / res))], axis=-1)
+    assert cells.dtype == np.int64 and cells.shape == (15, 200, 2)
+    np.testing.assert_array_equal(cells, expected.astype(np.int64))
+    assert discretize(pts[:0], angles, x0, y0, ox, oy, 1.0 / res).shape == (15, 0, 2)
 
 
 def test_search_parameters_follow_the_farthest_point():

@@ -2,8 +2,8 @@ import math
 
 import numpy as np
 import pytest
-
 from room_sim import build_room_grid, scan_points
+
 from carto_cli.matching.least_squares import evaluate, match
 
 TRUTH = np.array([3.0, 2.8, 0.3])

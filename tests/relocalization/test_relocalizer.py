@@ -1,76 +1,21 @@
-"""Relocalization in a saved map: windowed search around priors, fallbacks, global search, filters, batch, errors.
+"""The relocalization search in a saved map: windowed passes around priors, fallbacks, global search, submap
+filters, the acceptance checks, batch queries, errors.
 
-The map is built from a simulated pass along the bottom and right stretches of the loop
-building; queries are scans of a second pass (other noise seed) at the same times, so the
-reference pose of each is the map's own pose of the first pass's scan at that time. (The
-world frame is not a good reference: local SLAM's small rotation bias bends the map by up
-to ~1 m over the loop, so a pose that fits the map perfectly is off from the world's.)
+The map and the second-pass queries come from ``reloc_map`` (fixtures in conftest.py).
 """
 import math
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from reloc_map import pose_error
 
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError, FormatError
-from carto_cli.io.map_file import load_map, save_map
+from carto_cli.io.map_file import load_map
 from carto_cli.mapping.submaps import Submap
-from carto_cli.options import Options, load_options
-from carto_cli.relocalization.relocalizer import (CSV_COLUMNS, Query, Relocalizer, StackCache, parse_pose, read_queries,
-                                  relocalize_many, scan_at, write_results_csv)
-
-SCAN_RATE = 5.0
-DURATION = 70.0  # bottom stretch, corner, right stretch
-# The map's own poses of its first scans are matched against a submap still being started, and are
-# off by up to 0.2 m from what the finished submaps say: they are no reference.
-FIRST_QUERY = 1015.0
-OVERRIDES = ["pose_graph.optimize_every_n_nodes=0", "trajectory_builder_2d.submaps.num_range_data=15"]
-
-
-@pytest.fixture(scope="module")
-def world():
-    from carto_cli.sim import loop_building, loop_trajectory
-
-    w = loop_building()
-    return w, loop_trajectory(w)
-
-
-@pytest.fixture(scope="module")
-def mapped(world, tmp_path_factory):
-    from carto_cli.pipeline import build
-    from carto_cli.sim import simulate
-
-    w, tr = world
-    options = load_options(None, OVERRIDES)
-    result = build(simulate(w, tr, duration=DURATION, scan_rate=SCAN_RATE).recording(), options)
-    path = save_map(tmp_path_factory.mktemp("map") / "map.carto", result, options)
-    return load_map(path)
-
-
-@pytest.fixture(scope="module")
-def queries(world, mapped):
-    """(scan, reference pose in the map frame) of a second pass, every 7th scan from FIRST_QUERY."""
-    from carto_cli.sim import simulate
-
-    w, tr = world
-    sim = simulate(w, tr, duration=DURATION, scan_rate=SCAN_RATE, seed=7)
-    ref = {round(t, 6): p for t, p in zip(mapped.trajectory.t, mapped.trajectory.poses)}
-    out = [(s, ref[round(s.time, 6)]) for k, s in enumerate(sim.records(["/scan"]))
-           if k % 7 == 4 and round(s.time, 6) in ref and s.time >= FIRST_QUERY]
-    assert len(out) >= 30
-    return sim, out
-
-
-@pytest.fixture(scope="module")
-def relocalizer(mapped):
-    return Relocalizer(mapped)
-
-
-def pose_error(a, b):
-    d = np.asarray(a, float) - np.asarray(b, float)
-    return math.hypot(d[0], d[1]), abs(math.degrees(transform.normalize_angle(d[2])))
-
+from carto_cli.options import Options, apply_overrides
+from carto_cli.relocalization import PATHS, Candidate, Relocalizer, Timings, read_queries, relocalize_many
 
 # ------------------------------------------------------------------------------------------ searches
 
@@ -270,23 +215,7 @@ def test_corridor_mode_on_the_real_map(relocalizer, queries):
     assert r.success and pose_error(r.pose, truth)[0] < 0.1
 
 
-# ------------------------------------------------------------------------------------------ cache
-
-
-def test_stack_cache_is_lru_under_its_budget(mapped):
-    grids = [s.grid for s in mapped.submaps[:4]]
-    size = [StackCache(1 << 40, 7).get(i, g).memory_bytes for i, g in enumerate(grids[:3])]
-    cache = StackCache(size[0] + max(size[1], size[2]), 7)
-    cache.get(0, grids[0])
-    cache.get(1, grids[1])
-    assert cache.get(0, grids[0]) is cache.get(0, grids[0])  # hits
-    cache.get(2, grids[2])  # evicts 1, the least recently used
-    assert 0 in cache and 2 in cache and 1 not in cache
-    assert cache.evictions == 1 and cache.bytes <= cache.budget_bytes
-    tiny = StackCache(1, 7)
-    tiny.get(0, grids[0])
-    tiny.get(1, grids[1])
-    assert len(tiny) == 1 and 1 in tiny  # the one in use is always kept
+# ------------------------------------------------------------------------------------------ stacks
 
 
 def test_relocalizer_reuses_stacks_across_queries(mapped, queries):
@@ -321,111 +250,12 @@ def test_corrupt_map_is_a_format_error(mapped, tmp_path):
         load_map(bad)
 
 
-class _NoScans:
-    path = "empty.bag"
-
-    def topics(self):
-        from carto_cli.io.recording import TopicInfo
-
-        return [TopicInfo("/scan", "sensor_msgs/msg/LaserScan", 0)]
-
-    def preferred_topic(self, kind):
-        return None
-
-    def records(self, topics=None):
-        return iter(())
-
-
-def test_recording_without_scans_is_an_error(relocalizer):
-    with pytest.raises(CartoError, match="no scans|no laser scan topic"):
-        scan_at(_NoScans(), time=1.0)
-    with pytest.raises(CartoError, match="no scans|no laser scan topic"):
-        relocalize_many(relocalizer, _NoScans(), [Query(1.0, None, None)])
-
-
-def test_scan_at(queries):
-    sim, _ = queries
-    rec = sim.recording()
-    i, scan = scan_at(rec, time=1010.07)
-    assert i == 50 and scan.time == pytest.approx(1010.0)
-    i, scan = scan_at(rec, index=3)
-    assert i == 3 and scan.time == pytest.approx(1000.6)
-    with pytest.raises(CartoError, match="beyond the recording's 350 scans"):
-        scan_at(rec, index=10_000)
-    with pytest.raises(CartoError, match="no scan within"):
-        scan_at(rec, time=5000.0)
-
-
-# ------------------------------------------------------------------------------------------ queries + batch
-
-
-def test_parse_pose():
-    assert parse_pose("1.5,-2,90deg") == pytest.approx((1.5, -2.0, math.pi / 2))
-    assert parse_pose("1 2 0.5") == (1.0, 2.0, 0.5)
-    for bad in ("1,2", "a,2,3", "1,2,3rad", "1,2,inf"):
-        with pytest.raises(CartoError, match="--initial-pose"):
-            parse_pose(bad)
-
-
-def test_read_queries_formats_and_errors(tmp_path):
-    p = tmp_path / "q.txt"
-    p.write_text("# header comment\n\n1000.5 1 2 0.5\n1001.0, 3, 4, 90deg, 0.3, 5deg  # sigmas\n1002 - - -\n")
-    q = read_queries(p)
-    assert [x.time for x in q] == [1000.5, 1001.0, 1002.0] and all(x.index is None for x in q)
-    assert q[1].prior == pytest.approx((3, 4, math.pi / 2)) and q[1].sigma_xy == 0.3
-    assert q[1].sigma_yaw == pytest.approx(math.radians(5)) and q[2].prior is None and q[2].line == 5
-    p.write_text("index x y yaw\n7 1 2 0.5\n")
-    q = read_queries(p)
-    assert q[0].index == 7 and q[0].time is None
-    cases = {
-        "": "no queries",
-        "1 2 3\n": "line 1: expected 4 fields",
-        "1 2 3 4 5\n": "line 1: expected 4 fields",
-        "1 a 3 4\n": "line 1: x must be a number",
-        "1 2 - 4\n": "line 1: give all of x, y, yaw",
-        "1 2 3 4\nt x y yaw\n": "line 2: expected a query",
-        "foo x y yaw\n": "line 1: the first column",
-        "t a b c\n": "line 1: header must be",
-        "index x y yaw\n1.5 1 2 3\n": "line 2: scan index must be a whole number",
-        "1 2 3 4 -1 5\n": "line 1: sigmas must be positive",
-        "1 2 3 4deg2\n": "line 1: yaw must be",
-    }
-    for text, message in cases.items():
-        p.write_text(text)
-        with pytest.raises(CartoError, match=message):
-            read_queries(p)
-    with pytest.raises(CartoError, match="no such queries file"):
-        read_queries(tmp_path / "missing.txt")
-
-
-def test_relocalize_many_writes_a_csv_and_summarises(relocalizer, queries, tmp_path):
-    sim, qs = queries
-    (s0, t0), (s1, t1), (s2, t2) = qs[4], qs[12], qs[25]
-    p = tmp_path / "q.txt"
-    p.write_text(f"t x y yaw\n{s0.time + 0.04} {t0[0] + 0.5} {t0[1]} {t0[2]}\n"
-                 f"{s1.time} {t1[0]} {t1[1] - 0.4} {t1[2] + 0.1} 0.2 5deg\n"
-                 f"{s2.time} {t2[0]} {t2[1]} {t2[2]}\n")
-    results, summary = relocalize_many(relocalizer, sim.recording(), read_queries(p))
-    assert [r.scan_time for r in results] == pytest.approx([s0.time, s1.time, s2.time])
-    for r, truth in zip(results, (t0, t1, t2)):
-        assert r.result.success and pose_error(r.result.pose, truth)[0] < 0.1
-    assert summary.queries == 3 and summary.success_rate == 1.0
-    assert summary.p50_ms <= summary.p95_ms <= summary.p99_ms <= summary.max_ms
-    assert summary.paths["windowed"] == 3
-    out = write_results_csv(tmp_path / "out" / "results.csv", results)
-    lines = out.read_text().splitlines()
-    assert lines[0].split(",") == list(CSV_COLUMNS) and len(lines) == 4
-    assert lines[1].split(",")[CSV_COLUMNS.index("path")] == "windowed"
-    assert not [f for f in out.parent.iterdir() if f.name.startswith(".")]  # no temporary left behind
-    d = results[0].result.to_dict()
-    assert d["path"] == "windowed" and set(d["timings_ms"]) == {"submap preparation", "pose search",
-                                                                "scan scoring", "other"}
+# ------------------------------------------------------------------------------------------ acceptance
 
 
 def test_points_in_unmapped_space_do_not_sink_a_right_pose(mapped, queries):
     """A scan seeing partly unmapped space is judged on its points in known cells (first windowed pass)."""
-    from carto_cli.options import apply_overrides
-    from carto_cli.relocalization.relocalizer import _Candidate, _known_score, _Timings
+    from carto_cli.matching.scoring import known_score
 
     # The made-up far points below are rays straight through the building's walls: the free-space check would
     # (rightly) reject them, and is tested on its own.
@@ -435,25 +265,23 @@ def test_points_in_unmapped_space_do_not_sink_a_right_pose(mapped, queries):
     _, fine = relocalizer.preprocess(scan)
     i = relocalizer.filter_by_distance(truth, 1.0)[0]
     grid_pose = transform.compose(relocalizer.map_to_grid[i], np.asarray(truth, float))
-    known, score = _known_score(relocalizer.grids[i], fine, grid_pose)
+    known, score = known_score(relocalizer.grids[i], fine, grid_pose)
     assert known > 0.9 and score > 0.6
     # As many points again far outside every submap: unknown cells, 0.1 each in the plain score.
     far = fine + np.array([500.0, 500.0])
     pts = np.vstack([fine, far[: int(0.6 * len(fine))]])
-    cand = _Candidate(i, grid_pose, 0.5, grid_pose)
-    _, plain, ok, reason, _, _, _ = relocalizer._refine(pts, cand, 0.55, _Timings())
+    cand = Candidate(i, grid_pose, 0.5, grid_pose)
+    _, plain, ok, reason, _, _, _ = relocalizer.refine(pts, cand, 0.55, Timings())
     assert plain < 0.55 and not ok and "below" in reason
-    _, _, ok, _, known, kscore, _ = relocalizer._refine(pts, cand, 0.55, _Timings(), known_ok=True)
+    _, _, ok, _, known, kscore, _ = relocalizer.refine(pts, cand, 0.55, Timings(), known_ok=True)
     assert ok and 0.55 < known < 0.7 and kscore >= 0.55
     # Mostly unmapped: not enough of the scan to judge on.
     pts = np.vstack([fine, far, far])
-    assert not relocalizer._refine(pts, cand, 0.55, _Timings(), known_ok=True)[2]
+    assert not relocalizer.refine(pts, cand, 0.55, Timings(), known_ok=True)[2]
 
 
 def test_fallback_submap_limit_bounds_a_confident_prior_no_window_confirms(mapped, queries):
     """A reliable prior that no window confirms searches at most fallback_max_submaps more submaps."""
-    from carto_cli.options import apply_overrides
-
     _, qs = queries
     scan, truth = qs[3]
     wrong = np.array([21.5, 9.0, truth[2]]) if truth[1] < 4 else np.array([8.0, 0.0, truth[2]])
@@ -470,19 +298,17 @@ def test_fallback_submap_limit_bounds_a_confident_prior_no_window_confirms(mappe
 
 def test_a_match_whose_rays_cross_walls_is_rejected(relocalizer, queries):
     """The free-space check: a scan placed where its rays pass through the map's walls is no match."""
-    from carto_cli.relocalization.relocalizer import _Candidate, _Timings
-
     _, qs = queries
     scan, truth = qs[5]
     _, fine = relocalizer.preprocess(scan)
     i = relocalizer.filter_by_distance(truth, 1.0)[0]
     grid_pose = transform.compose(relocalizer.map_to_grid[i], np.asarray(truth, float))
-    cand = _Candidate(i, grid_pose, 0.7, grid_pose)
-    _, _, ok, _, _, _, see = relocalizer._refine(fine, cand, 0.55, _Timings())
+    cand = Candidate(i, grid_pose, 0.7, grid_pose)
+    _, _, ok, _, _, _, see = relocalizer.refine(fine, cand, 0.55, Timings())
     assert ok and see < 0.05
     # The same endpoints seen from a sensor 3 m away through the wall: most rays now cross it.
     for offset in ([-3.0, 0.0], [0.0, -3.0], [3.0, 0.0], [0.0, 3.0]):
-        _, _, ok, reason, _, _, see = relocalizer._refine(fine, cand, 0.55, _Timings(), sensor=offset)
+        _, _, ok, reason, _, _, see = relocalizer.refine(fine, cand, 0.55, Timings(), sensor=offset)
         if see > relocalizer.ro.max_see_through:
             assert not ok and "pass through walls" in reason
             break
@@ -490,63 +316,46 @@ def test_a_match_whose_rays_cross_walls_is_rejected(relocalizer, queries):
         raise AssertionError("no sensor offset made the rays cross a wall")
 
 
-# ------------------------------------------------------------------------------------------ command line
+# ------------------------------------------------------------------------------------------ stages and batch
 
 
-@pytest.fixture(scope="module")
-def cli_files(mapped, queries, tmp_path_factory):
-    """The map file and the second pass written as a ROS1 bag, as `carto relocalize` reads them."""
-    from carto_cli.io.recording_writers import write_recording
-
+def test_relocalize_many_answers_every_query_in_file_order(relocalizer, queries, tmp_path):
     sim, qs = queries
-    base = tmp_path_factory.mktemp("cli")
-    bag = base / "second_pass.bag"
-    write_recording(iter(list(sim.records(["/scan"]))), bag, "ros1",
-                    topics={"/scan": "sensor_msgs/msg/LaserScan"})
-    return mapped.path, bag, qs
+    (s0, t0), (s1, t1), (s2, t2) = qs[4], qs[12], qs[25]
+    p = tmp_path / "q.txt"
+    p.write_text(f"t x y yaw\n{s0.time + 0.04} {t0[0] + 0.5} {t0[1]} {t0[2]}\n"
+                 f"{s1.time} {t1[0]} {t1[1] - 0.4} {t1[2] + 0.1} 0.2 5deg\n"
+                 f"{s2.time} {t2[0]} {t2[1]} {t2[2]}\n")
+    advanced = []
+    results, summary = relocalize_many(relocalizer, sim.recording(), read_queries(p), on_query=advanced.append)
+    assert [r.scan_time for r in results] == pytest.approx([s0.time, s1.time, s2.time])
+    for r, truth in zip(results, (t0, t1, t2)):
+        assert r.result.success and pose_error(r.result.pose, truth)[0] < 0.1
+    assert [r.query.line for r in results] == [2, 3, 4] and advanced == [1, 1, 1]
+    assert summary.queries == 3 and summary.success_rate == 1.0
+    assert summary.paths["windowed"] == 3
+    with pytest.raises(CartoError, match="no queries"):
+        relocalize_many(relocalizer, sim.recording(), [])
 
 
-def _cli(*args):
-    from typer.testing import CliRunner
-
-    from carto_cli.cli import app
-
-    return CliRunner().invoke(app, [str(a) for a in args])
-
-
-def test_cli_relocalizes_one_scan_as_text_and_json(cli_files):
-    import json
-
-    map_path, bag, qs = cli_files
-    scan, truth = qs[5]
-    prior = truth + [0.8, -0.6, math.radians(8)]
-    pose = f"{prior[0]},{prior[1]},{math.degrees(prior[2])}deg"
-    r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time)
-    assert r.exit_code == 0, r.output
-    assert "(ok) via windowed" in r.output and "timing submap preparation" in r.output
-    r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time, "--json")
-    assert r.exit_code == 0, r.output
-    d = json.loads(r.output)
-    assert d["success"] and d["path"] == "windowed"
-    assert pose_error([d["pose"]["x"], d["pose"]["y"], d["pose"]["yaw"]], truth)[0] < 0.1
-    assert set(d["timings_ms"]) == {"submap preparation", "pose search", "scan scoring", "other"}
+def test_a_query_tries_its_stages_in_order(relocalizer, queries):
+    """Every answer names the stage it came from, and its reason names the stages tried before it."""
+    _, qs = queries
+    scan, truth = qs[3]
+    wrong = np.array([21.5, 9.0, truth[2]]) if truth[1] < 4 else np.array([8.0, 0.0, truth[2]])
+    r = relocalizer.relocalize(scan, wrong, sigma_xy=0.1, sigma_yaw=math.radians(2))
+    assert r.path in PATHS[2:4]
+    # Pass 1 (or its edge check), then the wide pass, were tried and said why they did not answer.
+    tried = r.reason.split("; ")
+    assert any("windowed search" in t and "wide" not in t for t in tried)
+    assert any(t.startswith("wide windowed search") for t in tried)
+    first_wide = next(k for k, t in enumerate(tried) if t.startswith("wide windowed search"))
+    assert all("wide" not in t for t in tried[:first_wide])
+    # Without a prior only the global stage answers.
+    assert relocalizer.relocalize(scan, None).path == "global"
 
 
-def test_cli_says_why_a_scan_was_not_relocalized(cli_files):
-    map_path, bag, qs = cli_files
-    scan, truth = qs[5]
-    pose = f"{truth[0]},{truth[1]},{truth[2]}"
-    # A threshold no scan reaches: not found, the reason printed, exit 1.
-    r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time,
-             "--set", "relocalization.min_score=0.95", "--set", "relocalization.global_min_score=0.95")
-    assert r.exit_code == 1, r.output
-    assert "UNRELIABLE" in r.output and "why: " in r.output and "below 0.95" in r.output
-
-
-def test_cli_rejects_an_unknown_override_by_name(cli_files):
-    map_path, bag, qs = cli_files
-    r = _cli("relocalize", map_path, bag, "--global", "--set", "relocalization.min_scroe=0.7")
-    assert r.exit_code == 2 and "min_scroe" in r.output
+# ------------------------------------------------------------------------------------------ map shapes
 
 
 def test_grids_allocated_beyond_their_known_cells_are_searched_cropped(mapped, queries):
@@ -556,7 +365,8 @@ def test_grids_allocated_beyond_their_known_cells_are_searched_cropped(mapped, q
     big = []
     for s in mapped.submaps:
         g = s.grid
-        padded = ProbabilityGrid(g.resolution, g.origin - 200 * g.resolution, (g.num_cells[0] + 400, g.num_cells[1] + 400))
+        padded = ProbabilityGrid(g.resolution, g.origin - 200 * g.resolution,
+                                 (g.num_cells[0] + 400, g.num_cells[1] + 400))
         padded.cells[200:200 + g.num_cells[1], 200:200 + g.num_cells[0]] = g.cells
         padded.known_box = g.known_box + 200
         big.append(SimpleNamespace(grid=padded, local_pose=s.local_pose))

@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 
 from carto_cli.core.errors import TopicError
-from carto_cli.io.recording import Recording
 from carto_cli.core.records import Imu, Odometry, Scan
-from carto_cli.sim import (ImuModel, OdometryModel, SimulatedRecording, loop_building, loop_trajectory,
-                           room, simulate)
+from carto_cli.io.recording import Recording
+from carto_cli.sim import ImuModel, OdometryModel, SimulatedRecording, loop_building, loop_trajectory, room, simulate
 from carto_cli.sim.odometry import relative_motion
 from carto_cli.sim.recording import compose
 from carto_cli.sim.trajectory import Trajectory, wrap_angle
@@ -98,7 +97,7 @@ def test_ground_truth_is_exact(building, lap):
     np.testing.assert_allclose(gt[:, 1:], lap.poses(gt[:, 0] - 1000.0))
     (tf_laser, _) = sim.static_transforms
     np.testing.assert_allclose(tf_laser.pose2d(), mount, atol=1e-12)
-    for (t, x, y, yaw), scan in list(zip(gt, sim.records(["/scan"])))[::50]:
+    for (_t, x, y, yaw), scan in list(zip(gt, sim.records(["/scan"])))[::50]:
         lx, ly, lyaw = compose(np.array([[x, y, yaw]]), mount)[0]
         ok = np.isfinite(scan.ranges)
         r, a = scan.ranges[ok].astype(float), scan.angles[ok].astype(float) + lyaw

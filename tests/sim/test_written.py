@@ -1,9 +1,9 @@
 """A simulated recording written through convert's writers reads back as the same records."""
 import pytest
 
-from carto_cli.io.sources.open import open_recording
-from carto_cli.io.recording_writers import write_recording
 from carto_cli.core.records import Imu, Scan
+from carto_cli.io.recording_writers import write_recording
+from carto_cli.io.sources.open import open_recording
 from carto_cli.sim import recording as simrec
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building

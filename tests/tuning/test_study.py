@@ -1,4 +1,5 @@
-"""carto tune as a library: search spaces, objectives, studies that resume, outputs."""
+"""carto tune's study: it improves on a poor profile, writes a profile that reproduces its best score,
+resumes, records failing trials, refuses bad inputs, and shares its storage between processes."""
 from __future__ import annotations
 
 import csv
@@ -8,18 +9,11 @@ import pytest
 
 from carto_cli.core.errors import CartoError
 from carto_cli.options import apply_overrides, load_options
-from carto_cli.sim import loop_building, loop_trajectory, simulate
-from carto_cli.tuning.study import evaluate_options, make_cases, map_quality, tune
-from carto_cli.tuning.space import default_space_path, load_space, spaces_dir
+from carto_cli.tuning.objectives import evaluate_options, make_cases
+from carto_cli.tuning.study import tune
 
 optuna = pytest.importorskip("optuna")
 
-# A deliberately poor profile: local SLAM and the pose graph both pinned to the drifting odometry.
-POOR = {
-    "trajectory_builder_2d.ceres_scan_matcher.translation_weight": 1.0e4,
-    "trajectory_builder_2d.ceres_scan_matcher.rotation_weight": 1.0e4,
-    "pose_graph.optimization_problem.odometry_translation_weight": 1.0e5,
-}
 SPACE = {
     "trajectory_builder_2d.ceres_scan_matcher.translation_weight": {"low": 0.1, "high": 1.0e4, "log": True},
     "trajectory_builder_2d.ceres_scan_matcher.rotation_weight": {"low": 1.0, "high": 1.0e4, "log": True},
@@ -29,25 +23,19 @@ SPACE = {
 
 
 @pytest.fixture(scope="module")
-def sim():
-    world = loop_building()
-    return simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, beams=180)
-
-
-@pytest.fixture(scope="module")
-def poor_study(sim, tmp_path_factory):
+def poor_study(sim, tmp_path_factory, poor):
     out = tmp_path_factory.mktemp("tune") / "tuned.yaml"
     seen = []
-    result = tune([sim.recording()], SPACE, trials=6, ground_truth=[sim.ground_truth], overrides=POOR, seed=1,
+    result = tune([sim.recording()], SPACE, trials=6, ground_truth=[sim.ground_truth], overrides=poor, seed=1,
                   out=out, on_trial=lambda n, v, b: seen.append((n, v, b)))
     return result, seen
 
 
-def test_study_improves_on_a_poor_profile(sim, poor_study):
+def test_study_improves_on_a_poor_profile(sim, poor_study, poor):
     result, seen = poor_study
     assert result.objective == "ground-truth"
     cases = make_cases([sim.recording()], ground_truth=[sim.ground_truth])
-    poor_value, _ = evaluate_options(apply_overrides(load_options(), POOR), cases, "ground-truth")
+    poor_value, _ = evaluate_options(apply_overrides(load_options(), poor), cases, "ground-truth")
     # The first trial measures the base options (enqueued), so the baseline is in the study.
     assert result.baseline_value == pytest.approx(poor_value, rel=1e-9)
     assert result.best_value < 0.8 * poor_value
@@ -56,13 +44,13 @@ def test_study_improves_on_a_poor_profile(sim, poor_study):
     assert seen[-1][2] == pytest.approx(result.best_value)
 
 
-def test_written_profile_loads_and_reproduces_the_best_score(sim, poor_study):
+def test_written_profile_loads_and_reproduces_the_best_score(sim, poor_study, poor):
     result, _ = poor_study
     text = result.profile_path.read_text()
     assert text.startswith("# carto tune result")
     assert "# objective: ground-truth" in text and "best value" in text
     options = load_options(result.profile_path)
-    expected = apply_overrides(apply_overrides(load_options(), POOR), result.best_params)
+    expected = apply_overrides(apply_overrides(load_options(), poor), result.best_params)
     assert options == expected
     value, _ = evaluate_options(options, make_cases([sim.recording()], ground_truth=[sim.ground_truth]),
                                 "ground-truth")
@@ -80,9 +68,9 @@ def test_csv_and_report(poor_study):
     assert img is not None and img.shape[0] > 300 and img.shape[1] > 600
 
 
-def test_rerunning_resumes_the_study(sim, tmp_path):
+def test_rerunning_resumes_the_study(sim, tmp_path, poor):
     out = tmp_path / "resume.yaml"
-    kwargs = dict(objective="map-quality", overrides=POOR, seed=3, out=out, max_scans=60)
+    kwargs = dict(objective="map-quality", overrides=poor, seed=3, out=out, max_scans=60)
     first = tune([sim.recording()], SPACE, trials=3, **kwargs)
     assert first.n_trials == 3
     assert (tmp_path / "resume.optuna.db").is_file()
@@ -102,96 +90,6 @@ def test_failing_trials_are_recorded_not_raised(sim, tmp_path):
     assert result.n_trials == 4
     assert result.n_failed + result.n_complete == 4
     assert result.n_failed >= 1
-
-
-def test_map_quality_prefers_the_better_map(sim):
-    rec = sim.recording()
-    from carto_cli.pipeline import build
-
-    good = map_quality(build(rec, load_options()), rec)
-    poor = map_quality(build(rec, apply_overrides(load_options(), POOR)), rec)
-    assert 0 < good["endpoint_spread"] < 1
-    assert 0 <= good["crispness"] <= 1 and 0 <= good["occupied_entropy"] <= 1
-    assert good["map_quality"] < poor["map_quality"]
-
-
-def test_relocalization_objective():
-    # The held-out last 30 % must revisit mapped places: most of two laps, scans at 2 Hz.
-    world = loop_building()
-    traj = loop_trajectory(world, laps=2)
-    sim = simulate(world, traj, duration=0.7 * traj.duration, scan_rate=2.0, beams=180)
-    cases = make_cases([sim.recording()], ground_truth=[sim.ground_truth])
-    from carto_cli.tuning.study import prepare
-
-    prepare(cases, "relocalization", load_options(), None)
-    value, metrics = evaluate_options(load_options(), cases, "relocalization")
-    assert metrics["queries"] >= 10
-    assert metrics["success_rate"] >= 0.5
-    assert value == pytest.approx(1 - metrics["success_rate"] + metrics["latency_s"])
-
-
-# ------------------------------------------------------------------------------------ search spaces
-
-
-def test_packaged_spaces_are_valid():
-    assert default_space_path("default") == spaces_dir() / "default.yaml"
-    assert default_space_path("sparse").name == "sparse.yaml"
-    assert default_space_path("no-such-profile").name == "default.yaml"
-    for path in sorted(spaces_dir().glob("*.yaml")):
-        params = load_space(path)
-        assert len(params) >= 5, path
-
-
-def _space_error(tmp_path, text: str) -> str:
-    path = tmp_path / "space.yaml"
-    path.write_text(text)
-    with pytest.raises(CartoError) as e:
-        load_space(path)
-    return str(e.value)
-
-
-def test_unknown_option_names_the_closest(tmp_path):
-    msg = _space_error(tmp_path, "pose_graph.constraint_builder.min_scor: {low: 0.5, high: 0.7}\n")
-    assert "space.yaml" in msg and "line 1" in msg
-    assert "did you mean 'pose_graph.constraint_builder.min_score'" in msg
-
-
-def test_bounds_outside_the_option_are_rejected(tmp_path):
-    msg = _space_error(tmp_path, "pose_graph.constraint_builder.min_score: {low: 0.5, high: 1.5}\n")
-    assert "pose_graph.constraint_builder.min_score" in msg and "high" in msg and "<= 1" in msg
-    msg = _space_error(tmp_path, "trajectory_builder_2d.submaps.range_data_inserter.hit_probability: "
-                                 "{low: 0.4, high: 0.7}\n")
-    assert "> 0.5" in msg
-
-
-@pytest.mark.parametrize("spec, words", [
-    ("{low: 10.5, high: 20, int: true}", "integer"),
-    ("{low: a, high: 20}", "finite number"),
-    ("{low: 20, high: 10}", "less than"),
-    ("{low: 0, high: 10, log: true}", "log range"),
-    ("{lo: 1, high: 10}", "unknown field"),
-    ("{low: 1}", "both low and high"),
-    ("{choices: []}", "non-empty"),
-    ("{choices: [10, 20.5]}", "integer"),
-    ("42", "expected"),
-])
-def test_bad_types_name_the_file_and_key(tmp_path, spec, words):
-    msg = _space_error(tmp_path, f"trajectory_builder_2d.submaps.num_range_data: {spec}\n")
-    assert "space.yaml" in msg and "trajectory_builder_2d.submaps.num_range_data" in msg
-    assert words in msg
-
-
-def test_bool_options_need_choices_and_nested_keys_work(tmp_path):
-    msg = _space_error(tmp_path, "trajectory_builder_2d:\n  use_online_correlative_scan_matching: "
-                                 "{low: 0, high: 1}\n")
-    assert "choices" in msg and "line 2" in msg
-    path = tmp_path / "nested.yaml"
-    path.write_text("trajectory_builder_2d:\n  submaps:\n    num_range_data: {low: 10, high: 50}\n"
-                    "  use_online_correlative_scan_matching: {choices: [false, true]}\n")
-    params = load_space(path)
-    assert [(p.name, p.kind) for p in params] == [
-        ("trajectory_builder_2d.submaps.num_range_data", "int"),
-        ("trajectory_builder_2d.use_online_correlative_scan_matching", "categorical")]
 
 
 def test_tune_rejects_bad_inputs(sim, tmp_path):

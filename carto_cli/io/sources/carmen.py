@@ -63,20 +63,21 @@ least one field and is caught that way, unless the cut falls inside the final
 """
 from __future__ import annotations
 
-from collections import Counter
-from dataclasses import dataclass, field
 import gzip
 import heapq
 import math
-from pathlib import Path
-from typing import Iterable, Iterator
 import zlib
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
-from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
 from carto_cli.core.records import Odometry, Record, Scan, Transform, yaw_quaternion
+from carto_cli.core.transform import wrap_angle_scalar
+from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
 
 GZIP_MAGIC = b"\x1f\x8b"
 FLASER_MAX_RANGE = 80.0  # what CARMEN's reader assumes for FLASER / RLASER
@@ -127,7 +128,7 @@ def _lines(path: Path) -> Iterator[tuple[int, str]]:
     only the numeric fields matter and they are ASCII.
     """
     gz = _is_gzip(path)
-    f = gzip.open(path, "rt", encoding="latin-1") if gz else open(path, "rt", encoding="latin-1")
+    f = gzip.open(path, "rt", encoding="latin-1") if gz else open(path, encoding="latin-1")
     lineno = 0
     try:
         with f:
@@ -443,24 +444,20 @@ def _survey(path: Path) -> _Survey:
     return s
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def _mount(probes, default_yaw: float) -> tuple[float, float, float]:
     """Laser pose in the robot frame when the laser lines agree on one, else (0, 0, default_yaw)."""
     offsets = []
     for (lx, ly, lth), (rx, ry, rth) in probes:
         c, s = math.cos(rth), math.sin(rth)
         dx, dy = lx - rx, ly - ry
-        offsets.append((c * dx + s * dy, -s * dx + c * dy, _wrap(lth - rth)))
+        offsets.append((c * dx + s * dy, -s * dx + c * dy, wrap_angle_scalar(lth - rth)))
     if not offsets or not all(math.isfinite(v) for o in offsets for v in o):
         return 0.0, 0.0, default_yaw
     x0, y0, a0 = offsets[0]
     if math.hypot(x0, y0) < 1e-3 and abs(a0) < 1e-3:
         return 0.0, 0.0, default_yaw
     for x, y, a in offsets[1:]:
-        if math.hypot(x - x0, y - y0) > MOUNT_TOLERANCE or abs(_wrap(a - a0)) > MOUNT_TOLERANCE:
+        if math.hypot(x - x0, y - y0) > MOUNT_TOLERANCE or abs(wrap_angle_scalar(a - a0)) > MOUNT_TOLERANCE:
             return 0.0, 0.0, default_yaw
     return x0, y0, a0
 
@@ -571,8 +568,7 @@ class CarmenRecording(Recording):
                 _check_unterminated(kind, line, lineno, self.path)
                 continue
             topic = topic_of.get(kind)
-            parse = topic is not None and (topic in wanted or (want_pose and kind in POSED))
-            if parse:
+            if topic is not None and (topic in wanted or (want_pose and kind in POSED)):
                 try:
                     msg = _parse(kind, line)
                 except _LineError:

@@ -42,5 +42,5 @@ def translate_errors(path: Path, what: str):
         if e.path is not None:
             raise
         raise with_path(e, path) from e
-    except Exception as e:  # noqa: BLE001 - the whole point: any library failure
+    except Exception as e:
         raise FormatError(f"corrupt or truncated {what}: {describe_exception(e)}", path) from e

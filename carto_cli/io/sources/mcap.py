@@ -4,14 +4,14 @@ from __future__ import annotations
 import contextlib
 import heapq
 import io
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Iterable, Iterator
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
-from carto_cli.io.sources import messages
-from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
-from carto_cli.io.sources.decode_errors import translate_errors
 from carto_cli.core.records import Record, Transform
+from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
+from carto_cli.io.sources import messages
+from carto_cli.io.sources.decode_errors import translate_errors
 
 _MAGIC = b"\x89MCAP0\r\n"
 

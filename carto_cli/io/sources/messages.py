@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from carto_cli.core.errors import TopicError
-from carto_cli.io.recording import ReadOptions, kind_of, normalise_type
 from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, beam_angles, quaternion_yaw
+from carto_cli.io.recording import ReadOptions, kind_of, normalise_type
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 MULTI_ECHO = "sensor_msgs/msg/MultiEchoLaserScan"

@@ -2,14 +2,14 @@
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Iterable, Iterator
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
+from carto_cli.core.records import Record, Transform
+from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
 from carto_cli.io.sources import messages
 from carto_cli.io.sources.decode_errors import translate_errors
-from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
-from carto_cli.core.records import Record, Transform
 
 
 def _check_sqlite_size(db: Path) -> None:
@@ -151,6 +151,7 @@ class RosbagRecording(Recording):
         if not conns:
             return
         reader, options = self._reader, self.options
+        assert reader is not None  # set by __init__, cleared only by close()
         with self._translate_errors():
             for conn, _, raw in reader.messages(connections=conns):
                 yield messages.to_record(reader.deserialize(raw, conn.msgtype), conn.msgtype, conn.topic, options)

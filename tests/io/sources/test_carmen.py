@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support import SHARED as DATA
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
-from carto_cli.io.sources.carmen import CarmenRecording, carmen_beam_geometry
 from carto_cli.core.records import Odometry, Scan
+from carto_cli.io.sources.carmen import CarmenRecording, carmen_beam_geometry
 
-from support import SHARED as DATA
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="shared data not available")
 
 # Scan counts from `zcat FILE | grep -c '^FLASER'` (or '^ROBOTLASER1').

@@ -2,11 +2,12 @@
 import gzip
 import shutil
 
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from support import SAMPLE_BAG
 
 from carto_cli.core.errors import CartoError
 from carto_cli.io.sources.open import open_recording
-from support import SAMPLE_BAG
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 

@@ -1,23 +1,20 @@
 """carto_cli.io.sources.mcap: standalone MCAP, ROS2 (cdr) and ROS1 encodings."""
-import io
-import math
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-from support import SHARED
 from mcap.reader import make_reader
-from mcap.writer import CompressionType, IndexType, Writer as McapWriter
+from mcap.writer import CompressionType, IndexType
+from mcap.writer import Writer as McapWriter
 from mcap_ros1._vendor.genpy import dynamic
 from mcap_ros1.writer import Writer as Ros1McapWriter
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from support import SHARED
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
+from carto_cli.core.records import Imu, Odometry, Scan, Transform, yaw_quaternion
+from carto_cli.io.recording import ReadOptions
 from carto_cli.io.sources import mcap as mcap_source
 from carto_cli.io.sources.mcap import McapRecording
-from carto_cli.io.recording import ReadOptions
-from carto_cli.core.records import Imu, Odometry, Scan, Transform, yaw_quaternion
 
 STANDALONE = (SHARED / "bags" / "ccny_laser_scan_matcher_demo_ros2_mcap"
               / "ccny_laser_scan_matcher_demo_ros2_mcap.mcap")

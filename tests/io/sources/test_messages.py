@@ -7,9 +7,9 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from carto_cli.core.errors import TopicError
-from carto_cli.io.sources import messages as M
-from carto_cli.io.recording import ReadOptions
 from carto_cli.core.records import Imu, Odometry, Scan, yaw_quaternion
+from carto_cli.io.recording import ReadOptions
+from carto_cli.io.sources import messages as M
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T = TS.types

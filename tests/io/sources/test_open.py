@@ -1,10 +1,10 @@
 import gzip
 
 import pytest
+from support import SAMPLE_BAG, shared_path
 
 from carto_cli.core.errors import CartoError, FormatError
 from carto_cli.io.sources.open import detect_format, open_recording
-from support import SAMPLE_BAG, shared_path
 
 
 def test_detects_every_real_format():

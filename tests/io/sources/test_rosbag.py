@@ -1,22 +1,22 @@
 """carto_cli.io.sources.rosbag: ROS1 bags and ROS2 bag directories."""
 import math
 import sqlite3
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-from support import SHARED
-from rosbags.rosbag1 import Reader as Reader1, Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+from rosbags.rosbag1 import Reader as Reader1
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
+from support import SHARED
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
-from carto_cli.io.sources.mcap import McapRecording
-from carto_cli.io.recording import ReadOptions
-from carto_cli.io.sources.rosbag import RosbagRecording
-from carto_cli.io.recording_writers import write_recording
 from carto_cli.core.records import Odometry, Scan, Transform
+from carto_cli.io.recording import ReadOptions
+from carto_cli.io.recording_writers import write_recording
+from carto_cli.io.sources.mcap import McapRecording
+from carto_cli.io.sources.rosbag import RosbagRecording
 
 BAGS = SHARED / "bags"
 ROS1 = BAGS / "ccny_laser_scan_matcher_demo.bag"

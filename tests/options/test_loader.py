@@ -1,14 +1,25 @@
-import dataclasses
+"""Loading options: YAML files and --set layered onto the schema, every value checked, errors that name the key."""
 import math
-import shutil
 
 import pytest
 import yaml
 
-import carto_cli.options as opts
 from carto_cli.core.errors import CartoError
-from carto_cli.options import (Options, apply_overrides, changed_options, dump_options_yaml, get_option,
-                               load_options, option_info, option_names, options_to_dict, profiles_dir)
+from carto_cli.options import (
+    Layer,
+    Options,
+    apply_overrides,
+    apply_values,
+    changed_options,
+    dump_options_yaml,
+    get_option,
+    load_options,
+    option_names,
+    options_to_dict,
+    profiles_dir,
+    read_yaml,
+)
+from carto_cli.options.loader import YamlLoader
 
 
 def _flatten(d, prefix=""):
@@ -19,77 +30,13 @@ def _flatten(d, prefix=""):
             yield f"{prefix}{k}"
 
 
-@pytest.fixture
-def profiles(tmp_path, monkeypatch):
-    """A private profiles directory holding a copy of the packaged default.yaml."""
-    d = tmp_path / "profiles"
-    d.mkdir()
-    shutil.copy(profiles_dir() / "default.yaml", d / "default.yaml")
-    monkeypatch.setattr(opts, "profiles_dir", lambda: d)
-    return d
-
-
 # --------------------------------------------------------------------------- defaults
 
 
-def test_cartographer_defaults():
-    o = Options()
-    tb, pg = o.trajectory_builder_2d, o.pose_graph
-    assert (tb.min_range, tb.max_range, tb.missing_data_ray_length) == (0.0, 30.0, 5.0)
-    assert tb.num_accumulated_range_data == 1 and tb.voxel_filter_size == 0.025
-    assert (tb.adaptive_voxel_filter.max_length, tb.adaptive_voxel_filter.min_num_points) == (0.5, 200)
-    assert (tb.loop_closure_adaptive_voxel_filter.max_length,
-            tb.loop_closure_adaptive_voxel_filter.min_num_points) == (0.9, 100)
-    assert tb.use_online_correlative_scan_matching is False and tb.use_imu_data is False
-    assert tb.real_time_correlative_scan_matcher.angular_search_window == pytest.approx(math.radians(20))
-    assert (tb.ceres_scan_matcher.occupied_space_weight, tb.ceres_scan_matcher.translation_weight,
-            tb.ceres_scan_matcher.rotation_weight) == (1.0, 10.0, 40.0)
-    assert tb.ceres_scan_matcher.ceres_solver_options.max_num_iterations == 20
-    assert (tb.motion_filter.max_time_seconds, tb.motion_filter.max_distance_meters) == (5.0, 0.2)
-    assert tb.motion_filter.max_angle_radians == pytest.approx(math.radians(1))
-    assert tb.pose_extrapolator.constant_velocity.pose_queue_duration == 0.001
-    assert tb.submaps.num_range_data == 90 and tb.submaps.grid_options_2d.resolution == 0.05
-    rdi = tb.submaps.range_data_inserter
-    assert (rdi.insert_free_space, rdi.hit_probability, rdi.miss_probability) == (True, 0.55, 0.49)
-    cb = pg.constraint_builder
-    assert pg.optimize_every_n_nodes == 90
-    assert (cb.sampling_ratio, cb.max_constraint_distance, cb.min_score, cb.global_localization_min_score) == \
-        (0.3, 15.0, 0.55, 0.6)
-    assert (cb.loop_closure_translation_weight, cb.loop_closure_rotation_weight) == (1.1e4, 1e5)
-    fcsm = cb.fast_correlative_scan_matcher
-    assert fcsm.linear_search_window == 7.0 and fcsm.branch_and_bound_depth == 7
-    assert fcsm.angular_search_window == pytest.approx(math.radians(30))
-    assert (cb.ceres_scan_matcher.occupied_space_weight, cb.ceres_scan_matcher.translation_weight,
-            cb.ceres_scan_matcher.rotation_weight) == (20.0, 10.0, 1.0)
-    assert (pg.matcher_translation_weight, pg.matcher_rotation_weight) == (5e2, 1.6e3)
-    op = pg.optimization_problem
-    assert op.huber_scale == 10.0 and op.ceres_solver_options.max_num_iterations == 50
-    assert (op.local_slam_pose_translation_weight, op.odometry_rotation_weight) == (1e5, 1e5)
-    assert (pg.max_num_final_iterations, pg.global_sampling_ratio,
-            pg.global_constraint_search_after_n_seconds) == (200, 0.003, 10.0)
-
-
 def test_default_yaml_lists_every_option_with_the_dataclass_default():
-    data = yaml.load((profiles_dir() / "default.yaml").read_text(), Loader=opts._Loader)
+    data = yaml.load((profiles_dir() / "default.yaml").read_text(), Loader=YamlLoader)
     assert list(_flatten(data)) == option_names()
     assert load_options() == Options()
-
-
-def test_option_names_and_info():
-    names = option_names()
-    assert len(names) == len(set(names)) > 50
-    assert "trajectory_builder_2d.submaps.num_range_data" in names
-    assert "pose_graph.optimization_problem.ceres_solver_options.max_num_iterations" in names
-    info = {i.name: i for i in option_info()}
-    hit = info["trajectory_builder_2d.submaps.range_data_inserter.hit_probability"]
-    assert hit.type == "float" and hit.default == 0.55 and hit.bounds == "> 0.5 and < 1"
-    assert info["trajectory_builder_2d.motion_filter.max_angle_radians"].unit == "rad"
-    assert all(i.doc for i in info.values())
-
-
-def test_options_are_frozen():
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        Options().pose_graph.optimize_every_n_nodes = 3
 
 
 # --------------------------------------------------------------------------- --set
@@ -176,34 +123,29 @@ def test_apply_overrides_with_typed_dict():
         apply_overrides(Options(), {"trajectory_builder_2d.submaps.num_range_data": 40.0})
 
 
-# --------------------------------------------------------------------------- profiles
+def test_apply_values_from_code_checks_types_and_bounds_but_reads_no_text():
+    o = apply_values(Options(), {"trajectory_builder_2d": {"submaps": {"num_range_data": 40}}}, Layer())
+    assert o.trajectory_builder_2d.submaps.num_range_data == 40
+    key = "trajectory_builder_2d.real_time_correlative_scan_matcher.angular_search_window"
+    with pytest.raises(CartoError, match="expected a number, got '10deg'"):
+        apply_values(Options(), {key: "10deg"}, Layer())
+    with pytest.raises(CartoError, match=r"^trajectory_builder_2d.max_range: must be > 0"):
+        apply_values(Options(), {"trajectory_builder_2d.max_range": -1.0}, Layer())
+    # Cross-option checks are not apply_values' job: they run once on the final values.
+    o = apply_values(Options(), {"trajectory_builder_2d.min_range": 40.0}, Layer())
+    assert o.trajectory_builder_2d.min_range == 40.0
 
 
-def test_named_profile_layers_over_default_and_set_over_profile(profiles):
-    (profiles / "revo.yaml").write_text(
-        "trajectory_builder_2d:\n"
-        "  use_online_correlative_scan_matching: true\n"
-        "  submaps:\n"
-        "    num_range_data: 35\n"
-        "pose_graph:\n"
-        "  optimize_every_n_nodes: 35\n"
-        "  constraint_builder.min_score: 0.65   # dotted keys work in files too\n")
-    o = load_options("revo", ["pose_graph.optimize_every_n_nodes=50"])
-    assert o.trajectory_builder_2d.use_online_correlative_scan_matching is True
-    assert o.trajectory_builder_2d.submaps.num_range_data == 35
-    assert o.pose_graph.constraint_builder.min_score == 0.65
-    assert o.pose_graph.optimize_every_n_nodes == 50
-    # Untouched values keep their defaults.
-    assert o.trajectory_builder_2d.submaps.range_data_inserter.hit_probability == 0.55
-    assert opts.list_profiles() == ["default", "revo"]
-    assert load_options("default") == Options()
+def test_read_yaml_gives_the_line_of_every_key(tmp_path):
+    p = tmp_path / "lines.yaml"
+    p.write_text("# comment\npose_graph:\n  optimize_every_n_nodes: 1e1\n  constraint_builder.min_score: 0.6\n")
+    data, lines = read_yaml(p)
+    assert data == {"pose_graph": {"optimize_every_n_nodes": 10.0, "constraint_builder.min_score": 0.6}}
+    assert lines == {"pose_graph": 2, "pose_graph.optimize_every_n_nodes": 3,
+                     "pose_graph.constraint_builder.min_score": 4}
 
 
-def test_profile_path_is_read_directly(tmp_path):
-    p = tmp_path / "mine.yaml"
-    p.write_text("pose_graph: {optimize_every_n_nodes: 0}\n")
-    assert load_options(str(p)).pose_graph.optimize_every_n_nodes == 0
-    assert load_options(p).pose_graph.optimize_every_n_nodes == 0
+# --------------------------------------------------------------------------- files
 
 
 def test_empty_profile_and_empty_section(tmp_path):
@@ -212,19 +154,6 @@ def test_empty_profile_and_empty_section(tmp_path):
     assert load_options(p) == Options()
     p.write_text("trajectory_builder_2d:\n  submaps:\n")
     assert load_options(p) == Options()
-
-
-def test_unknown_profile_name_suggests(profiles):
-    (profiles / "office.yaml").write_text("{}\n")
-    with pytest.raises(CartoError, match=r"unknown profile 'ofice'; did you mean 'office'\?.*default, office"):
-        load_options("ofice")
-
-
-def test_missing_profile_file(tmp_path):
-    p = tmp_path / "nope.yaml"
-    with pytest.raises(CartoError) as e:
-        load_options(p)
-    assert "no such profile file" in str(e.value) and e.value.path == str(p)
 
 
 @pytest.mark.parametrize("text, message", [
@@ -274,11 +203,3 @@ def test_dump_round_trips(tmp_path):
     d = options_to_dict(o)
     assert d["trajectory_builder_2d"]["submaps"]["num_range_data"] == 35
     assert list(_flatten(d)) == option_names()
-
-
-def test_get_option():
-    o = Options()
-    assert get_option(o, "pose_graph.constraint_builder.min_score") == 0.55
-    assert get_option(o, "trajectory_builder_2d.submaps").num_range_data == 90
-    with pytest.raises(CartoError, match="did you mean 'pose_graph.constraint_builder.min_score'"):
-        get_option(o, "pose_graph.constraint_builder.min_scor")

@@ -1,4 +1,4 @@
-"""Typed options mirroring Cartographer's 2D configuration, loaded from YAML profiles.
+"""The options schema: typed dataclasses mirroring Cartographer's 2D configuration.
 
 Names and defaults follow cartographer/configuration_files/trajectory_builder_2d.lua
 and pose_graph.lua, so a line such as ``POSE_GRAPH.constraint_builder.min_score = 0.65``
@@ -10,36 +10,42 @@ Deviations from the Lua defaults, and why:
 - ``use_imu_data`` is false: carto maps from recordings that often lack an IMU, and
   Cartographer's ``true`` would make it wait for IMU data forever.
 
-Loading is layered: the packaged ``default.yaml``, then an optional profile, then
-``--set key=value`` overrides. Every layer is checked for unknown keys, types and
-ranges, and errors name the key and where it came from. Lengths are metres, times
-seconds and angles radians everywhere except on the command line, where an explicit
-``deg`` suffix (``--set ...angular_search_window=20deg``) is accepted.
+Every leaf carries its one-line doc, unit and bounds in its field metadata; lengths are
+metres, times seconds and angles radians. Reading values into this schema is
+``options.loader``'s job.
 """
 from __future__ import annotations
 
 import dataclasses
 import difflib
 import math
-import re
 import typing
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from functools import lru_cache
-from pathlib import Path
-from typing import Any, Iterable
-
-import yaml
+from functools import cache
+from typing import Any, NamedTuple
 
 from carto_cli.core.errors import CartoError
 
 __all__ = [
-    "Options", "TrajectoryBuilder2D", "PoseGraph", "Relocalization",
-    "load_options", "apply_overrides", "validate_options",
-    "options_to_dict", "dump_options_yaml", "option_names", "option_info", "OptionInfo",
-    "get_option", "changed_options", "profiles_dir", "list_profiles",
+    "CeresSolverOptions",
+    "Leaf",
+    "OptionInfo",
+    "Options",
+    "PoseGraph",
+    "Relocalization",
+    "TrajectoryBuilder2D",
+    "bounds_text",
+    "changed_options",
+    "get_option",
+    "hints",
+    "is_section",
+    "option_info",
+    "option_names",
+    "options_to_dict",
+    "suggestion",
+    "walk",
 ]
-
-PROFILE_SUFFIXES = (".yaml", ".yml")
 
 
 def _opt(default, doc: str, *, unit: str = "", gt=None, ge=None, lt=None, le=None):
@@ -78,8 +84,20 @@ class RealTimeCorrelativeScanMatcher:
 
 
 @dataclass(frozen=True)
-class CeresSolverOptions20:
-    max_num_iterations: int = _opt(20, "Levenberg-Marquardt iterations per match", ge=1)
+class CeresSolverOptions:
+    """The solver settings of one least-squares problem; each owner gives its own default (``_solver``)."""
+
+    max_num_iterations: int = _opt(dataclasses.MISSING, "solver iterations", ge=1)
+
+
+def _solver(max_num_iterations: int, doc: str):
+    """An owner's ``ceres_solver_options``: its iteration default and what one of its iterations does.
+
+    The doc lives on the owner's field because the same leaf means a different solve in
+    each place (``option_info`` reads it from there).
+    """
+    return field(default_factory=lambda: CeresSolverOptions(max_num_iterations=max_num_iterations),
+                 metadata={"docs": {"max_num_iterations": doc}})
 
 
 @dataclass(frozen=True)
@@ -87,7 +105,7 @@ class LocalCeresScanMatcher:
     occupied_space_weight: float = _opt(1.0, "weight of the scan-to-grid residuals", ge=0)
     translation_weight: float = _opt(10.0, "weight pulling the translation to the prediction", ge=0)
     rotation_weight: float = _opt(40.0, "weight pulling the rotation to the initial angle", ge=0)
-    ceres_solver_options: CeresSolverOptions20 = _section(CeresSolverOptions20)
+    ceres_solver_options: CeresSolverOptions = _solver(20, "Levenberg-Marquardt iterations per match")
 
 
 @dataclass(frozen=True)
@@ -142,7 +160,8 @@ class TrajectoryBuilder2D:
     voxel_filter_size: float = _opt(0.025, "edge of the fixed voxel filter", unit="m", gt=0)
     adaptive_voxel_filter: AdaptiveVoxelFilter = _section(AdaptiveVoxelFilter)
     loop_closure_adaptive_voxel_filter: LoopClosureAdaptiveVoxelFilter = _section(LoopClosureAdaptiveVoxelFilter)
-    use_online_correlative_scan_matching: bool = _opt(False, "run the real-time correlative matcher before least squares")
+    use_online_correlative_scan_matching: bool = _opt(False,
+                                                      "run the real-time correlative matcher before least squares")
     real_time_correlative_scan_matcher: RealTimeCorrelativeScanMatcher = _section(RealTimeCorrelativeScanMatcher)
     ceres_scan_matcher: LocalCeresScanMatcher = _section(LocalCeresScanMatcher)
     motion_filter: MotionFilter = _section(MotionFilter)
@@ -168,16 +187,11 @@ class FastCorrelativeScanMatcher:
 
 
 @dataclass(frozen=True)
-class CeresSolverOptions10:
-    max_num_iterations: int = _opt(10, "Levenberg-Marquardt iterations per refinement", ge=1)
-
-
-@dataclass(frozen=True)
 class ConstraintCeresScanMatcher:
     occupied_space_weight: float = _opt(20.0, "weight of the scan-to-grid residuals", ge=0)
     translation_weight: float = _opt(10.0, "weight pulling the translation to the fast matcher's result", ge=0)
     rotation_weight: float = _opt(1.0, "weight pulling the rotation to the fast matcher's result", ge=0)
-    ceres_solver_options: CeresSolverOptions10 = _section(CeresSolverOptions10)
+    ceres_solver_options: CeresSolverOptions = _solver(10, "Levenberg-Marquardt iterations per refinement")
 
 
 @dataclass(frozen=True)
@@ -204,11 +218,6 @@ class ConstraintBuilder:
 
 
 @dataclass(frozen=True)
-class CeresSolverOptions50:
-    max_num_iterations: int = _opt(50, "solver iterations per periodic optimization", ge=1)
-
-
-@dataclass(frozen=True)
 class OptimizationProblem:
     huber_scale: float = _opt(1e1, "scale of the Huber loss on loop closures", gt=0)
     acceleration_weight: float = _opt(1.1e2, "weight of IMU acceleration terms (unused without IMU)", ge=0)
@@ -217,7 +226,7 @@ class OptimizationProblem:
     local_slam_pose_rotation_weight: float = _opt(1e5, "weight of consecutive local SLAM rotations", ge=0)
     odometry_translation_weight: float = _opt(1e5, "weight of consecutive odometry translations", ge=0)
     odometry_rotation_weight: float = _opt(1e5, "weight of consecutive odometry rotations", ge=0)
-    ceres_solver_options: CeresSolverOptions50 = _section(CeresSolverOptions50)
+    ceres_solver_options: CeresSolverOptions = _solver(50, "solver iterations per periodic optimization")
 
 
 @dataclass(frozen=True)
@@ -310,17 +319,21 @@ class Options:
 # --------------------------------------------------------------------------- introspection
 
 
-@lru_cache(maxsize=None)
-def _hints(cls) -> dict[str, Any]:
+@cache
+def hints(cls) -> dict[str, Any]:
+    """The resolved field types of an options dataclass (the annotations are strings)."""
     return typing.get_type_hints(cls)
 
 
-def _is_section(tp) -> bool:
+def is_section(tp) -> bool:
+    """Whether a field type is a section (a nested options dataclass) rather than a value."""
     return isinstance(tp, type) and dataclasses.is_dataclass(tp)
 
 
 @dataclass(frozen=True)
 class OptionInfo:
+    """What ``carto options`` shows of one option."""
+
     name: str
     type: str  # 'int' | 'float' | 'bool'
     default: Any
@@ -329,28 +342,40 @@ class OptionInfo:
     bounds: str  # e.g. '> 0.5 and < 1', '' when unbounded
 
 
-def _bounds_text(md) -> str:
-    parts = [f"{op} {md[k]:g}" for k, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")) if md.get(k) is not None]
+def bounds_text(md) -> str:
+    """An option's bounds as text, e.g. '> 0.5 and < 1' ('' when unbounded), from its field metadata."""
+    parts = [f"{op} {md[k]:g}" for k, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
+             if md.get(k) is not None]
     return " and ".join(parts)
 
 
-def _walk(cls, prefix: str = ""):
-    """(dotted name, dataclass field, type) for every leaf, in declaration order."""
-    hints = _hints(cls)
+class Leaf(NamedTuple):
+    """One option as the schema declares it."""
+
+    name: str  # dotted key
+    field: dataclasses.Field
+    type: type
+    doc: str  # the owning section's wording when it gives one (shared sections such as CeresSolverOptions)
+
+
+def walk(cls, prefix: str = "", docs: dict[str, str] | None = None) -> Iterator[Leaf]:
+    """Every leaf of ``cls``, in declaration order."""
+    types = hints(cls)
     for f in dataclasses.fields(cls):
-        tp = hints[f.name]
-        if _is_section(tp):
-            yield from _walk(tp, f"{prefix}{f.name}.")
+        tp = types[f.name]
+        if is_section(tp):
+            yield from walk(tp, f"{prefix}{f.name}.", f.metadata.get("docs"))
         else:
-            yield f"{prefix}{f.name}", f, tp
+            doc = (docs or {}).get(f.name, f.metadata.get("doc", ""))
+            yield Leaf(f"{prefix}{f.name}", f, tp, doc)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _all_names() -> tuple[str, ...]:
-    return tuple(name for name, _, _ in _walk(Options))
+    return tuple(leaf.name for leaf in walk(Options))
 
 
-@lru_cache(maxsize=None)
+@cache
 def _section_names() -> tuple[str, ...]:
     out = set()
     for name in _all_names():
@@ -367,10 +392,13 @@ def option_names() -> list[str]:
 
 def option_info() -> list[OptionInfo]:
     """Name, type, default, unit, doc and bounds of every option (for ``carto options``)."""
+    # Defaults are read from a default instance: a shared section's leaf (CeresSolverOptions)
+    # gets its default from its owner, not from its own field.
+    defaults = Options()
     return [
-        OptionInfo(name, tp.__name__, f.default, f.metadata.get("unit", ""), f.metadata.get("doc", ""),
-                   _bounds_text(f.metadata))
-        for name, f, tp in _walk(Options)
+        OptionInfo(leaf.name, leaf.type.__name__, get_option(defaults, leaf.name),
+                   leaf.field.metadata.get("unit", ""), leaf.doc, bounds_text(leaf.field.metadata))
+        for leaf in walk(Options)
     ]
 
 
@@ -379,18 +407,14 @@ def get_option(options: Options, key: str) -> Any:
     obj: Any = options
     for part in key.split("."):
         if not dataclasses.is_dataclass(obj) or part not in {f.name for f in dataclasses.fields(obj)}:
-            raise CartoError(f"unknown option '{key}'{_suggestion(key)}")
+            raise CartoError(f"unknown option '{key}'{suggestion(key)}")
         obj = getattr(obj, part)
     return obj
 
 
 def options_to_dict(options: Options) -> dict:
+    """The options as nested plain dicts, keyed as in a profile."""
     return dataclasses.asdict(options)
-
-
-def dump_options_yaml(options: Options) -> str:
-    """The complete options as YAML that ``load_options`` reads back to the same values."""
-    return yaml.safe_dump(options_to_dict(options), sort_keys=False, default_flow_style=False)
 
 
 def changed_options(options: Options, base: Options | None = None) -> dict[str, Any]:
@@ -403,7 +427,7 @@ def changed_options(options: Options, base: Options | None = None) -> dict[str, 
 # --------------------------------------------------------------------------- suggestions
 
 
-def _suggestion(written: str) -> str:
+def suggestion(written: str) -> str:
     """"; did you mean 'x'?" for the valid key closest to what was written, or ''."""
     names = _all_names() + _section_names()
     low = written.lower()
@@ -427,269 +451,3 @@ def _suggestion(written: str) -> str:
     if same_leaf or tails:
         return "; did you mean one of " + ", ".join(f"'{n}'" for n in (same_leaf or tails)) + "?"
     return ""
-
-
-# --------------------------------------------------------------------------- YAML
-
-
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads '1e5' and '1.1e4' as floats.
-
-    PyYAML follows YAML 1.1, which wants a dot and a signed exponent; Cartographer's
-    Lua files are full of '1e5', and silently getting a string would be a trap.
-    """
-
-
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
-    list("-+0123456789."),
-)
-
-
-def _parse_scalar(text: str) -> Any:
-    try:
-        return yaml.load(text, Loader=_Loader)
-    except yaml.YAMLError:
-        # Not YAML (e.g. an unbalanced quote): keep the text, the type check will name it.
-        return text
-
-
-def _read_yaml(path: Path) -> tuple[dict, dict[str, int]]:
-    """(mapping, dotted key -> 1-based line) of a YAML options file."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CartoError("no such profile file", path) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise CartoError(f"cannot read profile: {e}", path) from None
-    loader = _Loader(text)
-    lines: dict[str, int] = {}
-    try:
-        node = loader.get_single_node()
-        if node is None:
-            return {}, lines
-        if not isinstance(node, yaml.MappingNode):
-            raise CartoError(f"line {node.start_mark.line + 1}: expected a mapping of option names to values", path)
-        data = _construct(loader, node, "", lines, path)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f"line {mark.line + 1}: " if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e)
-        raise CartoError(f"{where}invalid YAML: {problem}", path) from None
-    finally:
-        loader.dispose()
-    return data, lines
-
-
-def _construct(loader, node, prefix: str, lines: dict[str, int], path: Path):
-    if not isinstance(node, yaml.MappingNode):
-        return loader.construct_object(node, deep=True)
-    out: dict = {}
-    for key_node, value_node in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        line = key_node.start_mark.line + 1
-        if not isinstance(key, str):
-            raise CartoError(f"line {line}: option names are text, got {key!r}", path)
-        full = prefix + key
-        if key in out:
-            raise CartoError(f"line {line}: '{full}' is given twice (first on line {lines[full]})", path)
-        lines[full] = line
-        out[key] = _construct(loader, value_node, full + ".", lines, path)
-    return out
-
-
-# --------------------------------------------------------------------------- applying values
-
-
-_DEG = re.compile(r"^\s*([-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*deg\s*$")
-
-
-@dataclass
-class _Layer:
-    """Where values come from, for error messages."""
-
-    path: Path | None      # the file, for CartoError.path; None for --set and code
-    lines: dict[str, int]
-    cli: bool
-
-    def fail(self, key: str, message: str) -> CartoError:
-        if self.cli:
-            return CartoError(f"--set {key}: {message}")
-        line = self.lines.get(key)
-        where = f"line {line}: " if line else ""
-        return CartoError(f"{where}{key}: {message}", self.path)
-
-
-def _show(value: Any) -> str:
-    """A value as the user would have typed it in YAML."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if value is None:
-        return "null (no value)"
-    return repr(value)
-
-
-def _coerce(value: Any, tp, f: dataclasses.Field, key: str, layer: _Layer):
-    unit = f.metadata.get("unit", "")
-    # Values handed over by code (layer without a file) get no unit parsing at all.
-    if isinstance(value, str) and _DEG.match(value) and (layer.cli or layer.path is not None):
-        if unit != "rad":
-            raise layer.fail(key, f"'deg' is only allowed on angles; this option is in {unit or 'no unit'}")
-        degrees = float(_DEG.match(value).group(1))
-        if not layer.cli:
-            raise layer.fail(key, f"angles in profile files are radians: write {math.radians(degrees):.10g} "
-                                  f"for {degrees:g}deg")
-        value = math.radians(degrees)
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise layer.fail(key, f"expected true or false, got {_show(value)}")
-    elif tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise layer.fail(key, f"expected an integer, got {_show(value)}")
-    elif tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            hint = " (radians; on the command line '20deg' also works)" if unit == "rad" and layer.cli else ""
-            raise layer.fail(key, f"expected a number, got {_show(value)}{hint}")
-        value = float(value)
-        if not math.isfinite(value):
-            raise layer.fail(key, f"expected a finite number, got {_show(value)}")
-    else:  # pragma: no cover - only int/float/bool leaves are declared
-        raise TypeError(f"unsupported option type {tp!r} for {key}")
-    md = f.metadata
-    shown = f"{value:g}" if isinstance(value, float) else str(value)
-    if unit:
-        shown += f" {unit}"
-    for k, op, bad in (("gt", ">", lambda v, b: v <= b), ("ge", ">=", lambda v, b: v < b),
-                       ("lt", "<", lambda v, b: v >= b), ("le", "<=", lambda v, b: v > b)):
-        bound = md.get(k)
-        if bound is not None and bad(value, bound):
-            raise layer.fail(key, f"must be {_bounds_text(md)}, got {shown}")
-    return value
-
-
-def _apply(obj, mapping: dict, layer: _Layer, prefix: str):
-    cls = type(obj)
-    hints = _hints(cls)
-    by_name = {f.name: f for f in dataclasses.fields(cls)}
-    for key, value in mapping.items():
-        if not isinstance(key, str):
-            raise layer.fail(prefix.rstrip(".") or "(top level)", f"option names are text, got {key!r}")
-        head, dot, rest = key.partition(".")
-        full = prefix + head
-        f = by_name.get(head)
-        if f is None:
-            written = prefix + key
-            raise layer.fail(written, f"unknown option{_suggestion(written)}")
-        tp = hints[head]
-        if _is_section(tp):
-            current = getattr(obj, head)
-            if dot:
-                new = _apply(current, {rest: value}, layer, full + ".")
-            elif isinstance(value, dict):
-                new = _apply(current, value, layer, full + ".")
-            elif value is None:  # 'submaps:' with nothing under it
-                new = current
-            else:
-                keys = ", ".join(n.name for n in dataclasses.fields(tp))
-                raise layer.fail(full, f"is a section, not a value; set one of its keys: {keys}")
-            obj = dataclasses.replace(obj, **{head: new})
-        else:
-            if dot:
-                raise layer.fail(prefix + key, f"'{full}' is a value, not a section")
-            obj = dataclasses.replace(obj, **{head: _coerce(value, tp, f, full, layer)})
-    return obj
-
-
-def validate_options(options: Options, where: str | Path | None = None) -> Options:
-    """Checks that involve more than one option; returns ``options`` unchanged."""
-    tb = options.trajectory_builder_2d
-    if tb.min_range >= tb.max_range:
-        raise CartoError(f"trajectory_builder_2d.min_range ({tb.min_range:g} m) must be less than "
-                         f"trajectory_builder_2d.max_range ({tb.max_range:g} m)", where)
-    if tb.min_z > tb.max_z:
-        raise CartoError(f"trajectory_builder_2d.min_z ({tb.min_z:g} m) must not exceed "
-                         f"trajectory_builder_2d.max_z ({tb.max_z:g} m)", where)
-    return options
-
-
-def _parse_assignment(item: str) -> tuple[str, Any]:
-    key, eq, text = item.partition("=")
-    key = key.strip()
-    if not eq or not key:
-        raise CartoError(f"--set expects key=value, got {item!r}")
-    if not text.strip():
-        raise CartoError(f"--set {key}: no value given")
-    return key, _parse_scalar(text)
-
-
-def apply_overrides(options: Options, overrides: Iterable[str] | dict[str, Any]) -> Options:
-    """``options`` with ``key=value`` strings (as given to --set) or a {dotted key: value} dict applied.
-
-    Dict values are taken as they are (no YAML parsing, no 'deg' suffix): that form is
-    for code such as ``tune``, which already has typed values.
-    """
-    if isinstance(overrides, dict):
-        layer = _Layer(None, {}, cli=False)
-        for key, value in overrides.items():
-            options = _apply(options, {key: value}, layer, "")
-        return validate_options(options)
-    layer = _Layer(None, {}, cli=True)
-    for item in overrides:
-        key, value = _parse_assignment(item)
-        options = _apply(options, {key: value}, layer, "")
-    return validate_options(options, None)
-
-
-# --------------------------------------------------------------------------- profiles
-
-
-def profiles_dir() -> Path:
-    """The directory of the packaged profiles (``carto_cli/profiles``)."""
-    return Path(__file__).resolve().parent / "profiles"
-
-
-def list_profiles() -> list[str]:
-    """Names of the packaged profiles, 'default' included."""
-    d = profiles_dir()
-    return sorted(p.stem for p in d.iterdir() if p.suffix in PROFILE_SUFFIXES) if d.is_dir() else []
-
-
-def _resolve_profile(profile: str | Path) -> Path:
-    if isinstance(profile, Path):
-        return profile
-    text = str(profile)
-    if text.endswith(PROFILE_SUFFIXES) or "/" in text or "\\" in text:
-        return Path(text).expanduser()
-    for suffix in PROFILE_SUFFIXES:
-        candidate = profiles_dir() / f"{text}{suffix}"
-        if candidate.is_file():
-            return candidate
-    names = list_profiles()
-    close = difflib.get_close_matches(text, names, n=1)
-    hint = f"; did you mean '{close[0]}'?" if close else ""
-    raise CartoError(f"unknown profile '{text}'{hint} (profiles: {', '.join(names) or 'none'}; "
-                     "a path ending in .yaml is read as a file)")
-
-
-def _load_file(options: Options, path: Path) -> Options:
-    data, lines = _read_yaml(path)
-    layer = _Layer(path, lines, cli=False)
-    return _apply(options, data, layer, "")
-
-
-def load_options(profile: str | Path | None = None, overrides: Iterable[str] = ()) -> Options:
-    """The packaged defaults, then ``profile`` (a name from ``profiles_dir()`` or a .yaml path), then --set.
-
-    Raises CartoError naming the key and the file (or --set) for unknown keys,
-    wrong types, out-of-range values and malformed files.
-    """
-    default_path = profiles_dir() / "default.yaml"
-    options = _load_file(Options(), default_path)
-    if profile is not None:
-        path = _resolve_profile(profile)
-        if path.resolve() != default_path.resolve():
-            options = _load_file(options, path)
-    # Cross-option checks run once, on the final values: a profile may set
-    # min_range past the default max_range and --set may then fix max_range.
-    return apply_overrides(options, list(overrides))

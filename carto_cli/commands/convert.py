@@ -1,0 +1,61 @@
+"""`carto convert` as a library call: copy a recording's scans, odometry, IMU and static TF to another format."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from carto_cli.io.recording import ReadOptions
+from carto_cli.io.recording_writers import format_for_output, write_recording
+from carto_cli.io.sources.open import open_recording
+from carto_cli.io.topics import choose_topic
+
+__all__ = ["Converted", "run_convert"]
+
+
+@dataclass(frozen=True)
+class Converted:
+    messages: int
+    out: Path
+    format: str
+
+
+def run_convert(
+    source: str | Path,
+    out: str | Path,
+    *,
+    fmt: str | None = None,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    imu_topic: str | None = None,
+    overwrite: bool = False,
+    read: ReadOptions | None = None,
+    on_total: Callable[[int], None] | None = None,
+    on_record: Callable[[], None] | None = None,
+) -> Converted:
+    """Write ``source`` to ``out`` in ``fmt`` (default: from ``out``'s suffix).
+
+    With no topic given every scan, odometry and IMU topic is copied; with any given, only
+    the given ones. ``on_total`` hears how many messages will be written.
+    """
+    out = Path(out)
+    out_format = format_for_output(out, fmt)
+    with open_recording(source, read) as rec:
+        topics = rec.topics()
+        chosen: list[str] = []
+        for kind, wanted in (("scan", scan_topic), ("odometry", odom_topic), ("imu", imu_topic)):
+            if wanted is not None:
+                name = choose_topic(rec, topics, kind, wanted, True)
+                assert name is not None  # a named topic is found or refused
+                chosen.append(name)
+            elif not any(w is not None for w in (scan_topic, odom_topic, imu_topic)):
+                chosen.extend(t.name for t in topics if t.kind == kind)
+        types = {t.name: t.msgtype for t in topics}
+        if on_total is not None:
+            on_total(sum(t.count for t in topics if t.name in chosen))
+        n = write_recording(
+            rec.records(chosen), out, out_format,
+            static_transforms=rec.static_transforms(), topics={t: types[t] for t in chosen},
+            on_record=on_record, overwrite=overwrite,
+        )
+    return Converted(n, out, out_format)

@@ -1,0 +1,77 @@
+"""`carto profile` as a library call: the whole pipeline under the StageTimer, as one report, and its gates."""
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from carto_cli.core.errors import CartoError
+from carto_cli.core.timing import StageTimer
+from carto_cli.evaluation.gates import GateResult, compare_profiles
+from carto_cli.evaluation.profiling import build_report, calibrate
+from carto_cli.io.atomic import write_text_atomic
+from carto_cli.options import Options
+from carto_cli.pipeline import build, opened, read_options
+
+__all__ = ["ProfileRun", "read_baseline", "run_profile"]
+
+
+@dataclass
+class ProfileRun:
+    report: dict  # see evaluation/profiling.py for its schema
+    baseline: dict | None = None
+
+    def gates(self, max_regression: float = 0.20) -> list[GateResult]:
+        """Per-stage speed against the baseline (a slow-down of up to ``max_regression`` passes)."""
+        if self.baseline is None:
+            raise CartoError("no baseline to compare against")
+        return compare_profiles(self.report, self.baseline, max_regression)
+
+
+def read_baseline(path: Path) -> dict:
+    """A report written by an earlier ``--output``."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise CartoError(f"cannot read baseline: {e}", path) from None
+
+
+def run_profile(
+    recording: Path,
+    options: Options,
+    *,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    output: Path | None = None,
+    baseline: Path | None = None,
+    calibrate_first: bool = False,
+    max_scans: int | None = None,
+    relocalize_map: Path | None = None,
+    on_total: Callable[[int], None] | None = None,
+    on_scan: Callable[[int], None] | None = None,
+) -> ProfileRun:
+    """Map ``recording`` (its first ``max_scans`` scans) under a StageTimer and build the report; with
+    ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with ``output``
+    write the report there. ``on_total`` hears how many scans will be mapped."""
+    base = read_baseline(baseline) if baseline is not None else None
+    calibration = calibrate() if calibrate_first else None
+    timer = StageTimer()
+    with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic) as source:
+        total = source.scan_count
+        if on_total is not None:
+            on_total(min(total, max_scans or total))
+        result = build(source.recording, options, selection=source.selection, timer=timer, on_scan=on_scan,
+                       max_scans=max_scans)
+    timer.stop()
+    report = build_report(result, timer, options, recording, calibration)
+    if relocalize_map is not None:
+        from carto_cli.evaluation.profiling import profile_relocalization
+        from carto_cli.io.map_file import load_map
+        from carto_cli.io.sources.open import open_recording
+
+        with open_recording(recording, read_options(options)) as rec:
+            report["relocalization"] = profile_relocalization(load_map(relocalize_map), rec, scan_topic=scan_topic)
+    if output is not None:
+        write_text_atomic(output, json.dumps(report, indent=2) + "\n")
+    return ProfileRun(report, base)

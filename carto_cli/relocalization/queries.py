@@ -1,0 +1,215 @@
+"""What to relocalize: query files and ``--initial-pose`` text, and the recording's scans they select."""
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from carto_cli.core.errors import CartoError
+from carto_cli.core.records import Scan
+from carto_cli.io.topics import select_topics
+
+__all__ = ["Query", "iter_scans", "parse_pose", "read_queries", "scan_at", "scans_for_queries", "select_scan_topic"]
+
+
+@dataclass(frozen=True)
+class Query:
+    """One line of a queries file: which scan (by time or index) and the prior (None: global)."""
+
+    time: float | None
+    index: int | None
+    prior: tuple[float, float, float] | None
+    sigma_xy: float | None = None
+    sigma_yaw: float | None = None
+    line: int = 0
+
+
+# ----------------------------------------------------------------------------------- parsing
+
+
+_NUM = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
+_ANGLE = re.compile(rf"^({_NUM})(deg)?$")
+_KEYS = {"t": "time", "time": "time", "stamp": "time", "index": "index", "scan": "index", "scan_index": "index",
+         "i": "index"}
+_NONE = {"-", "none", "null", "?"}
+
+
+def _number(text: str, what: str, fail) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise fail(f"{what} must be a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise fail(f"{what} must be finite, got {text!r}")
+    return v
+
+
+def _angle(text: str, what: str, fail) -> float:
+    m = _ANGLE.match(text.strip().lower())
+    if not m:
+        raise fail(f"{what} must be a number of radians (or degrees with a 'deg' suffix), got {text!r}")
+    v = float(m.group(1))
+    return math.radians(v) if m.group(2) else v
+
+
+def parse_pose(text: str) -> tuple[float, float, float]:
+    """'x,y,yaw' (yaw in radians, or degrees with a 'deg' suffix) -> (x, y, yaw), for ``--initial-pose``."""
+    def fail(msg):
+        return CartoError(f"--initial-pose: {msg}")
+    parts = [p for p in re.split(r"[,\s]+", text.strip()) if p]
+    if len(parts) != 3:
+        raise fail(f"expected x,y,yaw, got {text!r}")
+    return (_number(parts[0], "x", fail), _number(parts[1], "y", fail), _angle(parts[2], "yaw", fail))
+
+
+def read_queries(path: str | Path) -> list[Query]:
+    """Queries from a text file, one per line::
+
+        # comments and blank lines are ignored; fields split on whitespace and/or commas
+        t x y yaw [sigma_xy sigma_yaw]      <- optional header; 'index x y yaw ...' selects scans by index
+        1012.5  3.2  1.0  1.57
+        1013.0  3.2  1.0  90deg  0.3  5deg  <- per-query sigmas (m, rad or 'deg')
+        1020.0  -    -    -                 <- no prior: global search
+
+    Without a header the first column is a time (s, the recording's clock). Angles are
+    radians unless suffixed 'deg'. Errors name the line.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CartoError("no such queries file", path) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise CartoError(f"cannot read queries: {e}", path) from None
+    key = "time"
+    out: list[Query] = []
+    seen_data = False
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+
+        def fail(msg, n=n):
+            return CartoError(f"line {n}: {msg}", path)
+        fields = [f for f in re.split(r"[,\s]+", line) if f]
+        head = fields[0].lower()
+        if head in _KEYS or not re.match(rf"^{_NUM}$", head):
+            if seen_data:
+                raise fail(f"expected a query (time or index, x, y, yaw), got {raw.strip()!r}")
+            if head not in _KEYS:
+                raise fail(f"the first column must be a time or a scan index; a header names it 't' or 'index', "
+                           f"got {fields[0]!r}")
+            key = _KEYS[head]
+            names = [f.lower() for f in fields[1:]]
+            if names[:3] != ["x", "y", "yaw"] or any(f not in ("sigma_xy", "sigma_yaw") for f in names[3:]):
+                raise fail("header must be 't x y yaw [sigma_xy sigma_yaw]' or 'index x y yaw [sigma_xy sigma_yaw]'")
+            seen_data = True  # one header at most, and before the data
+            continue
+        seen_data = True
+        if len(fields) not in (4, 6):
+            raise fail(f"expected 4 fields (time or index, x, y, yaw) or 6 (+ sigma_xy sigma_yaw), got {len(fields)}")
+        if key == "time":
+            t, idx = _number(fields[0], "time", fail), None
+        else:
+            try:
+                idx, t = int(fields[0]), None
+            except ValueError:
+                raise fail(f"scan index must be a whole number, got {fields[0]!r}") from None
+            if idx < 0:
+                raise fail(f"scan index must be >= 0, got {idx}")
+        pose_fields = [f.lower() for f in fields[1:4]]
+        if all(f in _NONE for f in pose_fields):
+            prior = None
+        elif any(f in _NONE for f in pose_fields):
+            raise fail("give all of x, y, yaw or none of them ('-' for a global search)")
+        else:
+            prior = (_number(fields[1], "x", fail), _number(fields[2], "y", fail), _angle(fields[3], "yaw", fail))
+        sxy = syaw = None
+        if len(fields) == 6:
+            sxy = _number(fields[4], "sigma_xy", fail)
+            syaw = _angle(fields[5], "sigma_yaw", fail)
+            if sxy <= 0 or syaw <= 0:
+                raise fail("sigmas must be positive")
+        out.append(Query(t, idx, prior, sxy, syaw, n))
+    if not out:
+        raise CartoError("no queries in the file", path)
+    return out
+
+
+# ----------------------------------------------------------------------------------- scans
+
+
+def select_scan_topic(recording, wanted: str | None = None) -> str:
+    """The scan topic relocalization reads (``wanted``, or the recording's only one), as every command chooses it."""
+    return select_topics(recording, scan_topic=wanted).scan
+
+
+def iter_scans(recording, topic: str) -> Iterator[tuple[int, Scan]]:
+    """(index, scan) of every scan on ``topic`` in recording order; the index counts scans from 0."""
+    count = 0
+    for record in recording.records([topic]):
+        if not isinstance(record, Scan):
+            continue
+        yield count, record
+        count += 1
+
+
+def scans_for_queries(recording, queries: Sequence[Query], scan_topic: str | None = None,
+                      max_time_offset: float = 1.0) -> dict[int, tuple[int, Scan]]:
+    """{query position: (scan index, Scan)} in one pass over the recording's scans.
+
+    A timed query gets the scan nearest its time (the earlier one on a tie), an error beyond ``max_time_offset``.
+    """
+    topic = select_scan_topic(recording, scan_topic)
+    by_index: dict[int, list[int]] = {}
+    timed = sorted(((q.time, k) for k, q in enumerate(queries) if q.time is not None))
+    for k, q in enumerate(queries):
+        if q.index is not None:
+            by_index.setdefault(q.index, []).append(k)
+    found: dict[int, tuple[int, Scan]] = {}
+    j = 0
+    prev: tuple[int, Scan] | None = None
+    count = 0
+    last = None
+    for i, record in iter_scans(recording, topic):
+        count = i + 1
+        for k in by_index.get(i, ()):
+            found[k] = (i, record)
+        while j < len(timed) and record.time >= timed[j][0]:
+            t, k = timed[j]
+            if prev is not None and abs(prev[1].time - t) <= abs(record.time - t):
+                found[k] = prev
+            else:
+                found[k] = (i, record)
+            j += 1
+        prev = (i, record)
+        last = prev
+    if count == 0 or last is None:
+        raise CartoError(f"the recording has no scans on {topic}", getattr(recording, "path", None))
+    while j < len(timed):
+        found[timed[j][1]] = last
+        j += 1
+    for k, q in enumerate(queries):
+        where = f"line {q.line}: " if q.line else ""
+        if q.index is not None and k not in found:
+            raise CartoError(f"{where}scan index {q.index} is beyond the recording's {count} scans",
+                             getattr(recording, "path", None))
+        if q.time is not None:
+            dt = abs(found[k][1].time - q.time)
+            if dt > max_time_offset:
+                raise CartoError(f"{where}no scan within {max_time_offset:g} s of t={q.time:.3f} "
+                                 f"(nearest is {dt:.3f} s away)", getattr(recording, "path", None))
+    return found
+
+
+def scan_at(recording, *, time: float | None = None, index: int | None = None, scan_topic: str | None = None,
+            max_time_offset: float = 1.0) -> tuple[int, Scan]:
+    """(index, scan) of the scan nearest ``time`` or at ``index`` (default: the first scan)."""
+    if time is not None and index is not None:
+        raise CartoError("give a time or a scan index, not both")
+    if index is not None and index < 0:
+        raise CartoError(f"scan index must be >= 0, got {index}")
+    q = Query(time, index if index is not None or time is not None else 0, None)
+    return scans_for_queries(recording, [q], scan_topic, max_time_offset)[0]

@@ -1,0 +1,98 @@
+"""The checks that keep the layout honest, run by the same `python -m pytest` as every test.
+
+Each runs the real tool over the real tree (configured in pyproject.toml) and fails with its output.
+"""
+from __future__ import annotations
+
+import ast
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "carto_cli"
+
+# The kernel tests, run once more with numba off so that coverage (and Python's own integer and dtype
+# rules) see inside the kernels; tests/reference holds the oracles they compare against.
+KERNEL_TESTS = ["tests/sensor", "tests/grid", "tests/matching", "tests/mapping/test_optimization.py"]
+KERNEL_PACKAGES = ["carto_cli.sensor", "carto_cli.grid", "carto_cli.matching", "carto_cli.mapping.optimization"]
+
+
+def _run(*cmd: str, env: dict | None = None, timeout: float = 900) -> subprocess.CompletedProcess:
+    return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, **(env or {})})
+
+
+def _ok(proc: subprocess.CompletedProcess) -> None:
+    assert proc.returncode == 0, f"exit {proc.returncode}\n{proc.stdout[-6000:]}\n{proc.stderr[-3000:]}"
+
+
+def test_ruff_finds_nothing():
+    _ok(_run(sys.executable, "-m", "ruff", "check", "carto_cli", "tests", "bench"))
+
+
+def test_mypy_finds_nothing():
+    _ok(_run(sys.executable, "-m", "mypy", "--no-error-summary"))
+
+
+def test_import_contracts_hold():
+    lint = Path(sys.executable).with_name("lint-imports")
+    _ok(_run(str(lint) if lint.exists() else "lint-imports", "--no-cache"))
+
+
+def test_kernel_tests_pass_with_numba_off(tmp_path):
+    data = tmp_path / ".coverage"
+    _ok(_run(sys.executable, "-m", "coverage", "run", f"--data-file={data}",
+             "--source=" + ",".join(KERNEL_PACKAGES), "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
+             "-m", "not slow_without_jit",
+             *KERNEL_TESTS, env={"NUMBA_DISABLE_JIT": "1"}, timeout=1800))
+    report = _run(sys.executable, "-m", "coverage", "report", f"--data-file={data}")
+    _ok(report)
+    print(report.stdout)
+
+
+def test_cli_imports_no_kernel_before_a_command_runs():
+    """The lazy-import rule (docs/architecture.md): `carto --help` must not pay for numba."""
+    probe = ("import sys, carto_cli.cli; "
+             "print(sorted(m for m in ('numba', 'scipy', 'cv2', 'optuna') if m in sys.modules))")
+    proc = _run(sys.executable, "-c", probe)
+    _ok(proc)
+    assert proc.stdout.strip() == "[]"
+
+
+def _python_files(*dirs: str):
+    for d in dirs:
+        yield from sorted((ROOT / d).rglob("*.py"))
+    yield ROOT / "bench" / "run"
+
+
+def test_no_private_name_imported_across_modules():
+    offenders = []
+    for path in _python_files("carto_cli", "bench", "tests"):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("carto_cli"):
+                offenders += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}"
+                              for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not offenders, "private names imported across modules:\n" + "\n".join(offenders)
+
+
+WRAP = re.compile(r"%\s*\(?\s*2(\.0)?\s*\*\s*(math|np)\.pi|atan2\(\s*(math|np)\.sin|arctan2\(\s*np\.sin|remainder\(")
+
+
+def test_angle_wrapping_has_one_home():
+    homes = {PACKAGE / "core" / "transform.py"}
+    found = [f"{p.relative_to(ROOT)}:{i}" for p in _python_files("carto_cli", "bench")
+             for i, line in enumerate(p.read_text().splitlines(), 1)
+             if WRAP.search(line) and p not in homes and not line.lstrip().startswith("#")]
+    assert not found, "angle wrapped outside carto_cli/core/transform.py:\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize("package", sorted(p.parent.name for p in PACKAGE.glob("*/__init__.py")))
+def test_every_package_says_its_job(package):
+    doc = ast.get_docstring(ast.parse((PACKAGE / package / "__init__.py").read_text()))
+    assert doc, f"carto_cli/{package}/__init__.py has no docstring"

@@ -1,0 +1,88 @@
+"""The objectives a trial is scored by: map quality without a reference, relocalization on held-out scans,
+and which objective a set of recordings gets."""
+import pytest
+
+from carto_cli.core.errors import CartoError
+from carto_cli.io.trajectory import Trajectory
+from carto_cli.options import apply_overrides, load_options
+from carto_cli.pipeline import build
+from carto_cli.sim import loop_building, loop_trajectory, simulate
+from carto_cli.tuning.objectives import (
+    check_space,
+    evaluate_options,
+    make_cases,
+    map_quality,
+    resolve_objective,
+    score_case,
+)
+
+
+def test_map_quality_prefers_the_better_map(sim, poor):
+    rec = sim.recording()
+    good = map_quality(build(rec, load_options()), rec)
+    worse = map_quality(build(rec, apply_overrides(load_options(), poor)), rec)
+    assert 0 < good["endpoint_spread"] < 1
+    assert 0 <= good["crispness"] <= 1 and 0 <= good["occupied_entropy"] <= 1
+    assert good["map_quality"] < worse["map_quality"]
+
+
+def test_map_quality_without_the_recording_leaves_out_the_spread(sim):
+    result = build(sim.recording(), load_options(), max_scans=40)
+    scores = map_quality(result)
+    assert "endpoint_spread" not in scores and "map_quality" not in scores
+    assert {"crispness", "occupied_entropy", "loop_closure_residual_m"} <= set(scores)
+
+
+def test_ground_truth_score_is_the_ate_plus_the_time_term(sim):
+    case, = make_cases([sim.recording()], ground_truth=[sim.ground_truth])
+    value, metrics = score_case(case, load_options(), "ground-truth", max_scans=40)
+    assert value == pytest.approx(metrics["ate_rmse_m"]) and metrics["ate_rmse_m"] > 0
+    timed, timed_metrics = score_case(case, load_options(), "ground-truth", max_scans=40, time_weight=10.0)
+    assert timed == pytest.approx(timed_metrics["ate_rmse_m"] + 10.0 * timed_metrics["s_per_scan"])
+
+
+def test_resolve_objective():
+    gt = Trajectory.from_arrays([0.0, 1.0], [0.0, 1.0], [0.0, 0.0], [0.0, 0.0])
+    bare, with_gt = make_cases(["a.bag"]), make_cases(["a.bag"], ground_truth=[gt])
+    assert resolve_objective("auto", bare) == "map-quality"
+    assert resolve_objective("auto", with_gt) == "ground-truth"
+    assert resolve_objective("relocalization", bare) == "relocalization"
+    with pytest.raises(CartoError, match="needs a --ground-truth file for every recording"):
+        resolve_objective("ground-truth", bare)
+    with pytest.raises(CartoError, match="needs a --relations file"):
+        resolve_objective("relations", with_gt)
+    with pytest.raises(CartoError, match=r"unknown objective 'speed' \(one of auto, relations"):
+        resolve_objective("speed", bare)
+
+
+def test_make_cases_wants_one_reference_per_recording():
+    with pytest.raises(CartoError, match="tune needs at least one recording"):
+        make_cases([])
+    with pytest.raises(CartoError, match="give one --ground-truth file per recording: 2 recording"):
+        make_cases(["a.bag", "b.bag"], ground_truth=[[[0.0, 0.0, 0.0, 0.0]]])
+    with pytest.raises(CartoError, match=r"ground truth must be \(m, 4\)"):
+        make_cases(["a.bag"], ground_truth=[[[0.0, 0.0, 0.0]]])
+
+
+def test_map_quality_cannot_tune_the_grid_it_scores():
+    grid = ["trajectory_builder_2d.submaps.range_data_inserter.hit_probability",
+            "trajectory_builder_2d.submaps.grid_options_2d.resolution"]
+    with pytest.raises(CartoError, match="cannot tune .*hit_probability, .*resolution"):
+        check_space("map-quality", grid + ["pose_graph.constraint_builder.min_score"])
+    check_space("ground-truth", grid)
+    check_space("map-quality", ["pose_graph.constraint_builder.min_score"])
+
+
+def test_relocalization_objective():
+    # The held-out last 30 % must revisit mapped places: most of two laps, scans at 2 Hz.
+    world = loop_building()
+    traj = loop_trajectory(world, laps=2)
+    sim = simulate(world, traj, duration=0.7 * traj.duration, scan_rate=2.0, beams=180)
+    from carto_cli.tuning.objectives import prepare
+
+    cases = make_cases([sim.recording()], ground_truth=[sim.ground_truth])
+    prepare(cases, "relocalization", load_options(), None)
+    value, metrics = evaluate_options(load_options(), cases, "relocalization")
+    assert metrics["queries"] >= 10
+    assert metrics["success_rate"] >= 0.5
+    assert value == pytest.approx(1 - metrics["success_rate"] + metrics["latency_s"])
