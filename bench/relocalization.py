@@ -8,7 +8,7 @@
 
 Per case (every directory of ``$DATA/bench-dense`` as ``dense-<name>`` and of ``$DATA/bench``):
 
-1. **Map.** ``map_builder.build(recording, options, max_scans=N60)`` on the first 60 % of the
+1. **Map.** ``pipeline.build(recording, options, max_scans=N60)`` on the first 60 % of the
    scans (of the first ``--max-scans`` scans when given), saved with ``save_map`` and loaded back
    with ``load_map`` (what ``carto relocalize`` reads). Mapping options: ``--profile`` when given,
    else ``wheeled`` for the dense cases and ``sparse`` for the sparse key-scan logs (the profiles

@@ -5,6 +5,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from carto_cli.core import kernels
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
@@ -97,7 +98,7 @@ def summary_line(result: MapResult) -> str:
 
 def compile_note(timer) -> str:
     """' (incl. N s compiling kernels: ...)' when the run paid noticeably for numba, else ''."""
-    warm_up = timer.snapshot().find("jit warm-up")
+    warm_up = timer.snapshot().find(kernels.STAGE)
     if warm_up is not None and warm_up.total_ns > COMPILE_NOTE_MIN_S * 1e9:
         return f" (incl. {warm_up.total_ns / 1e9:.0f} s compiling kernels: later runs load them from the cache)"
     return ""

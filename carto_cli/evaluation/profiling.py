@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli import __version__
+from carto_cli.core import kernels
 from carto_cli.core.timing import StageTimer, report_json
 from carto_cli.options import Options, changed_options
 
@@ -39,7 +40,7 @@ SCHEMA_VERSION = 1
 SCHEMA_PATH = Path(__file__).resolve().parents[1] / "schemas" / "profile.schema.json"
 
 # Stages whose share of a run is dominated by one-off work; not part of the steady state.
-COMPILE_STAGE = "jit warm-up"
+COMPILE_STAGE = kernels.STAGE
 
 
 def peak_memory_mb() -> float:

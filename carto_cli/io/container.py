@@ -26,13 +26,9 @@ Why this and not ``.npz`` or pickle:
   dtype or shape, a decompression that does not give the declared size).
 - Per-array codec, chosen at save time: the smallest of stored, zstd (level 9) and zstd of
   the byte-shuffled array (byte planes, HDF5's/Blosc's filter, which helps float columns).
-  Arrays under 256 bytes are stored. Measured on the Intel lab map (909 nodes, 11 submaps,
-  12.8 MB of raw arrays after cropping): zlib-6 2.50 MB (0.25 s), zlib-9 2.48 MB (0.72 s),
-  zstd-3 2.02 MB (0.04 s), zstd-9 1.71 MB (0.17 s), zstd-19 1.56 MB (2.8 s); decompression
-  is 0.01 s for zstd against 0.04 s for zlib. zstd-9 is smaller than zlib at any level and
-  faster; level 19 saves 9 % more for 17x the time. Shuffling saved 10 % on the CCNY map
-  (float loop-closure points dominate there) and nothing on Intel (grid cells dominate), so
-  it is tried per array rather than always. zstandard is already installed with mcap.
+  Arrays under 256 bytes are stored. zstd-9 is smaller than zlib at any level and faster;
+  higher levels cost far more time than they save; shuffling helps float-heavy maps and not
+  grid-heavy ones, so it is tried per array (docs/measurements.md has the figures).
 
 Header keys written here: ``format``, ``format_version``, then the caller's fields, then
 ``arrays`` (name -> dtype, shape, codec, offset and length in the data, raw_length) and

@@ -35,6 +35,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.transform import wrap_angle
 from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY
 from carto_cli.matching.correlative import search_parameters
@@ -167,8 +168,8 @@ def _branch_and_bound(data, starts, widths, heights, pads, discrete, bbox, bound
     sy = np.empty(capacity, dtype=np.int64)
     sh = np.empty(capacity, dtype=np.int64)
     ss = np.empty(capacity, dtype=np.int64)
-    # Counting sort by bound straight into the stack: linear, and it spares the ~1.5 s it
-    # takes numba to compile np.argsort. Beyond 2^16 distinct sums, neighbouring sums share a
+    # Counting sort by bound straight into the stack: linear, and it spares compiling np.argsort
+    # (docs/measurements.md). Beyond 2^16 distinct sums, neighbouring sums share a
     # bucket; the visiting order then is only nearly sorted, which costs nothing in exactness.
     top_sum = thr
     for i in range(count):
@@ -532,3 +533,20 @@ class FastCorrelativeScanMatcher2D:
 
     def match_full_submap(self, points, min_score: float) -> MatchResult:
         return match_full_submap(self.stack, points, min_score=min_score)
+
+
+@register_warm_up
+def warm_up() -> None:
+    """The loop-closure search kernels (windowed, multilevel, whole-submap) on a toy room."""
+    from carto_cli.grid.probability_grid import ProbabilityGrid
+
+    grid = ProbabilityGrid(0.05, (0.0, 0.0), (40, 40))
+    edge = np.arange(40)
+    walls = np.concatenate([np.stack([edge, np.zeros_like(edge)], 1), np.stack([np.zeros_like(edge), edge], 1)])
+    grid.set_probability(walls, 0.9)
+    stack = PrecomputationGridStack(grid, 3)
+    points = np.stack([np.linspace(0.1, 1.5, 20), np.full(20, -0.9)], 1)
+    estimate = np.array([0.0, 1.0, 0.0])
+    match(stack, points, estimate, linear_search_window=0.2, angular_search_window=0.1)
+    match_multilevel(stack, points, estimate, linear_search_window=0.2, angular_search_window=0.1)
+    match_full_submap(stack, points)

@@ -90,15 +90,15 @@ _DISTINCT_YAW = math.radians(10.0)
 _AMBIGUITY_MARGIN = 0.03  # a search without a (trusted) prior must beat every other place by this much score
 _NODE_MARGIN = 2.0  # m: a whole-submap search covers the box of the submap's nodes plus this
 # A scan taken where the map ends sees partly unmapped space: its points there read 0.1 whatever the pose, and
-# drag the plain score of the right pose below min_score (bench-dense, wheeled maps: every covered failure with
-# a prior was such a scan, 17-26 % of its points in unknown cells, 0.40-0.49 searched at the reference pose).
+# drag the plain score of the right pose below min_score (on bench-dense, every failure with a prior was such a
+# scan: docs/measurements.md).
 # The windowed passes therefore search down to _KNOWN_SEARCH_FLOOR and accept a refined pose whose plain score
 # misses the threshold when the points in known cells (at least _MIN_KNOWN_FRACTION of them) reach it on their own.
-# Only the first pass: in the wide one (4x the area) that let chance fits 2-4 m off through (bench-dense/aces).
+# Only the first pass: in the wide one (4x the area) that let chance fits metres off through.
 _KNOWN_SEARCH_FLOOR = 0.35
 _MIN_KNOWN_FRACTION = 0.5
-# Not for whole-submap searches: accepting known cells there (>= 80 % of the points) turned 2 of the 7 missed global
-# queries on bench-dense/aces into successes, but also 9 of 300 queries in places the map never saw into wrong ones.
+# Not for whole-submap searches: there it turned more queries in places the map never saw into wrong answers than
+# it recovered missed ones (docs/measurements.md).
 
 
 @dataclass
@@ -168,9 +168,9 @@ class Relocalizer:
                            else np.asarray(loaded_map.laser_pose, dtype=np.float64).reshape(3))
 
         m = loaded_map.num_submaps
-        # A map saved mid-trajectory holds its newest submaps as allocated while growing (up to 8x their known
-        # area: bench-dense/aces, stock options, 3024 x 4652 cells for 1264 x 1430 known); their precomputation
-        # stacks would be as big, and evict each other from the cache on every whole-map search.
+        # A map saved mid-trajectory holds its newest submaps as allocated while growing (several times their
+        # known area: docs/measurements.md); their precomputation stacks would be as big, and evict each other
+        # from the cache on every whole-map search.
         self.grids = [_tight(s.grid) for s in loaded_map.submaps]
         # map -> grid frame of each submap: local_pose ∘ inverse(global_pose)
         self.map_to_grid = np.array([
@@ -196,7 +196,7 @@ class Relocalizer:
             for i, nodes in enumerate(loaded_map.submap_nodes)]
         self.covering = self._covering_submaps()
         # A whole-map search visits every covering submap: with stacks beyond the cache budget each such query
-        # rebuilds the evicted ones (LRU order is the worst case for a cyclic scan), ~0.1 s per million cells.
+        # rebuilds the evicted ones (LRU order is the worst case for a cyclic scan): warn when they do not fit.
         self.stack_bytes_needed = sum(stack_bytes(self.grids[i].num_cells, self.ro.branch_and_bound_depth)
                                       for i in self.searchable)
         self.warnings: list[str] = []

@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import carto_cli.pipeline  # noqa: F401  (imports every mapping kernel, registering its warm-up)
+from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
 from carto_cli.options import Options, apply_overrides, load_options
 from carto_cli.tuning.objectives import Case, check_space, evaluate_options, make_cases, prepare, resolve_objective
@@ -156,16 +158,6 @@ def _default_storage(out: Path) -> str:
     return "sqlite:///" + str(out.resolve().with_name(out.stem + ".optuna.db"))
 
 
-def _warm_up(cases: Sequence[Case], base: Options) -> None:
-    """Compile the numba kernels before timed trials (a few scans of the first recording)."""
-    from carto_cli.pipeline import build
-
-    try:
-        build(cases[0].recording(), base, max_scans=20)
-    except Exception:
-        pass
-
-
 def tune(
     recordings: Sequence,
     space: Path | str | dict,
@@ -215,7 +207,8 @@ def tune(
     check_space(objective, [p.name for p in params])
     prepare(cases, objective, base, max_scans)
     if time_weight > 0:
-        _warm_up(cases, base)
+        # Kernels load (or compile) before the first trial, so its time is not the compiler's.
+        kernels.warm_up()
 
     storage = storage or _default_storage(out)
     study_name = study_name or out.stem

@@ -1,6 +1,6 @@
 """Local SLAM end to end: simulated recordings against exact ground truth, and the real CCNY bag.
 
-Everything runs the real pipeline (``map_builder.build`` with ``loop_closure=False``),
+Everything runs the real pipeline (``pipeline.build`` with ``loop_closure=False``),
 so what is measured is the local SLAM trajectory (``MapResult.local_poses``) and the
 map of its submaps placed by it, with no pose graph to hide a drift.
 

@@ -25,12 +25,12 @@ __all__ = ["BlockSystem"]
 
 # --------------------------------------------------------------------------- block sparse Cholesky
 #
-# SuperLU on the scalar normal equations took ~0.6 s per iteration at 10⁴ nodes
-# (0.45 s of it recomputing the ordering; 0.16 s with the ordering reused)
-# although the factor has barely more non-zeros than the matrix. So the ordering
-# is computed once per ``optimize`` call, on the 3×3-block graph where it is
-# cheap, and the numeric factorisation is an up-looking block Cholesky (CSparse's
-# cs_chol with 3×3 blocks; ~25 ms there), as Ceres' SPARSE_NORMAL_CHOLESKY would do.
+# SuperLU on the scalar normal equations spent most of each iteration recomputing
+# the ordering, although the factor has barely more non-zeros than the matrix
+# (docs/measurements.md). So the ordering is computed once per ``optimize`` call,
+# on the 3×3-block graph where it is cheap, and the numeric factorisation is an
+# up-looking block Cholesky (CSparse's cs_chol with 3×3 blocks), as Ceres'
+# SPARSE_NORMAL_CHOLESKY would do.
 
 
 @njit(cache=True, nogil=True)
