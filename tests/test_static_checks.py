@@ -70,15 +70,33 @@ def _python_files(*dirs: str):
     yield ROOT / "bench" / "run"
 
 
+def _is_module(dotted: str) -> bool:
+    path = ROOT / dotted.replace(".", "/")
+    return path.with_suffix(".py").exists() or (path / "__init__.py").exists()
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
 def test_no_private_name_imported_across_modules():
+    """Neither `from carto_cli.m import _x` nor `m._x` on an imported carto_cli module."""
     offenders = []
     for path in _python_files("carto_cli", "bench", "tests"):
         tree = ast.parse(path.read_text(), str(path))
+        modules = set()  # local names bound to carto_cli modules
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("carto_cli"):
                 offenders += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}"
-                              for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
-    assert not offenders, "private names imported across modules:\n" + "\n".join(offenders)
+                              for a in node.names if _private(a.name)]
+                modules |= {a.asname or a.name for a in node.names if _is_module(f"{node.module}.{a.name}")}
+            elif isinstance(node, ast.Import):
+                modules |= {a.asname for a in node.names if a.name.startswith("carto_cli") and a.asname}
+        offenders += [f"{path.relative_to(ROOT)}:{node.lineno} {node.value.id}.{node.attr}"
+                      for node in ast.walk(tree)
+                      if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                      and node.value.id in modules and _private(node.attr)]
+    assert not offenders, "private names used across modules:\n" + "\n".join(offenders)
 
 
 WRAP = re.compile(r"%\s*\(?\s*2(\.0)?\s*\*\s*(math|np)\.pi|atan2\(\s*(math|np)\.sin|arctan2\(\s*np\.sin|remainder\(")

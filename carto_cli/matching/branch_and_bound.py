@@ -388,6 +388,33 @@ def _run_bnb(stack, problem: _Problem, top: int, leaf: int, thr: int, scored=Non
                              scored)
 
 
+class SearchCost(NamedTuple):
+    """What a windowed search cost: the candidates it scored per level against the candidates in its window."""
+
+    found: bool
+    scored: np.ndarray  # (depth,) candidates scored at each level of the stack
+    window: int  # candidates (angle, x, y) in the window, cut to the grid: what an exhaustive search scores
+
+    @property
+    def scored_fraction(self) -> float:
+        return float(self.scored.sum()) / max(self.window, 1)
+
+
+def search_cost(stack: PrecomputationGridStack, points, initial_pose_estimate, *,
+                linear_search_window: float = 7.0, angular_search_window: float = math.radians(30.0),
+                min_score: float = 0.55) -> SearchCost:
+    """The same search as :func:`match`, reporting how much of its window the bounds let it skip."""
+    pts = _points(points)
+    problem = _window_problem(stack, pts, initial_pose_estimate, linear_search_window, angular_search_window)
+    scored = np.zeros(stack.depth, dtype=np.int64)
+    found = False
+    if pts.shape[0]:
+        found = bool(_run_bnb(stack, problem, stack.depth - 1, 0, _threshold(min_score, pts.shape[0]), scored)[0])
+    b = problem.bounds
+    window = int(((b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)).sum())
+    return SearchCost(found, scored, window)
+
+
 def full_submap_center(stack: PrecomputationGridStack) -> np.ndarray:
     """The initial estimate of a whole-submap search: the submap's centre, angle 0."""
     nx, ny = stack.num_cells

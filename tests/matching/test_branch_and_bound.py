@@ -182,12 +182,10 @@ def test_pruning_scores_a_small_part_of_the_window(building):
     world, _, stack = building
     truth = TRUTHS[0]
     pts = scan(world, truth, np.random.default_rng(4))
-    problem = bnb._window_problem(stack, pts, truth + np.array(OFFSETS[0]), 7.0, math.radians(30))
-    scored = np.zeros(stack.depth, dtype=np.int64)
-    found, *_ = bnb._run_bnb(stack, problem, stack.depth - 1, 0, bnb._threshold(0.55, len(pts)), scored)
-    b = problem.bounds
-    window = int(((b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)).sum())
-    assert found and scored.sum() < 0.01 * window
+    initial = truth + np.array(OFFSETS[0])
+    cost = bnb.search_cost(stack, pts, initial, linear_search_window=7.0, angular_search_window=math.radians(30))
+    assert cost.found == bnb.match(stack, pts, initial).found
+    assert cost.found and cost.scored_fraction < 0.01
 
 
 @pytest.mark.slow_without_jit
