@@ -381,19 +381,17 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     from carto_cli.core.timing import StageTimer, report_json, report_tree_text
     from carto_cli.evaluation.metrics import Relations, ate, read_relations, relation_error
     from carto_cli.io.map_image import render_png, write_png
-    from carto_cli.io.recording import ReadOptions
     from carto_cli.io.sources.open import open_recording
     from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
     from carto_cli.options import load_options
-    from carto_cli.pipeline import build
+    from carto_cli.pipeline import build, read_options
 
     import_s = time.perf_counter() - t_import
     import carto_cli
 
     package_dir = Path(carto_cli.__file__).resolve().parent
     options = load_options(profile, overrides)
-    tb = options.trajectory_builder_2d
     max_scans = case.quick_scans if quick else None
     info: dict = {"import_s": import_s, "package": str(package_dir), "fingerprint": source_fingerprint(package_dir)}
 
@@ -404,7 +402,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
         recording = sim.recording()
         info.update(sim_laps=laps, sim_lap_s=lap_s, sim_duration_s=SIM_DURATION, sim_seed=SIM_SEED)
     else:
-        recording = open_recording(case.path, ReadOptions(min_z=tb.min_z, max_z=tb.max_z))
+        recording = open_recording(case.path, read_options(options))
     info["setup_s"] = time.perf_counter() - t0
 
     with recording as rec:

@@ -139,16 +139,14 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
     from carto_cli.evaluation.metrics import align_se2, interpolate_poses
     from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, within
     from carto_cli.io.map_file import load_map, save_map
-    from carto_cli.io.recording import ReadOptions
     from carto_cli.io.sources.open import open_recording
     from carto_cli.io.trajectory import read_trajectory
     from carto_cli.options import load_options
-    from carto_cli.pipeline import build
+    from carto_cli.pipeline import build, read_options
     from carto_cli.relocalization import Relocalizer
 
     profile = args.profile if args.profile else ("wheeled" if family == "bench-dense" else "sparse")
     options = load_options(profile, args.set)
-    tb = options.trajectory_builder_2d
     reference = read_trajectory(path / "groundtruth.txt")
     total = len(reference.t)  # groundtruth.txt has one line per scan
     if args.max_scans:
@@ -164,7 +162,7 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
         args.map_cache.mkdir(parents=True, exist_ok=True)
         cached = args.map_cache / f"{name}-{n_map}-{key}.carto"
     with tempfile.TemporaryDirectory(prefix="carto-reloc-") as tmp:
-        with open_recording(path / "scans.clf.gz", ReadOptions(min_z=tb.min_z, max_z=tb.max_z)) as rec:
+        with open_recording(path / "scans.clf.gz", read_options(options)) as rec:
             meta = cached.with_suffix(".json") if cached is not None else None
             if cached is not None and cached.is_file() and meta.is_file():
                 loaded = load_map(cached)
