@@ -1,0 +1,50 @@
+"""pipeline: the one place a recording is opened, its topics chosen and the laser placed."""
+import numpy as np
+import pytest
+
+from carto_cli.core.errors import TopicError
+from carto_cli.io.recording_writers import write_recording
+from carto_cli.options import load_options
+from carto_cli.pipeline import opened, read_options, resolve_laser_pose
+from carto_cli.sim import loop_building, loop_trajectory, simulate
+
+
+@pytest.fixture(scope="module")
+def sim_bag(tmp_path_factory):
+    world = loop_building()
+    sim = simulate(world, loop_trajectory(world), duration=3.0, beams=90, laser_pose=(0.15, -0.05, 0.1))
+    rec = sim.recording()
+    path = tmp_path_factory.mktemp("sim") / "sim.bag"
+    write_recording(rec.records(), path, "ros1", static_transforms=rec.static_transforms(),
+                    topics={t.name: t.msgtype for t in rec.topics()})
+    return path, sim
+
+
+def test_opened_chooses_the_topics_and_counts_the_scans(sim_bag):
+    path, sim = sim_bag
+    with opened(path, read_options(load_options(None))) as o:
+        assert o.selection.scan == "/scan" and o.selection.odometry == "/odom"
+        assert o.scan_count == len(sim.scan_times)
+
+
+def test_opened_names_a_missing_topic(sim_bag):
+    with pytest.raises(TopicError, match="/nope"), opened(sim_bag[0], scan_topic="/nope"):
+        pass
+
+
+def test_read_options_slice_clouds_as_the_options_say():
+    options = load_options(None, ["trajectory_builder_2d.min_z=-0.3", "trajectory_builder_2d.max_z=0.4"])
+    read = read_options(options)
+    assert (read.min_z, read.max_z) == (-0.3, 0.4)
+
+
+def test_laser_pose_from_the_command_line_then_static_tf_then_identity(sim_bag):
+    path, sim = sim_bag
+    with opened(path) as o:
+        frame = next(r.frame for r in o.recording.records(["/scan"]))
+        pose, source = resolve_laser_pose(o.recording, frame, (1.0, 2.0, 0.5))
+        assert source == "--laser-pose" and np.allclose(pose, (1.0, 2.0, 0.5))
+        pose, source = resolve_laser_pose(o.recording, frame, None)
+        assert source.startswith("static TF") and np.allclose(pose, sim.laser_pose)
+        pose, source = resolve_laser_pose(o.recording, "no_such_frame", None)
+        assert source.startswith("identity") and np.allclose(pose, 0.0)
