@@ -168,12 +168,12 @@ def map_(
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum."""
     from carto_cli.commands.map import compile_note, run_map, summary_line
+    from carto_cli.core import parse
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
-    from carto_cli.io.tf_tree import parse_pose
 
     options = _options(profile, overrides)
-    mount = parse_pose(laser_pose, "--laser-pose") if laser_pose else None
+    mount = parse.pose(laser_pose, "--laser-pose") if laser_pose else None
     timer = StageTimer()
     with progress(f"mapping {recording.name}", None, state.quiet) as bar:
         result, outputs = run_map(

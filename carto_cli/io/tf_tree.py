@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Transform, strip_frame
 from carto_cli.core.transform import wrap_angle_scalar
@@ -74,21 +72,3 @@ def format_tree(transforms: list[Transform]) -> list[str]:
         lines.append(root)
         walk(root, 1, frozenset({root}))
     return lines
-
-
-def parse_pose(text: str, what: str = "--laser-pose", degrees: bool = False) -> np.ndarray:
-    """'x,y,yaw' -> array; yaw in radians unless ``degrees`` (or a 'deg' suffix on yaw)."""
-    parts = [p.strip() for p in text.split(",")]
-    if len(parts) != 3:
-        raise CartoError(f"{what} wants x,y,yaw (three comma-separated numbers), got '{text}'")
-    try:
-        yaw_text = parts[2]
-        yaw_deg = degrees
-        if yaw_text.lower().endswith("deg"):
-            yaw_text, yaw_deg = yaw_text[:-3], True
-        x, y, yaw = float(parts[0]), float(parts[1]), float(yaw_text)
-    except ValueError:
-        raise CartoError(f"{what} wants numbers, got '{text}'") from None
-    if not all(map(math.isfinite, (x, y, yaw))):
-        raise CartoError(f"{what} must be finite, got '{text}'")
-    return np.array([x, y, math.radians(yaw) if yaw_deg else yaw])

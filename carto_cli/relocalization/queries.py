@@ -1,12 +1,12 @@
 """What to relocalize: query files and ``--initial-pose`` text, and the recording's scans they select."""
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from carto_cli.core import parse
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Scan
 from carto_cli.io.topics import select_topics
@@ -29,39 +29,14 @@ class Query:
 # ----------------------------------------------------------------------------------- parsing
 
 
-_NUM = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
-_ANGLE = re.compile(rf"^({_NUM})(deg)?$")
 _KEYS = {"t": "time", "time": "time", "stamp": "time", "index": "index", "scan": "index", "scan_index": "index",
          "i": "index"}
 _NONE = {"-", "none", "null", "?"}
 
 
-def _number(text: str, what: str, fail) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise fail(f"{what} must be a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise fail(f"{what} must be finite, got {text!r}")
-    return v
-
-
-def _angle(text: str, what: str, fail) -> float:
-    m = _ANGLE.match(text.strip().lower())
-    if not m:
-        raise fail(f"{what} must be a number of radians (or degrees with a 'deg' suffix), got {text!r}")
-    v = float(m.group(1))
-    return math.radians(v) if m.group(2) else v
-
-
 def parse_pose(text: str) -> tuple[float, float, float]:
     """'x,y,yaw' (yaw in radians, or degrees with a 'deg' suffix) -> (x, y, yaw), for ``--initial-pose``."""
-    def fail(msg):
-        return CartoError(f"--initial-pose: {msg}")
-    parts = [p for p in re.split(r"[,\s]+", text.strip()) if p]
-    if len(parts) != 3:
-        raise fail(f"expected x,y,yaw, got {text!r}")
-    return (_number(parts[0], "x", fail), _number(parts[1], "y", fail), _angle(parts[2], "yaw", fail))
+    return parse.pose(text, "--initial-pose")
 
 
 def read_queries(path: str | Path) -> list[Query]:
@@ -95,7 +70,7 @@ def read_queries(path: str | Path) -> list[Query]:
             return CartoError(f"line {n}: {msg}", path)
         fields = [f for f in re.split(r"[,\s]+", line) if f]
         head = fields[0].lower()
-        if head in _KEYS or not re.match(rf"^{_NUM}$", head):
+        if head in _KEYS or not re.match(rf"^{parse.NUMBER}$", head):
             if seen_data:
                 raise fail(f"expected a query (time or index, x, y, yaw), got {raw.strip()!r}")
             if head not in _KEYS:
@@ -111,7 +86,7 @@ def read_queries(path: str | Path) -> list[Query]:
         if len(fields) not in (4, 6):
             raise fail(f"expected 4 fields (time or index, x, y, yaw) or 6 (+ sigma_xy sigma_yaw), got {len(fields)}")
         if key == "time":
-            t, idx = _number(fields[0], "time", fail), None
+            t, idx = parse.number(fields[0], "time", fail), None
         else:
             try:
                 idx, t = int(fields[0]), None
@@ -125,11 +100,12 @@ def read_queries(path: str | Path) -> list[Query]:
         elif any(f in _NONE for f in pose_fields):
             raise fail("give all of x, y, yaw or none of them ('-' for a global search)")
         else:
-            prior = (_number(fields[1], "x", fail), _number(fields[2], "y", fail), _angle(fields[3], "yaw", fail))
+            prior = (parse.number(fields[1], "x", fail), parse.number(fields[2], "y", fail),
+                     parse.angle(fields[3], "yaw", fail))
         sxy = syaw = None
         if len(fields) == 6:
-            sxy = _number(fields[4], "sigma_xy", fail)
-            syaw = _angle(fields[5], "sigma_yaw", fail)
+            sxy = parse.number(fields[4], "sigma_xy", fail)
+            syaw = parse.angle(fields[5], "sigma_yaw", fail)
             if sxy <= 0 or syaw <= 0:
                 raise fail("sigmas must be positive")
         out.append(Query(t, idx, prior, sxy, syaw, n))
