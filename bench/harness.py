@@ -73,14 +73,10 @@ FAMILIES = {
     "sim": "Simulated loop building (carto_cli.sim), exact ground truth",
     "ccny": "Real ROS bag without reference (CCNY Hokuyo demo)",
 }
-# The profile each family is mapped with under `--profile auto` (the default): the settings a user of
-# that kind of data would pick, each measured in its own file's comments.
-FAMILY_PROFILES = {"bench": "sparse", "bench-dense": "wheeled", "sim": "wheeled", "ccny": "office"}
-
-
 def profile_for(case: Case, profile: str | None) -> str | None:
+    """The --profile a case's worker gets: 'auto' (what `carto map` does with no profile) is passed on."""
     if profile in (None, "auto"):
-        return FAMILY_PROFILES.get(case.family)
+        return "auto"
     return None if profile == "default" else profile
 
 
@@ -391,7 +387,9 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     import carto_cli
 
     package_dir = Path(carto_cli.__file__).resolve().parent
-    options = load_options(profile, overrides)
+    from carto_cli.pipeline import Auto, configure
+
+    spec = Auto(tuple(overrides)) if profile == "auto" else load_options(profile, overrides)
     max_scans = case.quick_scans if quick else None
     info: dict = {"import_s": import_s, "package": str(package_dir), "fingerprint": source_fingerprint(package_dir)}
 
@@ -402,11 +400,18 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
         recording = sim.recording()
         info.update(sim_laps=laps, sim_lap_s=lap_s, sim_duration_s=SIM_DURATION, sim_seed=SIM_SEED)
     else:
-        recording = open_recording(case.path, read_options(options))
+        recording = open_recording(case.path, read_options(spec))
     info["setup_s"] = time.perf_counter() - t0
 
     with recording as rec:
         selection = select_topics(rec)
+        t_survey = time.perf_counter()
+        configured = configure(spec, rec, selection)
+        options = configured.options
+        info["survey_s"] = time.perf_counter() - t_survey
+        if configured.auto is not None:
+            info["auto"] = {"regime": configured.regime.to_dict(), "describe": configured.regime.describe(),
+                            "profile": configured.auto.profile, "settings": configured.auto.settings}
         total = next((t.count for t in rec.topics() if t.name == selection.scan), None)
         timer = StageTimer()
         result = build(rec, options, selection=selection, timer=timer, on_scan=_progress(case, total),
@@ -958,13 +963,15 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
         "times carry the noise of other people's jobs)",
         f"* software: Python {v['python']}, numpy {v['numpy']}, numba {v['numba']}, scipy {v['scipy']}, "
         f"opencv {v['cv2']}",
-        "* profile: " + (", ".join(f"{FAMILIES[f].split(' ')[0]} `{p}`" for f, p in FAMILY_PROFILES.items())
+        "* profile: " + ("`auto` (what `carto map` does with no profile: each case's regime surveyed, a base "
+                         "profile and derived settings chosen from it; the *auto* table below lists them)"
                          if args.profile in (None, "auto") else f"`{args.profile}` for every case")
         + "; cases run one at a time, each in a fresh process",
     ]
     if args.profile in (None, "auto"):
-        out.append("* options: each profile's values and the reason for each are in `carto_cli/profiles/NAME.yaml`"
-                   " (`carto profiles show NAME --changed`)\n")
+        out.append("* options: each base profile's values and the reason for each are in "
+                   "`carto_cli/profiles/NAME.yaml` (`carto profiles show NAME --changed`); the derived settings "
+                   "and their reasons are in `carto_cli/regime.py`\n")
     elif isinstance(changed, dict):
         if changed:
             out.append("* options that differ from the defaults (Cartographer's stock 2D configuration, "
@@ -982,6 +989,12 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
             continue
         out.append(f"\n## {FAMILIES[family]}\n")
         out.append(accuracy_table(family, by_family[family], peers))
+    autos = [r for r in results if r.get("auto")]
+    if autos:
+        out.append("\n## What `auto` chose\n")
+        out.append(_table(["case", "detected", "base profile", "derived settings"],
+                          [[r["case"]["name"], r["auto"]["describe"], f"`{r['auto']['profile']}`",
+                            "<br>".join(f"`{x}`" for x in r["auto"]["settings"]) or "-"] for r in autos]))
     lct = loop_closure_table(results)
     if lct:
         out.append("\n## Loop closures\n")
@@ -1069,9 +1082,7 @@ def main(argv: list[str] | None = None, prog: str = "bench/run") -> int:
     chosen = select_cases(args.cases, cases)
     # Fail early on bad options rather than once per case.
     if args.profile in (None, "auto"):
-        problems = [c for c in (_changed_options(p, args.set or []) for p in set(FAMILY_PROFILES.values()))
-                    if isinstance(c, str)]
-        changed = problems[0] if problems else {}
+        changed = _changed_options(None, args.set or [])
     else:
         changed = _changed_options(None if args.profile == "default" else args.profile, args.set or [])
     if isinstance(changed, str):

@@ -131,6 +131,10 @@ def convert(
 
 PROFILE = typer.Option(None, "--profile", "-p",
                        help="Profile name (profiles/NAME.yaml) or path, layered over the default.")
+MAP_PROFILE = typer.Option(
+    None, "--profile", "-p",
+    help="auto (the default: settings chosen from the recording, see the 'auto:' line), 'default' "
+         "(Cartographer's stock values), a profile name (profiles/NAME.yaml) or a path.")
 SET = typer.Option(None, "--set", "-s",
                    help="Override an option: dotted.key=value (repeatable; angles in radians, or '20deg').")
 
@@ -141,12 +145,28 @@ def _options(profile: str | None, overrides: list[str] | None):
     return load_options(profile, overrides or [])
 
 
+def _map_options(profile: str | None, overrides: list[str] | None):
+    """--profile for commands that map: auto (None) chooses from the recording."""
+    if profile in (None, "auto"):
+        from carto_cli.options import load_options
+        from carto_cli.pipeline import Auto
+
+        load_options(None, overrides or [])  # a bad --set fails before the recording is read
+        return Auto(tuple(overrides or ()))
+    return _options(profile, overrides)
+
+
+def _say_configured(configured) -> None:
+    if configured.auto is not None and not state.quiet:
+        typer.echo(f"auto: {configured.regime.describe()} -> {configured.auto.describe()}", err=True)
+
+
 @app.command("map")
 @handle_errors
 def map_(
     recording: Path = typer.Argument(..., help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]."),
     outdir: Path | None = typer.Option(None, "--output", "-o", help="Output directory (default: RECORDING_map)."),
-    profile: str | None = PROFILE,
+    profile: str | None = MAP_PROFILE,
     overrides: list[str] | None = SET,
     scan_topic: str | None = typer.Option(None, "--scan-topic"),
     odom_topic: str | None = typer.Option(None, "--odom-topic"),
@@ -172,7 +192,7 @@ def map_(
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
 
-    options = _options(profile, overrides)
+    options = _map_options(profile, overrides)
     mount = parse.pose(laser_pose, "--laser-pose") if laser_pose else None
     timer = StageTimer()
     with progress(f"mapping {recording.name}", None, state.quiet) as bar:
@@ -180,7 +200,7 @@ def map_(
             recording, outdir, options, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
             laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
             on_total=bar.set_total, loop_closure=not no_loop_closure, state=not no_state,
-            load_state=load_state,
+            load_state=load_state, on_configured=_say_configured,
         )
     if timings:
         typer.echo(report_tree_text(timer))

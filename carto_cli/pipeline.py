@@ -19,13 +19,41 @@ from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.slam import Slam, SlamResult
-from carto_cli.options import Options
+from carto_cli.options import Options, load_options
+from carto_cli.regime import AutoChoice, Regime, choose, survey
 
 
 @dataclass
 class MapResult(SlamResult):
     laser_pose_source: str = ""
     selection: TopicSelection | None = None
+    regime: Regime | None = None  # what --profile auto measured (None for a named profile)
+    auto: AutoChoice | None = None  # and what it chose
+
+
+@dataclass(frozen=True)
+class Auto:
+    """Options chosen from the recording itself (``--profile auto``, what ``carto map`` does with no
+    profile), then the user's ``--set`` overrides on top."""
+
+    overrides: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Configured:
+    options: Options
+    regime: Regime | None = None
+    auto: AutoChoice | None = None
+
+
+def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection) -> Configured:
+    """The options to map ``recording`` with: ``spec`` itself, or for :class:`Auto` the survey's choice."""
+    if isinstance(spec, Options):
+        return Configured(spec)
+    regime = survey(recording, selection)
+    base = load_options(None, list(spec.overrides))
+    choice = choose(regime, base_max_range=base.trajectory_builder_2d.max_range)
+    return Configured(load_options(choice.profile, choice.settings + list(spec.overrides)), regime, choice)
 
 
 @dataclass
@@ -39,8 +67,10 @@ class OpenedRecording:
         return next(t.count for t in self.recording.topics() if t.name == self.selection.scan)
 
 
-def read_options(options: Options) -> ReadOptions:
+def read_options(options: Options | Auto) -> ReadOptions:
     """How to read a recording for these options (the 3D point-cloud slice)."""
+    if isinstance(options, Auto):
+        options = load_options(None, list(options.overrides))
     tb = options.trajectory_builder_2d
     return ReadOptions(min_z=tb.min_z, max_z=tb.max_z)
 

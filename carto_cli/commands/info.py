@@ -59,6 +59,7 @@ class RecordingInfo:
     has_odometry: bool
     has_imu: bool
     warnings: list[str]
+    auto: dict | None = None  # what `carto map` with no profile would detect and choose
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -197,9 +198,27 @@ def run_info(path: str | Path, read: ReadOptions | None = None, *,
              on_record: Callable[[], None] | None = None) -> RecordingInfo:
     """Open the recording at ``path`` and summarise it; ``on_total`` hears how many messages will be read."""
     with open_recording(path, read) as rec:
+        auto = _auto(rec)
         if on_total is not None:
             on_total(sum(t.count for t in rec.topics() if t.kind in ("scan", "odometry", "imu")))
-        return inspect_recording(rec, on_record=on_record)
+        info = inspect_recording(rec, on_record=on_record)
+        info.auto = auto
+        return info
+
+
+def _auto(recording: Recording) -> dict | None:
+    """The regime `carto map` would detect and the settings it would choose; None without scans."""
+    from carto_cli.core.errors import CartoError
+    from carto_cli.io.topics import select_topics
+    from carto_cli.regime import choose, survey
+
+    try:
+        regime = survey(recording, select_topics(recording))
+    except (CartoError, ValueError):
+        return None
+    choice = choose(regime)
+    return {"detected": regime.describe(), "regime": regime.to_dict(), "profile": choice.profile,
+            "settings": choice.settings, "reasons": choice.reasons}
 
 
 def _fmt_time(t: float | None) -> str:
@@ -247,6 +266,11 @@ def format_info(info: RecordingInfo) -> str:
         lines.extend(f"  {line}" for line in format_tree(tfs))
     else:
         lines.append("static tf  none")
+    if info.auto is not None:
+        lines.append("")
+        lines.append(f"auto       {info.auto['detected']}")
+        lines.append(f"           -> profile {info.auto['profile']}" + "".join(
+            f"\n              {setting}" for setting in info.auto["settings"]))
     if info.warnings:
         lines.append("")
         lines.append("warnings")

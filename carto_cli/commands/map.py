@@ -9,7 +9,7 @@ from carto_cli.core import kernels
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
-from carto_cli.pipeline import MapResult, build, opened, read_options
+from carto_cli.pipeline import Auto, Configured, MapResult, build, configure, opened, read_options
 
 __all__ = ["MapOutputs", "compile_note", "default_outdir", "run_map", "summary_line", "write_outputs"]
 
@@ -48,7 +48,7 @@ def default_outdir(recording_path: Path) -> Path:
 def run_map(
     recording_path: Path,
     outdir: Path | None,
-    options: Options,
+    options: Options | Auto,
     *,
     scan_topic: str | None = None,
     odom_topic: str | None = None,
@@ -61,29 +61,35 @@ def run_map(
     loop_closure: bool = True,
     state: bool = True,
     load_state: Path | None = None,
+    on_configured: Callable[[Configured], None] | None = None,
 ) -> tuple[MapResult, MapOutputs]:
     """Map a recording and write every output (to ``default_outdir`` when ``outdir`` is None); with
-    ``load_state`` continue an existing map.carto. ``timer`` is stopped once the outputs are written."""
+    ``load_state`` continue an existing map.carto; with :class:`~carto_cli.pipeline.Auto` options chosen
+    from the recording. ``timer`` is stopped once the outputs are written."""
     if outdir is None:
         outdir = default_outdir(recording_path)
     graph = None
     trajectory_id = 0
     recordings = [Path(recording_path).name]
-    if load_state is not None:
-        from carto_cli.io.map_file import load_map
-
-        loaded = load_map(load_state)
-        graph = loaded.to_pose_graph(options, timer=timer, loop_closure=loop_closure)
-        trajectory_id = loaded.next_trajectory_id
-        recordings = list(loaded.metadata.recordings) + recordings
     with opened(recording_path, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic,
                 imu_topic=imu_topic) as source:
+        configured = configure(options, source.recording, source.selection)
+        if on_configured is not None:
+            on_configured(configured)
+        if load_state is not None:
+            from carto_cli.io.map_file import load_map
+
+            loaded = load_map(load_state)
+            graph = loaded.to_pose_graph(configured.options, timer=timer, loop_closure=loop_closure)
+            trajectory_id = loaded.next_trajectory_id
+            recordings = list(loaded.metadata.recordings) + recordings
         if on_total is not None:
             on_total(source.scan_count)
-        result = build(source.recording, options, selection=source.selection, laser_pose=laser_pose, timer=timer,
-                       on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure, graph=graph,
-                       trajectory_id=trajectory_id)
-    outputs = write_outputs(result, outdir, options, state=state, recordings=recordings)
+        result = build(source.recording, configured.options, selection=source.selection, laser_pose=laser_pose,
+                       timer=timer, on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure,
+                       graph=graph, trajectory_id=trajectory_id)
+        result.regime, result.auto = configured.regime, configured.auto
+    outputs = write_outputs(result, outdir, configured.options, state=state, recordings=recordings)
     if timer is not None:
         timer.stop()
     return result, outputs

@@ -23,6 +23,7 @@ from carto_cli.core.timing import NullTimer
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import PrecomputationGridStack
+from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.matching.scoring import score_at
 from carto_cli.options import Options
 
@@ -85,6 +86,7 @@ class ConstraintBuilderStats:
     global_searches: int = 0
     found: int = 0
     rejected_refinement: int = 0
+    rejected_see_through: int = 0
     accepted: int = 0
 
 
@@ -172,6 +174,13 @@ class ConstraintBuilder:
                     or score_at(grid, points, ls.pose) < min_score):
                 self.stats.rejected_refinement += 1
                 return None
+        if self.cb.max_see_through < 1.0:
+            # Endpoints on walls are all the score sees; at an aliased pose some rays also cross walls the
+            # submap knows (matching/ray_consistency.py), which a right match's rays do not.
+            with self.timer.stage("free-space check"):
+                if see_through_fraction(grid, points, ls.pose) > self.cb.max_see_through:
+                    self.stats.rejected_see_through += 1
+                    return None
         self.stats.accepted += 1
         if global_search:
             self.connected.add(frozenset((node.trajectory, submap.trajectory)))

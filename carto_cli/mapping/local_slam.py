@@ -111,6 +111,35 @@ class LocalSlam:
         self._accumulated: list[RangeData] = []
         self._accumulated_poses: list[np.ndarray] = []
         self._has_odometry = False
+        self._last_pose: np.ndarray | None = None
+
+    def _search_window(self, prediction: np.ndarray) -> dict:
+        """The real-time correlative search around ``prediction``: Cartographer's fixed window and weights, or
+        with ``motion_scaled_prior`` a window and a prior as wide as odometry's error over the motion predicted
+        since the last scan. Key scans a metre and 30 degrees apart need a window and a prior sized to that
+        motion: a fixed 20 degree window with a near-flat prior let the scan's heading jump to a wrong but
+        slightly better-scoring alignment, and local SLAM ended worse than odometry (docs/measurements.md)."""
+        c = self.options.real_time_correlative_scan_matcher
+        fixed = dict(linear_search_window=c.linear_search_window, angular_search_window=c.angular_search_window,
+                     translation_delta_cost_weight=c.translation_delta_cost_weight,
+                     rotation_delta_cost_weight=c.rotation_delta_cost_weight,
+                     unknown_probability=c.unknown_probability)
+        if not c.motion_scaled_prior or not self._has_odometry or self._last_pose is None:
+            return fixed
+        motion = transform.relative(self._last_pose, prediction)
+        distance = float(np.hypot(motion[0], motion[1]))
+        turn = abs(float(motion[2]))
+        sigma_t = max(c.min_translation_noise, c.odometry_translation_noise * distance)
+        sigma_r = max(c.min_rotation_noise, c.odometry_rotation_noise * turn
+                      + c.odometry_rotation_noise_per_meter * distance)
+        # Cartographer's damping exp(-(w |delta|)^2) is a Gaussian of standard deviation 1 / (sqrt(2) w).
+        return dict(
+            linear_search_window=min(max(c.linear_search_window, 3.0 * sigma_t), c.max_linear_search_window),
+            angular_search_window=min(max(c.angular_search_window, 3.0 * sigma_r), c.max_angular_search_window),
+            translation_delta_cost_weight=1.0 / (np.sqrt(2.0) * sigma_t),
+            rotation_delta_cost_weight=1.0 / (np.sqrt(2.0) * sigma_r),
+            unknown_probability=c.unknown_probability,
+        )
 
     def add_odometry(self, odometry: Odometry) -> None:
         self._has_odometry = True
@@ -167,14 +196,8 @@ class LocalSlam:
                 initial = prediction
                 if o.use_online_correlative_scan_matching:
                     with timer.stage("correlative"):
-                        c = o.real_time_correlative_scan_matcher
-                        result = correlative.match(
-                            matching.grid, points, prediction,
-                            linear_search_window=c.linear_search_window,
-                            angular_search_window=c.angular_search_window,
-                            translation_delta_cost_weight=c.translation_delta_cost_weight,
-                            rotation_delta_cost_weight=c.rotation_delta_cost_weight,
-                        )
+                        window = self._search_window(prediction)
+                        result = correlative.match(matching.grid, points, prediction, **window)
                         initial = result.pose
                         score = result.score
                 with timer.stage("least squares"):
@@ -193,6 +216,7 @@ class LocalSlam:
 
         with timer.stage("extrapolate"):
             self.extrapolator.add_pose(scan.time, pose)
+        self._last_pose = pose
 
         out = LocalSlamResult(scan.time, pose.copy(), points, score, ls_cost)
         with timer.stage("motion filter"):

@@ -17,6 +17,7 @@ from a strong preference for the prediction into a mild one.
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -54,6 +55,14 @@ def search_parameters(points, resolution: float, linear_search_window: float,
         step,
         int(math.ceil(angular_search_window / step)),
     )
+
+
+@functools.lru_cache(maxsize=4)
+def _score_table(unknown_probability: float) -> np.ndarray:
+    table = VALUE_TO_PROBABILITY.copy()
+    table[0] = unknown_probability
+    table.flags.writeable = False
+    return table
 
 
 @njit(cache=True)
@@ -105,11 +114,12 @@ def _search(grid_cells, table, discrete, num_linear, num_angular, angular_step, 
 
 def match(grid, points, initial_pose, *, linear_search_window: float = 0.1,
           angular_search_window: float = math.radians(20.0), translation_delta_cost_weight: float = 1e-1,
-          rotation_delta_cost_weight: float = 1e-1) -> CorrelativeResult:
+          rotation_delta_cost_weight: float = 1e-1, unknown_probability: float | None = None) -> CorrelativeResult:
     """Best pose within ±``linear_search_window`` × ±``angular_search_window`` of ``initial_pose``.
 
     ``points`` are in the tracking frame; candidates step by one cell in x and
-    y and by the angular step of :func:`search_parameters` in theta.
+    y and by the angular step of :func:`search_parameters` in theta. ``unknown_probability`` replaces
+    Cartographer's 0.1 for never-observed cells (None keeps it).
     """
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     x0, y0, th0 = (float(v) for v in np.asarray(initial_pose, dtype=np.float64))
@@ -117,7 +127,8 @@ def match(grid, points, initial_pose, *, linear_search_window: float = 0.1,
     num_angular = params.num_angular_perturbations
     angles = th0 + np.arange(-num_angular, num_angular + 1) * params.angular_step
     discrete = discretize(pts, angles, x0, y0, grid.origin[0], grid.origin[1], 1.0 / grid.resolution)
-    k, dx, dy, score = _search(grid.cells, VALUE_TO_PROBABILITY, discrete, params.num_linear_perturbations,
+    table = VALUE_TO_PROBABILITY if unknown_probability is None else _score_table(float(unknown_probability))
+    k, dx, dy, score = _search(grid.cells, table, discrete, params.num_linear_perturbations,
                                params.num_angular_perturbations, params.angular_step, grid.resolution,
                                float(translation_delta_cost_weight), float(rotation_delta_cost_weight))
     dtheta = (k - params.num_angular_perturbations) * params.angular_step

@@ -81,6 +81,25 @@ class RealTimeCorrelativeScanMatcher:
                                         unit="rad", ge=0, le=math.pi)
     translation_delta_cost_weight: float = _opt(1e-1, "penalty on translating away from the prediction", ge=0)
     rotation_delta_cost_weight: float = _opt(1e-1, "penalty on rotating away from the prediction", ge=0)
+    unknown_probability: float = _opt(0.1, "score of a point in never-observed space: Cartographer's 0.1 counts it "
+                                           "as free space, 0.5 as no evidence either way (carto extension)",
+                                      ge=0, le=1)
+    # carto extension: a prior and a window that follow the motion since the last scan.
+    motion_scaled_prior: bool = _opt(False, "derive each scan's delta cost weights and windows from the predicted "
+                                            "motion and the odometry noise below (carto extension)")
+    odometry_translation_noise: float = _opt(0.1, "odometry translation error per metre travelled "
+                                                  "(GMapping's srr)", unit="m/m", ge=0)
+    odometry_rotation_noise: float = _opt(0.2, "odometry heading error per radian turned (GMapping's stt)",
+                                          unit="rad/rad", ge=0)
+    odometry_rotation_noise_per_meter: float = _opt(0.2, "odometry heading error per metre travelled "
+                                                         "(GMapping's srt)", unit="rad/m", ge=0)
+    min_translation_noise: float = _opt(0.02, "floor of the translation prior's standard deviation", unit="m",
+                                        gt=0)
+    min_rotation_noise: float = _opt(math.radians(1.0), "floor of the rotation prior's standard deviation",
+                                     unit="rad", gt=0)
+    max_linear_search_window: float = _opt(1.0, "cap of the motion-scaled translational window", unit="m", ge=0)
+    max_angular_search_window: float = _opt(math.radians(45.0), "cap of the motion-scaled rotational window",
+                                            unit="rad", ge=0, le=math.pi)
 
 
 @dataclass(frozen=True)
@@ -215,6 +234,8 @@ class ConstraintBuilder:
     max_loop_closure_residual: float = _opt(0.0, "carto: after the final optimization, loop closures whose "
                                             "translation residual exceeds this are removed and the graph is "
                                             "optimized again (0: keep all)", unit="m", ge=0)
+    max_see_through: float = _opt(1.0, "carto: a loop closure is rejected when more than this share of the "
+                                  "node's rays would pass through a wall of the submap (1: no check)", ge=0, le=1)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,212 @@
+"""What kind of recording this is, read before mapping, and the settings chosen from it (``--profile auto``).
+
+A user who runs ``carto map REC`` should not have to know which profile their robot needs. The survey
+reads the start of the recording (scans and odometry only, no mapping) and measures what decides the
+settings:
+
+* how far and how much the robot moves between consecutive scans: from odometry interpolated at the
+  scan times, or, without odometry, from a quick scan-to-scan match of a sample of consecutive pairs.
+  Timestamps are not trusted for this: logs with key scans only (CARMEN/Radish) may carry synthetic
+  times 1 ms apart, so a "1000 Hz" scan rate would mislead; the motion per scan does not;
+* the sensor: beams, field of view, range limit, and whether "no return" is reported as one fixed
+  reading at the top of the range (a spike in the range histogram), which must become a miss rather
+  than a wall;
+* whether odometry and an IMU are present.
+
+:func:`choose` turns that into a base profile plus a few derived settings, each with its reason.
+Named profiles and ``--set`` still override everything here.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from carto_cli.core import transform
+from carto_cli.core.records import Odometry, Scan
+from carto_cli.io.recording import Recording
+from carto_cli.io.topics import TopicSelection
+
+__all__ = ["AutoChoice", "Regime", "choose", "survey"]
+
+SURVEY_SCANS = 1500  # enough for the statistics below, a fraction of a second to read
+MATCH_PAIRS = 40  # scan-to-scan matches when there is no odometry
+# Key scans: a node per scan is what Cartographer's motion filter keeps at 0.2 m / 1 deg;
+# above these medians local SLAM sees a new piece of the building with every scan.
+SPARSE_STEP = 0.25  # m
+SPARSE_TURN = math.radians(5.0)
+NO_RETURN_SHARE = 0.002  # a single range value this common at the top of the range is a "no return" marker
+
+
+@dataclass(frozen=True)
+class Regime:
+    scans: int  # scans surveyed
+    beams: int  # median beams per scan
+    fov: float  # rad
+    range_max: float  # the sensor's stated maximum (finite), or the largest reading
+    no_return: float | None  # the fixed reading that means "no return", if any
+    odometry: bool
+    imu: bool
+    motion_source: str  # "odometry" | "scan matching" | "none"
+    step_median: float  # m between consecutive scans
+    step_p90: float
+    turn_median: float  # rad between consecutive scans
+    turn_p90: float
+    scan_rate: float | None  # Hz from timestamps (None when fewer than two scans)
+
+    @property
+    def sparse(self) -> bool:
+        return self.step_median >= SPARSE_STEP or self.turn_median >= SPARSE_TURN
+
+    @property
+    def kind(self) -> str:
+        return "key scans" if self.sparse else "dense scans"
+
+    def describe(self) -> str:
+        rate = f"{self.scan_rate:.3g} Hz, " if self.scan_rate else ""
+        moves = (f"{self.step_median:.2f} m / {math.degrees(self.turn_median):.1f} deg per scan "
+                 f"(p90 {self.step_p90:.2f} m / {math.degrees(self.turn_p90):.0f} deg, {self.motion_source})")
+        sensor = f"{self.beams} beams / {math.degrees(self.fov):.0f} deg, range {self.range_max:.3g} m"
+        if self.no_return is not None:
+            sensor += f", no return = {self.no_return:.4g} m"
+        inputs = ("odometry" if self.odometry else "no odometry") + (", IMU" if self.imu else "")
+        return f"{self.kind}: {rate}{moves}; {sensor}; {inputs}"
+
+    def to_dict(self) -> dict:
+        return {
+            "kind": self.kind, "scans_surveyed": self.scans, "beams": self.beams, "fov_rad": self.fov,
+            "range_max_m": self.range_max, "no_return_m": self.no_return, "odometry": self.odometry,
+            "imu": self.imu, "motion_source": self.motion_source, "step_median_m": self.step_median,
+            "step_p90_m": self.step_p90, "turn_median_rad": self.turn_median, "turn_p90_rad": self.turn_p90,
+            "scan_rate_hz": self.scan_rate,
+        }
+
+
+@dataclass(frozen=True)
+class AutoChoice:
+    profile: str  # packaged base profile
+    settings: list[str] = field(default_factory=list)  # "key=value", applied before the user's --set
+    reasons: list[str] = field(default_factory=list)
+
+    def describe(self) -> str:
+        extra = f" + {len(self.settings)} derived settings" if self.settings else ""
+        return f"profile {self.profile}{extra}"
+
+
+def _no_return_value(ranges: np.ndarray) -> float | None:
+    """The top-of-range reading that repeats far more often than a real distance can (e.g. 81.83, 50.0)."""
+    finite = ranges[np.isfinite(ranges) & (ranges > 0)]
+    if finite.size == 0:
+        return None
+    top = float(finite.max())
+    if np.count_nonzero(finite >= top - 0.01) < NO_RETURN_SHARE * finite.size:
+        return None
+    return top
+
+
+def _scan_to_scan(scans: list[Scan]) -> np.ndarray:
+    """(k, 3) relative motions of a sample of consecutive scan pairs, each matched by correlative search
+    in a one-scan grid: the motion estimate of a recording without odometry."""
+    from carto_cli.mapping.submaps import ActiveSubmaps
+    from carto_cli.matching import correlative, least_squares
+    from carto_cli.sensor.range_filter import crop_scan
+    from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
+
+    if len(scans) < 2:
+        return np.zeros((0, 3))
+    picks = np.unique(np.linspace(0, len(scans) - 2, min(MATCH_PAIRS, len(scans) - 1)).astype(int))
+    out = []
+    crop = dict(mount=(0.0, 0.0, 0.0), min_range=0.0, max_range=30.0, missing_data_ray_length=1.0)
+    for i in picks:
+        a, b = crop_scan(scans[i], **crop), crop_scan(scans[i + 1], **crop)
+        if len(a.returns) < 10 or len(b.returns) < 10:
+            continue
+        active = ActiveSubmaps(num_range_data=1)
+        active.insert(a)
+        submap = active.matching_submap
+        assert submap is not None
+        grid = submap.grid
+        points = adaptive_voxel_filter(voxel_filter(b.returns, 0.025), max_length=0.5, min_num_points=200)
+        guess = correlative.match(grid, points, np.zeros(3), linear_search_window=0.5,
+                                  angular_search_window=math.radians(30.0), unknown_probability=0.5)
+        out.append(least_squares.match(grid, points, guess.pose, target_translation=guess.pose[:2],
+                                       translation_weight=1.0, rotation_weight=1.0).pose)
+    return np.array(out).reshape(-1, 3)
+
+
+def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = SURVEY_SCANS) -> Regime:
+    """Read up to ``max_scans`` scans (and the odometry alongside) and measure the recording's regime."""
+    topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
+    scans: list[Scan] = []
+    odometry: list[tuple[float, float, float, float]] = []
+    for record in recording.records(topics):
+        if isinstance(record, Scan):
+            if len(scans) >= max_scans:
+                break
+            scans.append(record)
+        elif isinstance(record, Odometry):
+            odometry.append((record.time, record.x, record.y, record.yaw))
+    if not scans:
+        raise ValueError(f"no scans on {selection.scan}")
+    times = np.array([s.time for s in scans])
+    beams = int(np.median([s.num_beams for s in scans]))
+    fov = float(np.median([float(np.ptp(s.angles)) if s.num_beams > 1 else 0.0 for s in scans]))
+    stated = [s.range_max for s in scans if math.isfinite(s.range_max) and s.range_max > 0]
+    ranges = np.concatenate([s.ranges for s in scans]).astype(np.float64)
+    finite = ranges[np.isfinite(ranges)]
+    range_max = float(np.median(stated)) if stated else (float(finite.max()) if finite.size else 0.0)
+    dt = np.diff(times)
+    scan_rate = 1.0 / float(np.median(dt)) if dt.size and np.median(dt) > 0 else None
+
+    motions = np.zeros((0, 3))
+    source = "none"
+    odo = np.array(odometry).reshape(-1, 4)
+    if len(odo) >= 2:
+        inside = (times >= odo[0, 0]) & (times <= odo[-1, 0])
+        t = times[inside]
+        if t.size >= 2:
+            yaw = np.unwrap(odo[:, 3])
+            at = np.stack([np.interp(t, odo[:, 0], odo[:, 1]), np.interp(t, odo[:, 0], odo[:, 2]),
+                           np.interp(t, odo[:, 0], yaw)], axis=1)
+            motions = transform.relative(at[:-1], at[1:])
+            source = "odometry"
+    if source == "none":
+        motions = _scan_to_scan(scans)
+        source = "scan matching" if len(motions) else "none"
+    step = np.hypot(motions[:, 0], motions[:, 1]) if len(motions) else np.zeros(1)
+    turn = np.abs(transform.wrap_angle(motions[:, 2])) if len(motions) else np.zeros(1)
+    return Regime(
+        scans=len(scans), beams=beams, fov=fov, range_max=range_max, no_return=_no_return_value(ranges),
+        odometry=bool(selection.odometry), imu=bool(selection.imu), motion_source=source,
+        step_median=float(np.median(step)), step_p90=float(np.percentile(step, 90)),
+        turn_median=float(np.median(turn)), turn_p90=float(np.percentile(turn, 90)), scan_rate=scan_rate,
+    )
+
+
+def choose(regime: Regime, base_max_range: float = 30.0) -> AutoChoice:
+    """The base profile and derived settings for ``regime`` (see docs/profiles.md, 'auto')."""
+    settings: list[str] = []
+    reasons: list[str] = []
+    rt = "trajectory_builder_2d.real_time_correlative_scan_matcher"
+    if regime.sparse:
+        profile = "sparse"
+        reasons.append("key scans far apart: the sparse profile (wide loop-closure windows, 35-scan submaps)")
+        if regime.odometry:
+            settings.append(f"{rt}.motion_scaled_prior=true")
+            reasons.append("scan-matching window and prior sized to the odometry's error over each scan's motion")
+        settings.append(f"{rt}.unknown_probability=0.5")
+        reasons.append("each key scan sees new space: never-observed cells count as no evidence, not as free")
+        settings.append("pose_graph.constraint_builder.min_score=0.45")
+        reasons.append("a key scan overlaps a submap only partly: loop-closure score threshold 0.45, "
+                       "false matches left to the consistency checks")
+    elif regime.odometry:
+        profile = "wheeled"
+        reasons.append("dense scans with odometry: the wheeled profile (scan decides the heading)")
+    else:
+        profile = "office"
+        reasons.append("dense scans without odometry: the correlative matcher on, a weak constant-velocity prior")
+    if regime.no_return is not None and regime.no_return <= base_max_range + 0.05:
+        settings.append(f"trajectory_builder_2d.max_range={max(regime.no_return - 0.1, 0.1):.3f}")
+        reasons.append(f"'no return' is reported as {regime.no_return:.4g} m: readings there become misses")
+    return AutoChoice(profile, settings, reasons)
