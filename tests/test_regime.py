@@ -1,0 +1,92 @@
+"""regime: the survey `--profile auto` runs before mapping, and the settings it chooses."""
+import math
+
+import numpy as np
+import pytest
+
+from carto_cli.io.topics import select_topics
+from carto_cli.options import load_options
+from carto_cli.pipeline import Auto, Configured, configure
+from carto_cli.regime import Regime, choose, survey
+from carto_cli.sim import follow_route, loop_building, loop_trajectory, office, simulate
+
+
+@pytest.fixture(scope="module")
+def world():
+    return loop_building()
+
+
+def _survey(sim, **kw):
+    rec = sim.recording()
+    return survey(rec, select_topics(rec), **kw), rec
+
+
+def test_a_10hz_recording_with_odometry_is_dense_and_gets_the_wheeled_profile(world):
+    sim = simulate(world, loop_trajectory(world), duration=20.0, beams=180)
+    regime, _ = _survey(sim)
+    assert regime.motion_source == "odometry" and regime.odometry
+    assert not regime.sparse and regime.step_median < 0.1
+    assert regime.scan_rate == pytest.approx(10.0, rel=1e-6)
+    assert regime.beams == 180 and regime.fov == pytest.approx(1.5 * math.pi, abs=0.05)
+    assert regime.no_return is None  # the simulated laser reports "no return" as inf
+    choice = choose(regime)
+    assert choice.profile == "wheeled" and choice.settings == []
+    marked = Regime(**{**vars(regime), "no_return": 30.0})
+    assert "trajectory_builder_2d.max_range=29.900" in choose(marked).settings
+
+
+def test_key_scans_are_recognised_by_motion_not_by_timestamps(world):
+    # One scan every 2 s of driving, stamped 1 ms apart in the log's own clock would read as 1000 Hz;
+    # here the robot moves ~1 m between scans, which is what decides.
+    sim = simulate(world, loop_trajectory(world), duration=60.0, scan_rate=0.5, odom_rate=0.5, beams=180)
+    regime, _ = _survey(sim)
+    assert regime.sparse and regime.step_median > 0.25
+    choice = choose(regime)
+    assert choice.profile == "sparse"
+    assert any("motion_scaled_prior=true" in s for s in choice.settings)
+    assert len(choice.reasons) >= len(choice.settings) - 1
+
+
+def test_without_odometry_the_motion_comes_from_scan_matching():
+    # Key scans without odometry are not covered: one-scan grids underestimate a 0.6 m step along a
+    # corridor by a factor of 3 (see the issue 12 note); a 10 Hz recording is measured within a factor 2.
+    world = office()
+    sim = simulate(world, follow_route(world), duration=60.0, odom_rate=0.0, beams=180)
+    regime, _ = _survey(sim, max_scans=100)
+    assert not regime.odometry and regime.motion_source == "scan matching"
+    gt = sim.ground_truth[:100]
+    true_step = np.median(np.hypot(np.diff(gt[:, 1]), np.diff(gt[:, 2])))
+    # One-scan grids match short of the full step along corridors (0.53 m for 0.91 m here): good enough
+    # to tell the regimes apart, which is all the survey uses it for.
+    assert true_step / 2 < regime.step_median < 1.5 * true_step
+    assert choose(regime).profile == "office"
+
+
+def test_no_return_marker_needs_many_identical_top_readings():
+    from carto_cli.regime import _no_return_value
+
+    rng = np.random.default_rng(0)
+    real = rng.uniform(0.5, 20.0, 10_000)
+    assert _no_return_value(real) is None  # the largest real reading is not a marker
+    marked = np.concatenate([real, np.full(200, 81.83)])
+    assert _no_return_value(marked) == pytest.approx(81.83)
+
+
+def test_describe_says_what_was_detected():
+    r = Regime(scans=10, beams=180, fov=math.pi, range_max=80.0, no_return=50.0, odometry=True, imu=False,
+               motion_source="odometry", step_median=1.0, step_p90=1.2, turn_median=0.2, turn_p90=0.5,
+               scan_rate=1000.0)
+    text = r.describe()
+    assert text.startswith("key scans") and "1.00 m" in text and "no return = 50 m" in text and "odometry" in text
+
+
+def test_configure_layers_the_users_overrides_over_the_auto_choice(world):
+    sim = simulate(world, loop_trajectory(world), duration=10.0, beams=90)
+    rec = sim.recording()
+    sel = select_topics(rec)
+    got = configure(Auto(("trajectory_builder_2d.max_range=12.5",)), rec, sel)
+    assert got.auto is not None and got.auto.profile == "wheeled"
+    assert got.options.trajectory_builder_2d.max_range == 12.5  # --set wins over the derived 29.9
+    assert got.options == load_options("wheeled", got.auto.settings + ["trajectory_builder_2d.max_range=12.5"])
+    named = load_options("office")
+    assert configure(named, rec, sel) == Configured(named)
