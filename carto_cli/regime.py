@@ -28,7 +28,7 @@ from carto_cli.core.records import Odometry, Scan
 from carto_cli.io.recording import Recording
 from carto_cli.io.topics import TopicSelection
 
-__all__ = ["AutoChoice", "Regime", "choose", "survey"]
+__all__ = ["AutoChoice", "Regime", "choose", "no_return_value", "survey"]
 
 SURVEY_SCANS = 1500  # enough for the statistics below, a fraction of a second to read
 MATCH_PAIRS = 40  # scan-to-scan matches when there is no odometry
@@ -94,7 +94,7 @@ class AutoChoice:
         return f"profile {self.profile}{extra}"
 
 
-def _no_return_value(ranges: np.ndarray) -> float | None:
+def no_return_value(ranges: np.ndarray) -> float | None:
     """The top-of-range reading that repeats far more often than a real distance can (e.g. 81.83, 50.0)."""
     finite = ranges[np.isfinite(ranges) & (ranges > 0)]
     if finite.size == 0:
@@ -178,7 +178,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
     step = np.hypot(motions[:, 0], motions[:, 1]) if len(motions) else np.zeros(1)
     turn = np.abs(transform.wrap_angle(motions[:, 2])) if len(motions) else np.zeros(1)
     return Regime(
-        scans=len(scans), beams=beams, fov=fov, range_max=range_max, no_return=_no_return_value(ranges),
+        scans=len(scans), beams=beams, fov=fov, range_max=range_max, no_return=no_return_value(ranges),
         odometry=bool(selection.odometry), imu=bool(selection.imu), motion_source=source,
         step_median=float(np.median(step)), step_p90=float(np.percentile(step, 90)),
         turn_median=float(np.median(turn)), turn_p90=float(np.percentile(turn, 90)), scan_rate=scan_rate,
@@ -199,13 +199,15 @@ def choose(regime: Regime, base_max_range: float = 30.0) -> AutoChoice:
             # Without the odometry prior a scan lying mostly in unknown space would score as well as a match.
             settings.append(f"{rt}.unknown_probability=0.5")
             reasons.append("each key scan sees new space: never-observed cells count as no evidence, not as free")
-        # Partial overlap keeps right matches of key scans below the stock 0.55 (orebro: none found);
-        # below 0.5 false ones got in (intel 0.11 -> 0.63 m at 0.45). The free-space check removes
-        # aliased matches the score cannot see.
-        settings.append("pose_graph.constraint_builder.min_score=0.5")
+        # Partial overlap keeps right matches of key scans below the stock 0.55 (orebro: none found). A lower
+        # threshold lets false matches in too (intel 0.11 -> 0.63 m at 0.45), so a closure must be confirmed by a
+        # neighbouring node's closure to the same submap (Karto's chain rule) and its rays must not cross the
+        # submap's walls; with those, 0.40 won the leave-one-building-out comparison (docs/measurements.md).
+        settings.append("pose_graph.constraint_builder.min_score=0.4")
+        settings.append("pose_graph.constraint_builder.confirm_loop_closures=true")
         settings.append("pose_graph.constraint_builder.max_see_through=0.15")
-        reasons.append("a key scan overlaps a submap only partly: loop-closure score threshold 0.5, and closures "
-                       "whose rays cross the submap's walls are rejected")
+        reasons.append("a key scan overlaps a submap only partly: loop-closure score threshold 0.4, a closure "
+                       "counts once a neighbouring node's closure agrees, and none whose rays cross walls")
     elif regime.odometry:
         profile = "wheeled"
         reasons.append("dense scans with odometry: the wheeled profile (scan decides the heading)")

@@ -63,13 +63,13 @@ def test_without_odometry_the_motion_comes_from_scan_matching():
 
 
 def test_no_return_marker_needs_many_identical_top_readings():
-    from carto_cli.regime import _no_return_value
+    from carto_cli.regime import no_return_value
 
     rng = np.random.default_rng(0)
     real = rng.uniform(0.5, 20.0, 10_000)
-    assert _no_return_value(real) is None  # the largest real reading is not a marker
+    assert no_return_value(real) is None  # the largest real reading is not a marker
     marked = np.concatenate([real, np.full(200, 81.83)])
-    assert _no_return_value(marked) == pytest.approx(81.83)
+    assert no_return_value(marked) == pytest.approx(81.83)
 
 
 def test_describe_says_what_was_detected():

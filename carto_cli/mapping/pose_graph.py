@@ -33,6 +33,13 @@ from carto_cli.options import Options
 
 __all__ = ["PoseGraph", "PoseGraphStats"]
 
+# confirm_loop_closures: two closures to one submap agree when they place their nodes, at most this many
+# nodes apart, within this of local SLAM's relative pose (local SLAM is good to centimetres over a few nodes).
+CONFIRM_MAX_NODES = 10
+CONFIRM_MAX_TRANSLATION = 0.2  # m
+CONFIRM_MAX_ROTATION = math.radians(2.0)
+CONFIRM_NEIGHBOURS = 2  # nodes searched at once to confirm a new closure
+
 
 class _Growing:
     """An (n, k) float array with amortised O(1) append."""
@@ -82,6 +89,9 @@ class PoseGraph:
         self.builder = ConstraintBuilder(options, timer=self.timer, seed=seed)
         self.stats = PoseGraphStats()
         self._nodes_since_optimization = 0
+        # confirm_loop_closures: per submap, [node, relative pose, added] of every closure found
+        self._pending_closures: dict[int, list[list]] = {}
+        self.unconfirmed_loop_closures = 0
 
     # ------------------------------------------------------------------ state in and out
 
@@ -259,9 +269,61 @@ class PoseGraph:
 
     # ------------------------------------------------------------------ loop closure
 
-    def _add_loop_closure(self, lc: LoopClosure) -> None:
+    def _confirming_neighbours(self, node: int, submap: int) -> list[int]:
+        """Up to CONFIRM_NEIGHBOURS nodes nearest to ``node`` along its trajectory, not in ``submap``."""
+        members = set(self.submaps[submap].nodes)
+        trajectory = self.node_trajectory[node]
+        out = []
+        for step in range(1, CONFIRM_MAX_NODES + 1):
+            for other in (node - step, node + step):
+                if (0 <= other < self.num_nodes and other not in members and self.node_trajectory[other] == trajectory
+                        and len(self.node_points[other])):
+                    out.append(other)
+            if len(out) >= CONFIRM_NEIGHBOURS:
+                break
+        return out[:CONFIRM_NEIGHBOURS]
+
+    def _add_loop_closure(self, lc: LoopClosure, confirming: bool = False) -> None:
         cb = self.pg.constraint_builder
-        self.constraints.add(lc.submap, lc.node, lc.relative_pose, cb.loop_closure_translation_weight,
+        if not cb.confirm_loop_closures:
+            self._insert_loop_closure(lc.node, lc.submap, lc.relative_pose)
+            return
+        # Karto's chain rule: a false match rarely repeats consistently for a neighbouring node, a true revisit
+        # does. A closure waits until a closure of another node of the same trajectory, near it along the
+        # trajectory, places both nodes in the submap as local SLAM places them relative to each other.
+        pending = self._pending_closures.setdefault(lc.submap, [])
+        agreeing = [entry for entry in pending if self._closures_agree(entry[0], entry[1], lc.node, lc.relative_pose)]
+        if not agreeing and not confirming:
+            # The samplers search only a share of the pairs, so the neighbours that could confirm this closure
+            # may never be tried: search the nearest ones against this submap now.
+            for other in self._confirming_neighbours(lc.node, lc.submap):
+                found = self.builder.search(self._node_data(other), self._submap_data(lc.submap))
+                if found is not None:
+                    self._add_loop_closure(found, confirming=True)
+            agreeing = [entry for entry in pending
+                        if self._closures_agree(entry[0], entry[1], lc.node, lc.relative_pose)]
+        if agreeing:
+            self._insert_loop_closure(lc.node, lc.submap, lc.relative_pose)
+            for entry in agreeing:
+                if not entry[2]:
+                    self._insert_loop_closure(entry[0], lc.submap, entry[1])
+                    entry[2] = True
+        pending.append([lc.node, lc.relative_pose, bool(agreeing)])
+        self.unconfirmed_loop_closures = sum(not e[2] for entries in self._pending_closures.values()
+                                             for e in entries)
+
+    def _closures_agree(self, m: int, rel_m: np.ndarray, n: int, rel_n: np.ndarray) -> bool:
+        if m == n or self.node_trajectory[m] != self.node_trajectory[n] or abs(m - n) > CONFIRM_MAX_NODES:
+            return False
+        by_local_slam = transform.relative(self.local_poses[m], self.local_poses[n])
+        by_closures = transform.relative(rel_m, rel_n)
+        gap = transform.relative(by_local_slam, by_closures)
+        return (math.hypot(gap[0], gap[1]) <= CONFIRM_MAX_TRANSLATION
+                and abs(gap[2]) <= CONFIRM_MAX_ROTATION)
+
+    def _insert_loop_closure(self, node: int, submap: int, relative: np.ndarray) -> None:
+        cb = self.pg.constraint_builder
+        self.constraints.add(submap, node, relative, cb.loop_closure_translation_weight,
                              cb.loop_closure_rotation_weight, ConstraintKind.INTER_SUBMAP)
 
     def _node_data(self, node: int) -> NodeData:

@@ -234,6 +234,8 @@ class ConstraintBuilder:
     max_loop_closure_residual: float = _opt(0.0, "carto: after the final optimization, loop closures whose "
                                             "translation residual exceeds this are removed and the graph is "
                                             "optimized again (0: keep all)", unit="m", ge=0)
+    confirm_loop_closures: bool = _opt(False, "carto: a loop closure counts only once a closure of another nearby node "
+                                              "to the same submap agrees with it (Karto's chain rule)")
     max_see_through: float = _opt(1.0, "carto: a loop closure is rejected when more than this share of the "
                                   "node's rays would pass through a wall of the submap (1: no check)", ge=0, le=1)
 

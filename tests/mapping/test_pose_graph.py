@@ -111,6 +111,26 @@ def test_loop_closures_the_optimized_graph_disagrees_with_are_removed():
     assert g.removed_loop_closures[0][:2] == (8, 0)
 
 
+def test_confirmed_loop_closures_need_an_agreeing_neighbour():
+    from carto_cli.mapping.constraint_builder import LoopClosure
+
+    g = _graph(CB + "confirm_loop_closures=true")
+    sm0, sm1 = _FakeSubmap(0), _FakeSubmap(1, (5.0, 0.0, 0.0))
+    for i in range(10):
+        g.add_node(float(i), (0.5 * i, 0.0, 0.0), np.zeros((0, 2)), [sm0] if i < 5 else [sm1])
+
+    def closure(node, xy):
+        return LoopClosure(node, 0, np.array([xy[0], xy[1], 0.0]), 0.6, False)
+
+    g._add_loop_closure(closure(9, (4.5, 0.0)))
+    assert g.num_loop_closures == 0 and g.unconfirmed_loop_closures == 1  # alone: waits
+    g._add_loop_closure(closure(7, (3.5, 1.0)))  # 1 m off what local SLAM says between nodes 7 and 9
+    assert g.num_loop_closures == 0 and g.unconfirmed_loop_closures == 2
+    g._add_loop_closure(closure(8, (4.0, 0.0)))  # agrees with node 9's: both count, 7's still waits
+    assert g.num_loop_closures == 2 and g.unconfirmed_loop_closures == 1
+    assert sorted(g.constraints.node[g.constraints.is_loop_closure].tolist()) == [8, 9]
+
+
 # --------------------------------------------------------------------------- end to end with loops
 
 
