@@ -493,6 +493,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
         "constraint_builder": asdict(bstats) if bstats is not None else None,
         "accuracy": accuracy,
         "loop_closures": lc,
+        "quality": result.quality.to_dict() if getattr(result, "quality", None) is not None else None,
         "eval_s": eval_s,
         "self_maxrss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
         **info,
@@ -858,6 +859,31 @@ def accuracy_table(family: str, results: list[dict], peers: dict) -> str:
     return _table(header, rows)
 
 
+def verdict_table(results: list[dict]) -> str:
+    """carto's own verdict (mapping/quality.py, no reference) against what the reference says: a map worse than
+    its odometry should be 'failed', a map within 0.1 m should not be."""
+    rows = []
+    missed = false_alarms = 0
+    for res in results:
+        q = res.get("quality")
+        if res.get("status") != "ok" or not q:
+            continue
+        acc = res.get("accuracy", {})
+        err = (acc.get("relations") or {}).get("trans_mean")
+        odo = (acc.get("odometry_relations") or {}).get("trans_mean")
+        worse = err is not None and odo is not None and err > odo
+        good = err is not None and err < 0.1
+        missed += worse and q["verdict"] != "failed"
+        false_alarms += good and q["verdict"] == "failed"
+        rows.append([res["case"]["name"], _f(err), _f(odo), f"**{q['verdict']}**",
+                     "; ".join(q.get("reasons") or []) or "—"])
+    if not rows:
+        return ""
+    return (_table(["case", "relation error m", "odometry m", "verdict", "reasons"], rows)
+            + f"\nMaps worse than their odometry not reported `failed`: {missed}. Maps within 0.1 m reported "
+              f"`failed`: {false_alarms}.\n")
+
+
 def performance_table(results: list[dict]) -> str:
     header = ["case", "scans", "nodes / submaps", "build wall s", "scans/s", "local SLAM s", "constraint search s",
               "optimization s", "JIT s", "other s", "process wall s", "peak RSS MB", "LC searches → accepted"]
@@ -995,6 +1021,10 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
         out.append(_table(["case", "detected", "base profile", "derived settings"],
                           [[r["case"]["name"], r["auto"]["describe"], f"`{r['auto']['profile']}`",
                             "<br>".join(f"`{x}`" for x in r["auto"]["settings"]) or "-"] for r in autos]))
+    vt = verdict_table(results)
+    if vt:
+        out.append("\n## Verdicts: does carto know when its map failed?\n")
+        out.append(vt)
     lct = loop_closure_table(results)
     if lct:
         out.append("\n## Loop closures\n")

@@ -32,6 +32,9 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
+EXIT_CHECK_FAILED = 3  # a check the user relies on failed: a 'failed' map (or 'suspect' with --strict)
+
+
 def handle_errors(fn):
     """User errors: one line, exit 2. Internal errors: one line, exit 1. Tracebacks only with --debug."""
 
@@ -185,8 +188,13 @@ def map_(
     load_state: Path | None = typer.Option(
         None, "--load-state", help="Continue mapping into this map.carto: the recording becomes a new trajectory."
     ),
+    strict: bool = typer.Option(False, "--strict", help="Exit 3 on a 'suspect' map too (for CI), not only 'failed'."),
 ):
-    """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum."""
+    """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
+
+    carto judges its own map and prints 'map quality: ok | suspect | failed' with the reasons (also in
+    summary.json). Exit status: 0 success; 3 the map is 'failed' (or 'suspect' with --strict), its outputs
+    still written for a look; 2 bad input; 1 internal error; 130 interrupted."""
     from carto_cli.commands.map import compile_note, run_map, summary_line
     from carto_cli.core import parse
     from carto_cli.core.progress import progress
@@ -205,6 +213,10 @@ def map_(
     if timings:
         typer.echo(report_tree_text(timer))
     typer.echo(f"{summary_line(result)}{compile_note(timer)} -> {outputs.yaml.parent}")
+    if result.quality is not None:
+        typer.echo(result.quality.line(), err=result.quality.verdict != "ok")
+        if result.quality.verdict == "failed" or (strict and result.quality.verdict == "suspect"):
+            raise typer.Exit(EXIT_CHECK_FAILED)
 
 
 def _finish_gates(gates, junit: Path | None, suite: str, label: str) -> None:
@@ -253,7 +265,7 @@ def eval_(
 @handle_errors
 def profile_(
     recording: Path = typer.Argument(..., help="Recording to run the whole pipeline on."),
-    profile: str | None = PROFILE,
+    profile: str | None = MAP_PROFILE,
     overrides: list[str] | None = SET,
     scan_topic: str | None = typer.Option(None, "--scan-topic"),
     odom_topic: str | None = typer.Option(None, "--odom-topic"),
@@ -273,7 +285,7 @@ def profile_(
     from carto_cli.core.progress import progress
     from carto_cli.evaluation.profiling import format_relocalization, format_report
 
-    options = _options(profile, overrides)
+    options = _map_options(profile, overrides)
     with progress(f"profiling {recording.name}", None, state.quiet) as bar:
         run = run_profile(recording, options, scan_topic=scan_topic, odom_topic=odom_topic, output=output,
                           baseline=baseline, calibrate_first=calibrate, max_scans=max_scans,

@@ -18,6 +18,7 @@ from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics
 from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping.quality import MapQuality, assess
 from carto_cli.mapping.slam import Slam, SlamResult
 from carto_cli.options import Options, load_options
 from carto_cli.regime import AutoChoice, Regime, choose, survey
@@ -29,6 +30,19 @@ class MapResult(SlamResult):
     selection: TopicSelection | None = None
     regime: Regime | None = None  # what --profile auto measured (None for a named profile)
     auto: AutoChoice | None = None  # and what it chose
+    quality: MapQuality | None = None  # carto's own verdict on the map (mapping.quality)
+
+    def summary(self) -> dict:
+        """What summary.json holds: the verdict, the statistics, and what auto detected and chose."""
+        return {
+            "schema": "carto.map-summary v1",
+            "quality": self.quality.to_dict() if self.quality is not None else None,
+            "stats": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in self.stats.items()},
+            "auto": None if self.auto is None or self.regime is None else {
+                "detected": self.regime.to_dict(), "profile": self.auto.profile, "settings": self.auto.settings,
+                "reasons": self.auto.reasons},
+            "laser_pose_source": self.laser_pose_source,
+        }
 
 
 @dataclass(frozen=True)
@@ -116,6 +130,7 @@ def build(
     loop_closure: bool = True,
     graph: PoseGraph | None = None,
     trajectory_id: int = 0,
+    judge: bool = True,
 ) -> MapResult:
     """Map one recording. With ``graph`` (e.g. from a loaded map.carto) the recording becomes trajectory
     ``trajectory_id`` of that graph, linked to the earlier ones by loop closures, as Cartographer's
@@ -151,4 +166,17 @@ def build(
     if slam.num_poses == 0:
         raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
     core = slam.finish()
-    return MapResult(**vars(core), laser_pose_source=mount_source, selection=selection)
+    result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection)
+    if judge:
+        with slam.timer.stage("quality"):
+            result.quality = assess(result, _odometry_samples(slam.graph, trajectory_id))
+    return result
+
+
+def _odometry_samples(graph: PoseGraph, trajectory: int) -> np.ndarray | None:
+    """(n, 4) t, x, y, yaw of the odometry the graph was given for ``trajectory``; None without any."""
+    samples = graph.to_state().odometry_samples.get(trajectory)
+    if samples is None or len(samples[0]) < 2:
+        return None
+    times, poses = samples
+    return np.column_stack([times, poses])

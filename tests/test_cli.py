@@ -108,3 +108,40 @@ def test_real_subprocess_entry_point(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2
     assert bad.stderr.count("\n") == 1 and "Traceback" not in bad.stderr
+
+
+def test_map_with_no_profile_says_what_auto_chose_and_judges_the_map(tmp_path):
+    out = tmp_path / "m"
+    result = run("map", SAMPLE_BAG, "-o", out)
+    assert result.exit_code == 0, result.output
+    assert "auto: dense scans" in result.stderr and "no odometry -> profile office" in result.stderr
+    assert "map quality: ok" in result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["quality"]["verdict"] == "ok"
+    assert summary["auto"]["profile"] == "office" and summary["auto"]["detected"]["motion_source"] == "scan matching"
+    assert summary["stats"]["scans"] == 360
+
+
+def _judged(monkeypatch, verdict):
+    from carto_cli import pipeline
+    from carto_cli.mapping.quality import MapQuality, QualityCheck
+
+    limit = {"ok": 0.0, "suspect": 20.0, "failed": 60.0}[verdict]
+    check = QualityCheck("see_through", limit, 10.0, 50.0, "%", "of scans cross walls")
+    monkeypatch.setattr(pipeline, "assess", lambda result, odometry=None: MapQuality(
+        verdict, [] if verdict == "ok" else [check.reason()], [check]))
+
+
+def test_a_failed_map_exits_3_with_its_outputs_written(tmp_path, monkeypatch):
+    _judged(monkeypatch, "failed")
+    result = run("map", SAMPLE_BAG, "-o", tmp_path / "m", "--profile", "office")
+    assert result.exit_code == 3
+    assert "map quality: failed" in result.stderr and "of scans cross walls" in result.stderr
+    assert (tmp_path / "m" / "map.pgm").is_file()
+    assert json.loads((tmp_path / "m" / "summary.json").read_text())["quality"]["verdict"] == "failed"
+
+
+def test_strict_turns_a_suspect_map_into_a_failure(tmp_path, monkeypatch):
+    _judged(monkeypatch, "suspect")
+    assert run("map", SAMPLE_BAG, "-o", tmp_path / "a", "--profile", "office").exit_code == 0
+    assert run("map", SAMPLE_BAG, "-o", tmp_path / "b", "--profile", "office", "--strict").exit_code == 3

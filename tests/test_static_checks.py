@@ -18,8 +18,10 @@ PACKAGE = ROOT / "carto_cli"
 
 # The kernel tests, run once more with numba off so that coverage (and Python's own integer and dtype
 # rules) see inside the kernels; tests/reference holds the oracles they compare against.
-KERNEL_TESTS = ["tests/sensor", "tests/grid", "tests/matching", "tests/mapping/test_optimization.py"]
-KERNEL_PACKAGES = ["carto_cli.sensor", "carto_cli.grid", "carto_cli.matching", "carto_cli.mapping.optimization"]
+KERNEL_TESTS = ["tests/sensor", "tests/grid", "tests/matching", "tests/mapping/test_optimization.py",
+                "tests/mapping/test_quality.py"]
+KERNEL_PACKAGES = ["carto_cli.sensor", "carto_cli.grid", "carto_cli.matching", "carto_cli.mapping.optimization",
+                   "carto_cli.mapping.quality"]
 
 
 def _run(*cmd: str, env: dict | None = None, timeout: float = 900) -> subprocess.CompletedProcess:

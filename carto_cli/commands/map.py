@@ -1,11 +1,13 @@
 """`carto map` as a library call: open, build, write every output. The CLI only parses arguments."""
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from carto_cli.core import kernels
+from carto_cli.io.atomic import write_text_atomic
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
@@ -23,6 +25,7 @@ class MapOutputs:
     png: Path
     trajectory: Path
     state: Path | None
+    summary: Path | None = None
 
 
 def write_outputs(result: MapResult, outdir: Path, options: Options | None = None, *, state: bool = True,
@@ -36,7 +39,9 @@ def write_outputs(result: MapResult, outdir: Path, options: Options | None = Non
         from carto_cli.io.map_file import save_map
 
         state_path = save_map(outdir / "map.carto", result, options, recordings=recordings)
-    return MapOutputs(pgm, yml, png, traj, state_path)
+    summary = outdir / "summary.json"
+    write_text_atomic(summary, json.dumps(result.summary(), indent=1, default=float) + "\n")
+    return MapOutputs(pgm, yml, png, traj, state_path, summary)
 
 
 def default_outdir(recording_path: Path) -> Path:

@@ -12,7 +12,7 @@ from carto_cli.evaluation.gates import GateResult, compare_profiles
 from carto_cli.evaluation.profiling import build_report, calibrate
 from carto_cli.io.atomic import write_text_atomic
 from carto_cli.options import Options
-from carto_cli.pipeline import build, opened, read_options
+from carto_cli.pipeline import Auto, build, configure, opened, read_options
 
 __all__ = ["ProfileRun", "read_baseline", "run_profile"]
 
@@ -39,7 +39,7 @@ def read_baseline(path: Path) -> dict:
 
 def run_profile(
     recording: Path,
-    options: Options,
+    options: Options | Auto,
     *,
     scan_topic: str | None = None,
     odom_topic: str | None = None,
@@ -58,13 +58,17 @@ def run_profile(
     calibration = calibrate() if calibrate_first else None
     timer = StageTimer()
     with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic) as source:
+        configured = configure(options, source.recording, source.selection)
         total = source.scan_count
         if on_total is not None:
             on_total(min(total, max_scans or total))
-        result = build(source.recording, options, selection=source.selection, timer=timer, on_scan=on_scan,
-                       max_scans=max_scans)
+        result = build(source.recording, configured.options, selection=source.selection, timer=timer,
+                       on_scan=on_scan, max_scans=max_scans)
     timer.stop()
-    report = build_report(result, timer, options, recording, calibration)
+    report = build_report(result, timer, configured.options, recording, calibration)
+    if configured.auto is not None and configured.regime is not None:
+        report["auto"] = {"detected": configured.regime.describe(), "profile": configured.auto.profile,
+                          "settings": configured.auto.settings}
     if relocalize_map is not None:
         from carto_cli.evaluation.profiling import profile_relocalization
         from carto_cli.io.map_file import load_map

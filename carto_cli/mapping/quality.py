@@ -1,0 +1,517 @@
+"""A reference-free verdict on a finished map: ``ok``, ``suspect`` or ``failed``, with reasons.
+
+Three signals, each a share in percent with two thresholds (``QualityCheck``); the verdict is the worst.
+
+``see_through``
+    Share of scans (up to 400 nodes evenly spread, up to 50 rays each) that send more than 20 % of
+    their rays through walls seen from elsewhere. A wall here is a 10 cm cell holding loop-closure
+    returns of at least 3 nodes more than 5 m of local-SLAM travel away from the scan; the ray must
+    cross it more than 0.5 m before its own endpoint, and no node within those 5 m may have a return
+    within 1 m of the crossing (that would be the same wall met at a grazing angle or a corner, or
+    one misplaced by less than a metre). A consistent map keeps every ray in free space; a misplaced
+    revisit doubles the walls and its rays cross them. Node returns rather than the submaps' grids
+    (the brief's first idea), because on key-scan logs a submap's walls are hit a few times only
+    (0.02 % of the known cells of aces's sparse submaps reach p = 0.8, against 0.6-1.9 % at 10 Hz),
+    and because a submap that holds a whole revisit (stock 90-scan submaps span 50-90 m of such
+    logs) hides its own double walls: the mean share of rays through another submap's p >= 0.6 cells
+    was 1.9 % on aces with the stock options (12.4 m error), 5.0 % with the sparse profile (0.083 m).
+``loop_closures``
+    Share of loop closures (removed ones included) whose translation residual after the final
+    optimization exceeds 0.3 m; only with at least 5 closures. Weak on its own: the optimizer's
+    Huber loss leaves wrong closures 15-18 m off in good maps (3 of aces's 13), so only large shares
+    count.
+``odometry``
+    Only with odometry: share of the stretches from each node to the first one 1 m of odometry travel
+    later over which local SLAM's relative motion and the odometry's differ by more than 10 deg or
+    0.3 m per metre. Odometry is good over a metre; a front end that jumps is not.
+
+Calibration: ``bench/quality_calibration.py`` (relation error of the shared bench cases as the
+truth; ``sparse`` / ``wheeled`` profiles, ``default`` = stock Cartographer options, ``no-lc`` = local
+SLAM only, ``3000`` = the first 3000 scans). Values in %, "-" = not computed:
+
+=================================  =======  =======  =====  ===========  =============  ========  =======
+run                                error m  odom. m  ATE m  see_through  loop_closures  odometry  verdict
+=================================  =======  =======  =====  ===========  =============  ========  =======
+aces sparse                          0.083    13.26   0.39          0.2           23.1       0.0  ok
+freiburg sparse                      0.018     2.51   0.11          0.0            9.1       0.0  ok
+aces sparse nrd20                    0.076    13.26   0.45          0.2           36.4       0.0  ok
+freiburg default                     0.020     2.51   0.10          0.0           10.5       0.0  ok
+dense-aces wheeled                   0.016    16.26   0.08          0.0            4.7       0.0  ok
+dense-aces wheeled 3000              0.009    16.26   0.32          0.0            5.6       0.0  ok
+dense-intel wheeled 3000             0.018    11.26   0.06          0.0            0.0       0.0  ok
+dense-freiburg wheeled 3000          0.009     6.99   0.05          0.0            0.0       0.0  ok
+dense-aces default 3000              0.011    16.26   3.55          0.5            1.1       0.0  ok
+dense-intel default 3000             0.041    11.26   0.13          0.0            0.0       0.0  ok
+dense-intel wheeled no-lc 3000       0.123    11.26   0.13          0.0              -       0.0  ok
+freiburg sparse no-lc                0.083     2.51   0.44          2.0              -       0.0  suspect
+intel sparse                         0.380    11.29   0.53          3.0           54.5       1.4  suspect
+dense-aces wheeled no-lc             0.545    16.26   0.51         10.2              -       0.0  failed
+aces sparse no-lc                    0.629    13.26   0.70         10.2              -       0.0  failed
+intel sparse no-lc                   1.920    11.29   1.83          9.0              -       1.4  failed
+edmonton default                     1.814     1.86  16.81          9.1              -       0.0  failed
+orebro default                       3.734     3.77   9.34         10.1              -       0.0  failed
+edmonton sparse                      3.740     1.86  16.19         12.1              -       4.7  failed
+orebro sparse                        5.391     3.77   7.29          0.0              -       3.0  failed
+intel default                       10.746    11.29  10.35          8.8           70.0       0.0  failed
+aces default                        12.404    13.26  15.98          7.5              -       0.0  failed
+fhw sparse                          14.521    18.10  16.62         24.5          100.0       5.5  failed
+fhw default                         16.613    18.10  20.11         28.7              -       0.0  failed
+=================================  =======  =======  =====  ===========  =============  ========  =======
+
+Thresholds (suspect above / failed above): see_through 1.5 / 5 % -- maps under 0.1 m give at most
+0.5 %, every map over 0.5 m but orebro sparse at least 7.5 %; failing at 5 leaves a factor 1.5 to
+both 7.5 and intel sparse's 3.0, and freiburg sparse without loop closure (0.083 m, but its corridor
+visibly bent, ATE max 1.2 m) is only suspect. odometry 0.5 / 2 %: every map under 0.1 m has 0.0; intel's local
+SLAM (1.4 %) jumps but its map is still usable, orebro sparse (3.0 %, worse than its odometry,
+with no ray through a wall: no revisit to conflict with) must fail. loop_closures 50 / 75 %:
+good sparse maps reach 36 %, intel sparse 54.5 %, fhw 100 %. So every map worse than its odometry
+is failed, none under 0.1 m is, and of those in between intel sparse is suspect, the 0.123 m one ok,
+every one from 0.5 m up failed.
+
+Checked afterwards on runs not used for choosing (same script): intel sparse with 20-scan submaps
+(0.132 m) suspect (odometry 1.1 %), intel sparse without the online correlative matcher
+(0.134 m) ok, aces sparse with odometry weights 1e5 (5.25 m) failed (loop closures 90 %),
+edmonton sparse without loop closure (3.74 m) failed, dense-intel wheeled (0.016 m, 6530 nodes)
+and dense-freiburg default 3000 (0.020 m) ok.
+
+Cost (one call after mapping; numba kernels, Python loops over nodes only): 0.0-0.7 % of the
+mapping time for every run of the ``sparse``/``wheeled`` profiles (15-60 ms), up to 2.6 % for
+runs that map in about a second; the one exception is a 0.25 s map (orebro default, 237 scans),
+where the check's 10-15 ms are ~5 %. Per-scan match scores (a possible fourth signal) are not in
+``SlamResult``, so they are not used.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numba import njit
+
+from carto_cli.core import transform
+
+if TYPE_CHECKING:
+    from carto_cli.mapping.pose_graph import PoseGraph
+    from carto_cli.mapping.slam import SlamResult
+
+__all__ = ["LEVELS", "MapQuality", "QualityCheck", "ReturnIndex", "assess", "loop_closure_check", "node_see_through",
+           "node_travel", "odometry_check", "odometry_disagreement", "rays_through_walls", "see_through_check"]
+
+LEVELS = ("ok", "suspect", "failed")
+
+# see_through (the module docstring says why; bench/quality_calibration.py measures)
+CELL_M = 0.1  # walls
+WINDOW_M = 5.0  # travel within which nodes are the scan's own neighbourhood
+MARGIN_M = 0.5  # of a ray before its endpoint that is never checked
+OWN_RADIUS_M = 1.0  # a neighbourhood return this close to a crossing makes it the same wall
+NEAR_CELL_M = 0.2  # that search runs on coarser cells: 81 lookups for 1 m rather than 317
+MIN_OTHER_NODES = 3  # far nodes a wall cell needs, so that one stray return (a person) is no wall
+NODE_SHARE = 0.2
+MAX_NODES = 400
+MAX_RAYS = 50
+SEE_THROUGH_SUSPECT, SEE_THROUGH_FAILED = 1.5, 5.0
+# loop_closures
+RESIDUAL_M = 0.3
+MIN_LOOP_CLOSURES = 5
+LOOP_CLOSURE_SUSPECT, LOOP_CLOSURE_FAILED = 50.0, 75.0
+# odometry
+STRETCH_M = 1.0
+MAX_TURN_DEG = 10.0
+MAX_SHIFT_PER_M = 0.3
+MIN_STRETCHES = 10
+ODOMETRY_SUSPECT, ODOMETRY_FAILED = 0.5, 2.0
+
+
+# ---------------------------------------------------------------------------------------- results
+
+
+def _fmt(value: float, unit: str) -> str:
+    if unit == "%":
+        return f"{value:.3g}%"
+    return f"{value:.3g} {unit}" if unit else f"{value:g}"
+
+
+@dataclass(frozen=True)
+class QualityCheck:
+    """One measured signal; ``doc`` reads after the value ("14% <doc>")."""
+
+    name: str
+    value: float
+    suspect_above: float
+    failed_above: float
+    unit: str
+    doc: str
+
+    @property
+    def level(self) -> str:
+        if self.value > self.failed_above:
+            return "failed"
+        if self.value > self.suspect_above:
+            return "suspect"
+        return "ok"
+
+    def reason(self) -> str:
+        return (f"{_fmt(self.value, self.unit)} {self.doc} (suspect above {_fmt(self.suspect_above, self.unit)}, "
+                f"failed above {_fmt(self.failed_above, self.unit)})")
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "value": float(self.value), "unit": self.unit, "level": self.level,
+                "thresholds": {"suspect_above": float(self.suspect_above), "failed_above": float(self.failed_above)},
+                "doc": self.doc}
+
+
+@dataclass(frozen=True)
+class MapQuality:
+    verdict: str  # the worst level of the checks; 'ok' when none could be computed
+    reasons: list[str]  # one sentence per check that is not ok
+    checks: list[QualityCheck]
+
+    @classmethod
+    def of(cls, checks: list[QualityCheck]) -> MapQuality:
+        """The worst level of ``checks`` ('ok' without any) and a reason for each one that is not ok."""
+        verdict = LEVELS[max((LEVELS.index(c.level) for c in checks), default=0)]
+        return cls(verdict, [c.reason() for c in checks if c.level != "ok"], list(checks))
+
+    def to_dict(self) -> dict:
+        return {"verdict": self.verdict, "reasons": list(self.reasons), "checks": [c.to_dict() for c in self.checks]}
+
+    def line(self) -> str:
+        if not self.reasons:
+            return f"map quality: {self.verdict}"
+        return f"map quality: {self.verdict} — " + "; ".join(self.reasons)
+
+
+# ------------------------------------------------------------------ rays through walls seen from elsewhere
+
+
+@njit(cache=True)
+def _first_at_least(values, a, b, x):
+    """Index of the first of the sorted ``values[a:b]`` that is >= ``x`` (``b`` when none)."""
+    while a < b:
+        m = (a + b) // 2
+        if values[m] < x:
+            a = m + 1
+        else:
+            b = m
+    return a
+
+
+@njit(cache=True)
+def _first_above(values, a, b, x):
+    """Index of the first of the sorted ``values[a:b]`` that is > ``x`` (``b`` when none)."""
+    while a < b:
+        m = (a + b) // 2
+        if values[m] <= x:
+            a = m + 1
+        else:
+            b = m
+    return a
+
+
+@njit(cache=True)
+def _see_through(start, travel, gox, goy, cell, ny, nx, near_start, near_travel, nox, noy, near_cell, nny, nnx, disk,
+                 radius, points, offsets, poses, node_travel, sensor, window, margin, min_other):
+    """Per node: rays longer than ``margin``, and rays crossing a wall of nodes more than ``window`` away
+    (see ``rays_through_walls``)."""
+    n = poses.shape[0]
+    step = 0.5 * cell
+    hits = np.zeros(n, np.int64)
+    checked = np.zeros(n, np.int64)
+    for i in range(n):
+        c = math.cos(poses[i, 2])
+        s = math.sin(poses[i, 2])
+        sx = c * sensor[0] - s * sensor[1] + poses[i, 0]
+        sy = s * sensor[0] + c * sensor[1] + poses[i, 1]
+        lo = node_travel[i] - window
+        hi = node_travel[i] + window
+        for k in range(offsets[i], offsets[i + 1]):
+            dx = c * points[k, 0] - s * points[k, 1] + poses[i, 0] - sx
+            dy = s * points[k, 0] + c * points[k, 1] + poses[i, 1] - sy
+            length = math.sqrt(dx * dx + dy * dy)
+            stop = length - margin
+            if stop <= step:
+                continue
+            checked[i] += 1
+            ux = dx / length
+            uy = dy / length
+            near_until = 0
+            for j in range(1, int(stop / step) + 1):
+                wx = sx + j * step * ux
+                wy = sy + j * step * uy
+                ix = int(math.floor((wx - gox) / cell))
+                iy = int(math.floor((wy - goy) / cell))
+                if ix < 0 or iy < 0 or ix >= nx or iy >= ny or j <= near_until:
+                    continue
+                a = start[iy * nx + ix]
+                b = start[iy * nx + ix + 1]
+                if b - a < min_other or (travel[a] >= lo and travel[b - 1] <= hi):
+                    continue
+                inside = _first_above(travel, a, b, hi) - _first_at_least(travel, a, b, lo)
+                if b - a - inside < min_other:
+                    continue
+                # The same wall as the scan's own neighbourhood sees, met at a grazing angle or a corner:
+                # ``disk`` (in the coarser cells of the near index) runs outwards, so such a return is
+                # usually found in the first few cells.
+                cx = int(math.floor((wx - nox) / near_cell))
+                cy = int(math.floor((wy - noy) / near_cell))
+                near = -1.0
+                for q in range(disk.shape[0]):
+                    yy = cy + disk[q, 0]
+                    xx = cx + disk[q, 1]
+                    if yy < 0 or xx < 0 or yy >= nny or xx >= nnx:
+                        continue
+                    e = near_start[yy * nnx + xx + 1]
+                    f = _first_at_least(near_travel, near_start[yy * nnx + xx], e, lo)
+                    if f < e and near_travel[f] <= hi:
+                        near = math.sqrt(disk[q, 0] ** 2 + disk[q, 1] ** 2)
+                        break
+                if near < 0:
+                    hits[i] += 1
+                    break
+                # That return is also within the radius of the cells the next steps reach, as long as they
+                # stay within (radius - near) cells, less 1.5 for where in their cells the crossings lie.
+                near_until = j + int((radius - near - 1.5) * near_cell / step)
+    return hits, checked
+
+
+@njit(cache=True)
+def _buckets(points, ox, oy, cell, nx, ny, nodes, travel):
+    """Counting sort of the points into their cells, one entry per node and cell: (start, travel)."""
+    cells = np.empty(points.shape[0], np.int64)
+    for k in range(points.shape[0]):
+        cells[k] = int(math.floor((points[k, 1] - oy) / cell)) * nx + int(math.floor((points[k, 0] - ox) / cell))
+    last = np.full(nx * ny, -1, np.int32)
+    start = np.zeros(nx * ny + 1, np.int32)
+    for k in range(cells.shape[0]):
+        if last[cells[k]] != nodes[k]:
+            last[cells[k]] = nodes[k]
+            start[cells[k] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    last[:] = -1
+    out = np.empty(start[nx * ny], np.float64)
+    for k in range(cells.shape[0]):
+        c = cells[k]
+        if last[c] != nodes[k]:
+            last[c] = nodes[k]
+            out[fill[c]] = travel[nodes[k]]
+            fill[c] += 1
+    return start, out
+
+
+@njit(cache=True)
+def _bounds(points):
+    """(min, max) of the points: numpy's reductions along the short axis are strided and slow."""
+    low = points[0].copy()
+    high = points[0].copy()
+    for k in range(points.shape[0]):
+        for d in range(2):
+            low[d] = min(low[d], points[k, d])
+            high[d] = max(high[d], points[k, d])
+    return low, high
+
+
+@dataclass(frozen=True)
+class ReturnIndex:
+    """Which nodes put a return in each map cell, by their travel (m along their trajectory's local SLAM).
+
+    Cell ``iy * nx + ix`` holds ``travel[start[cell]:start[cell + 1]]``, sorted, one entry per node.
+    """
+
+    start: np.ndarray  # (ny * nx + 1,) int64
+    travel: np.ndarray  # (E,) float64
+    origin: tuple[float, float]
+    cell: float
+    shape: tuple[int, int]  # (ny, nx)
+
+    @classmethod
+    def build(cls, points: np.ndarray, node: np.ndarray, travel: np.ndarray, *, cell: float = CELL_M,
+              max_cells: int = 4_000_000) -> ReturnIndex:
+        """``points`` (P, 2) in the map frame, ``node`` (P,) the node each came from (non-decreasing),
+        ``travel`` (N,) per node (non-decreasing)."""
+        points = np.asarray(points, np.float64).reshape(-1, 2)
+        node = np.asarray(node, np.int64).reshape(-1)
+        travel = np.asarray(travel, np.float64).reshape(-1)
+        if np.any(np.diff(node) < 0) or np.any(np.diff(travel) < 0):
+            raise ValueError("points must come in node order, and travel must not decrease with the node")
+        if len(points) == 0:
+            return cls(np.zeros(2, np.int64), np.zeros(0), (0.0, 0.0), float(cell), (1, 1))
+        low, high = _bounds(points)
+        lo = low - cell
+        size = high - lo + cell
+        # A very large map gets coarser cells rather than unbounded memory: walls only get thicker.
+        cell = max(float(cell), math.sqrt(float(size[0] * size[1]) / max_cells))
+        nx, ny = (int(math.ceil(v / cell)) for v in size)
+        start, entries = _buckets(points, float(lo[0]), float(lo[1]), cell, nx, ny, node, travel)
+        return cls(start, entries, (float(lo[0]), float(lo[1])), cell, (ny, nx))
+
+
+def _disk(radius: int) -> np.ndarray:
+    """(K, 2) (dy, dx) of the cells within ``radius`` cells, nearest first."""
+    d = np.arange(-radius, radius + 1)
+    dy, dx = (v.ravel() for v in np.meshgrid(d, d, indexing="ij"))
+    keep = dy * dy + dx * dx <= radius * radius
+    order = np.argsort(dy[keep] ** 2 + dx[keep] ** 2, kind="stable")
+    return np.ascontiguousarray(np.stack([dy[keep][order], dx[keep][order]], axis=1), np.int64)
+
+
+def rays_through_walls(walls: ReturnIndex, near: ReturnIndex, points: list[np.ndarray], poses: np.ndarray,
+                       travel: np.ndarray, sensor=(0.0, 0.0), *, window: float = WINDOW_M, margin: float = MARGIN_M,
+                       radius: float = OWN_RADIUS_M, min_other: int = MIN_OTHER_NODES) -> tuple[np.ndarray, np.ndarray]:
+    """(hits, checked) per node ``i``: rays from ``sensor`` to ``points[i]`` (node frame, placed at ``poses[i]``)
+    longer than ``margin``, and those among them that cross, more than ``margin`` before their endpoint, a
+    cell of ``walls`` holding returns of ``min_other`` nodes more than ``window`` of travel from ``travel[i]``
+    while no node within ``window`` has a return in the cells of ``near`` within ``radius`` (m) of it."""
+    counts = np.array([len(p) for p in points], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    flat = np.concatenate([np.asarray(p, np.float64).reshape(-1, 2) for p in points]) if points else np.zeros((0, 2))
+    cells = int(math.ceil(radius / near.cell - 1e-9))
+    return _see_through(walls.start, walls.travel, walls.origin[0], walls.origin[1], walls.cell, walls.shape[0],
+                        walls.shape[1], near.start, near.travel, near.origin[0], near.origin[1], near.cell,
+                        near.shape[0], near.shape[1], _disk(cells), float(cells), np.ascontiguousarray(flat), offsets,
+                        np.ascontiguousarray(poses, np.float64).reshape(-1, 3),
+                        np.asarray(travel, np.float64).reshape(-1), np.asarray(sensor, np.float64).reshape(2),
+                        float(window), float(margin), int(min_other))
+
+
+def node_travel(local_poses: np.ndarray, trajectories: np.ndarray, gap: float) -> np.ndarray:
+    """(N,) metres of local-SLAM travel to each node; trajectories follow each other ``gap`` apart."""
+    local_poses = np.asarray(local_poses, np.float64).reshape(-1, 3)
+    trajectories = np.asarray(trajectories).reshape(-1)
+    if len(local_poses) == 0:
+        return np.zeros(0)
+    step = np.hypot(*np.diff(local_poses[:, :2], axis=0).T)
+    # Local frames of different trajectories are unrelated: a jump between them is no travel.
+    step = np.where(np.diff(trajectories) != 0, gap, step)
+    return np.concatenate([[0.0], np.cumsum(step)])
+
+
+@njit(cache=True)
+def _place(points, node, poses):
+    """Every node's points (node frame) at its pose."""
+    c = np.cos(poses[:, 2])
+    s = np.sin(poses[:, 2])
+    out = np.empty_like(points)
+    for k in range(points.shape[0]):
+        i = node[k]
+        out[k, 0] = c[i] * points[k, 0] - s[i] * points[k, 1] + poses[i, 0]
+        out[k, 1] = s[i] * points[k, 0] + c[i] * points[k, 1] + poses[i, 1]
+    return out
+
+
+def node_see_through(graph: PoseGraph, laser_pose=(0.0, 0.0, 0.0), *, max_nodes: int = MAX_NODES,
+                     max_rays: int = MAX_RAYS, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes, fraction): up to ``max_nodes`` nodes spread evenly over ``graph`` and the share of (up to
+    ``max_rays`` of) each one's rays that cross walls seen from elsewhere (``rays_through_walls``, which
+    ``kwargs`` go to; NaN for a node without a ray longer than the margin). Every node's returns make the walls."""
+    n = graph.num_nodes
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0)
+    travel = node_travel(graph.local_poses, np.asarray(graph.node_trajectory),
+                         gap=2 * float(kwargs.get("window", WINDOW_M)) + 1.0)
+    counts = np.array([len(p) for p in graph.node_points], np.int64)
+    node = np.repeat(np.arange(n), counts)
+    local = np.concatenate(graph.node_points).astype(np.float64, copy=False).reshape(-1, 2)
+    placed = _place(local, node, np.ascontiguousarray(graph.global_poses))
+    walls = ReturnIndex.build(placed, node, travel, cell=CELL_M)
+    near = ReturnIndex.build(placed, node, travel, cell=NEAR_CELL_M)
+    nodes = np.unique(np.linspace(0, n - 1, min(n, max_nodes)).round().astype(np.int64))
+    rays = [p[::max(1, math.ceil(len(p) / max_rays))] for p in (graph.node_points[i] for i in nodes)]
+    hits, checked = rays_through_walls(walls, near, rays, graph.global_poses[nodes], travel[nodes],
+                                       np.asarray(laser_pose, np.float64).reshape(-1)[:2], **kwargs)
+    return nodes, np.where(checked > 0, hits / np.maximum(checked, 1), np.nan)
+
+
+def see_through_check(graph: PoseGraph, laser_pose=(0.0, 0.0, 0.0)) -> QualityCheck | None:
+    _, fraction = node_see_through(graph, laser_pose)
+    fraction = fraction[np.isfinite(fraction)]
+    if fraction.size == 0:
+        return None
+    return QualityCheck(
+        "see_through", 100.0 * float(np.mean(fraction > NODE_SHARE)), SEE_THROUGH_SUSPECT, SEE_THROUGH_FAILED, "%",
+        f"of scans send over {NODE_SHARE:.0%} of their rays through walls seen from over {WINDOW_M:g} m "
+        "of travel away")
+
+
+# ------------------------------------------------------------------------------------- loop closures
+
+
+def loop_closure_check(graph: PoseGraph) -> QualityCheck | None:
+    residuals = np.asarray(graph.loop_closure_residuals(), np.float64)
+    removed = len(graph.removed_loop_closures)
+    total = len(residuals) + removed
+    if total < MIN_LOOP_CLOSURES:
+        return None
+    off = int(np.count_nonzero(residuals > RESIDUAL_M)) + removed
+    return QualityCheck("loop_closures", 100.0 * off / total, LOOP_CLOSURE_SUSPECT, LOOP_CLOSURE_FAILED, "%",
+                        f"of {total} loop closures are off by more than {RESIDUAL_M:g} m after optimization"
+                        + (f" ({removed} removed)" if removed else ""))
+
+
+# ----------------------------------------------------------------------------- odometry agreement
+
+
+def _unwrapped(yaw: np.ndarray) -> np.ndarray:
+    if yaw.size == 0:
+        return yaw
+    return yaw[0] + np.concatenate([[0.0], np.cumsum(transform.wrap_angle(np.diff(yaw)))])
+
+
+def odometry_disagreement(times: np.ndarray, poses: np.ndarray, odometry: np.ndarray, *, stretch: float = STRETCH_M
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per stretch from each pose to the first one ``stretch`` metres of odometry travel later:
+    (odometry travel m, translation difference m, |rotation difference| rad) between the relative
+    motion of ``poses`` and that of the odometry (t, x, y, yaw rows, interpolated at ``times``).
+    Poses outside the odometry's time span are left out."""
+    odo = np.asarray(odometry, np.float64).reshape(-1, 4)
+    odo = odo[np.argsort(odo[:, 0], kind="stable")]
+    odo = odo[np.concatenate([[True], np.diff(odo[:, 0]) > 0])] if len(odo) else odo
+    empty = np.zeros(0), np.zeros(0), np.zeros(0)
+    if len(odo) < 2:
+        return empty
+    times = np.asarray(times, np.float64).reshape(-1)
+    inside = (times >= odo[0, 0]) & (times <= odo[-1, 0])
+    t, p = times[inside], np.asarray(poses, np.float64).reshape(-1, 3)[inside]
+    if len(t) < 2:
+        return empty
+    yaw = _unwrapped(odo[:, 3])
+    o = np.stack([np.interp(t, odo[:, 0], odo[:, 1]), np.interp(t, odo[:, 0], odo[:, 2]),
+                  np.interp(t, odo[:, 0], yaw)], axis=1)
+    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(o[:, :2], axis=0).T))])
+    end = np.searchsorted(travel, travel + stretch, side="left")
+    begin = np.flatnonzero(end < len(t))
+    end = end[begin]
+    if begin.size == 0:
+        return empty
+    diff = transform.relative(transform.relative(o[begin], o[end]), transform.relative(p[begin], p[end]))
+    return travel[end] - travel[begin], np.hypot(diff[:, 0], diff[:, 1]), np.abs(diff[:, 2])
+
+
+def odometry_check(times: np.ndarray, local_poses: np.ndarray, odometry: np.ndarray) -> QualityCheck | None:
+    travel, shift, turn = odometry_disagreement(times, local_poses, odometry)
+    if len(travel) < MIN_STRETCHES:
+        return None
+    bad = (shift > MAX_SHIFT_PER_M * np.maximum(travel, STRETCH_M)) | (turn > math.radians(MAX_TURN_DEG))
+    return QualityCheck(
+        "odometry", 100.0 * float(np.mean(bad)), ODOMETRY_SUSPECT, ODOMETRY_FAILED, "%",
+        f"of {STRETCH_M:g} m stretches of local SLAM disagree with odometry by over {MAX_TURN_DEG:g} deg "
+        f"or {MAX_SHIFT_PER_M:g} m per metre")
+
+
+# ------------------------------------------------------------------------------------------ verdict
+
+
+def assess(result: SlamResult, odometry: np.ndarray | None = None) -> MapQuality:
+    """The verdict on a ``SlamResult``; ``odometry`` (N, 4) t, x, y, yaw of the recording adds the odometry check."""
+    checks: list[QualityCheck | None] = []
+    graph = result.graph
+    if graph is not None and graph.num_nodes:
+        checks.append(see_through_check(graph, result.laser_pose))
+        checks.append(loop_closure_check(graph))
+    if odometry is not None and len(result.node_scans):
+        nodes = np.asarray(result.node_scans, np.int64)
+        checks.append(odometry_check(np.asarray(result.times)[nodes], np.asarray(result.local_poses)[nodes],
+                                     np.asarray(odometry, np.float64)))
+    return MapQuality.of([c for c in checks if c is not None])

@@ -1,0 +1,249 @@
+"""The reference-free map verdict: a consistent map is ok, a misplaced part is not, and the ray kernel
+agrees with a plain-Python oracle."""
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from carto_cli.core import transform
+from carto_cli.core.records import Odometry
+from carto_cli.mapping.quality import (
+    LEVELS,
+    MapQuality,
+    QualityCheck,
+    ReturnIndex,
+    assess,
+    node_travel,
+    odometry_check,
+    odometry_disagreement,
+    rays_through_walls,
+    see_through_check,
+)
+from carto_cli.options import load_options
+from carto_cli.pipeline import build
+from carto_cli.sim import Limits, loop_trajectory, simulate
+from carto_cli.sim.world import World, box, merge
+
+# ------------------------------------------------------------------------------ a simulated map
+
+
+@pytest.fixture(scope="module")
+def mapped():
+    """Two laps of a 10 m x 8 m room with a few obstacles (so that no pose is ambiguous): every place is
+    seen again from more than 5 m of travel later, which is what the see-through check compares."""
+    walls = merge(box(5.0, 4.0, 10.0, 8.0), box(3.0, 5.2, 0.6, 0.6), box(7.2, 2.4, 1.0, 0.4),
+                  box(6.5, 6.0, 0.3, 1.2))
+    world = World(walls, route=np.array([(1.2, 1.2), (8.8, 1.2), (8.8, 6.8), (1.2, 6.8)]), closed=True,
+                  name="two-lap room")
+    simulation = simulate(world, loop_trajectory(world, laps=2, limits=Limits(v_max=1.0)), beams=180, seed=1)
+    with simulation.recording() as rec:
+        result = build(rec, load_options("wheeled"))
+        odometry = np.array([(r.time, r.x, r.y, r.yaw) for r in rec.records() if isinstance(r, Odometry)])
+    return result, odometry
+
+
+@pytest.mark.slow_without_jit  # maps a simulated recording
+def test_a_consistent_map_is_ok(mapped):
+    result, odometry = mapped
+    quality = assess(result, odometry)
+    assert quality.verdict == "ok", quality.line()
+    assert quality.line() == "map quality: ok" and quality.reasons == []
+    assert {c.name for c in quality.checks} == {"see_through", "loop_closures", "odometry"}
+
+
+@pytest.mark.slow_without_jit  # maps a simulated recording
+def test_a_misplaced_second_half_is_caught_by_rays_through_walls(mapped):
+    result, odometry = mapped
+    graph = result.graph
+    half = graph.num_nodes // 2
+    before = graph.global_poses.copy()
+    try:
+        graph.global_poses[half:] = transform.compose(np.array([1.0, 0.0, math.radians(10.0)]), before[half:])
+        quality = assess(result, odometry)
+    finally:
+        graph.global_poses[:] = before
+    assert quality.verdict in ("suspect", "failed")
+    see_through = next(c for c in quality.checks if c.name == "see_through")
+    assert see_through.level != "ok"
+    assert any("through walls" in reason for reason in quality.reasons)
+    assert quality.line().startswith(f"map quality: {quality.verdict} — ")
+
+
+@pytest.mark.slow_without_jit  # maps a simulated recording
+def test_a_front_end_jump_disagrees_with_odometry(mapped):
+    result, odometry = mapped
+    nodes = result.node_scans
+    local = result.local_poses[nodes].copy()
+    # From a third of the way on, local SLAM turned 20 degrees in one step that the odometry never saw.
+    jump = len(local) // 3
+    local[jump:] = transform.compose(transform.compose(local[jump], np.array([0.0, 0.0, math.radians(20.0)])),
+                                     transform.relative(local[jump], local[jump:]))
+    check = odometry_check(result.times[nodes], local, odometry)
+    assert check is not None and check.value > 0
+    clean = odometry_check(result.times[nodes], result.local_poses[nodes], odometry)
+    assert clean is not None and clean.value == 0.0
+
+
+@pytest.mark.slow_without_jit  # maps a simulated recording
+def test_to_dict_is_json_ready(mapped):
+    result, odometry = mapped
+    data = json.loads(json.dumps(assess(result, odometry).to_dict()))
+    assert data["verdict"] in LEVELS and isinstance(data["reasons"], list)
+    for check in data["checks"]:
+        assert set(check) >= {"name", "value", "unit", "level", "thresholds"}
+        assert set(check["thresholds"]) == {"suspect_above", "failed_above"}
+
+
+@pytest.mark.slow_without_jit  # maps a simulated recording
+def test_without_a_graph_or_odometry_nothing_is_measured_and_the_verdict_is_ok(mapped):
+    result, _ = mapped
+
+    bare = SimpleNamespace(graph=None, node_scans=result.node_scans, times=result.times,
+                           local_poses=result.local_poses, laser_pose=result.laser_pose)
+    quality = assess(bare)
+    assert quality.verdict == "ok" and quality.checks == [] and quality.line() == "map quality: ok"
+
+
+def test_scans_without_a_ray_longer_than_the_margin_give_no_see_through_check():
+    poses = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    graph = SimpleNamespace(num_nodes=3, node_trajectory=[0, 0, 0], local_poses=poses, global_poses=poses,
+                            node_points=[np.array([[0.1, 0.0], [0.0, 0.2]])] * 3)
+    assert see_through_check(graph) is None
+
+
+# ----------------------------------------------------------------------------------- the results
+
+
+def test_levels_and_reasons():
+    check = QualityCheck("x", 5.0, 5.0, 12.0, "%", "of scans do something")
+    assert check.level == "ok"  # thresholds are "above"
+    assert QualityCheck("x", 5.1, 5.0, 12.0, "%", "d").level == "suspect"
+    assert QualityCheck("x", 12.5, 5.0, 12.0, "%", "d").level == "failed"
+    quality = MapQuality.of([check, QualityCheck("y", 14.0, 5.0, 12.0, "%", "of scans' rays pass through walls")])
+    assert quality.verdict == "failed"
+    assert quality.reasons == ["14% of scans' rays pass through walls (suspect above 5%, failed above 12%)"]
+    assert quality.line() == "map quality: failed — " + quality.reasons[0]
+    assert MapQuality.of([]).verdict == "ok"
+
+
+# --------------------------------------------------------------------------- kernel vs an oracle
+
+
+def reference_cells(index, points, node, travel):
+    """The index as a dict: cell -> travel of the distinct nodes with a return in it."""
+    cells: dict[tuple[int, int], set[float]] = {}
+    for p, k in zip(points, node):
+        key = (math.floor((p[0] - index.origin[0]) / index.cell), math.floor((p[1] - index.origin[1]) / index.cell))
+        cells.setdefault(key, set()).add(float(travel[k]))
+    return cells
+
+
+def reference_see_through(walls_index, near_index, points, node, travel, rays, poses, ray_travel, sensor, window,
+                          margin, radius, min_other):
+    """Plain Python: each ray walked in half-cell steps as the kernel does, every candidate cell's
+    neighbourhood searched in full."""
+    walls = reference_cells(walls_index, points, node, travel)
+    near = reference_cells(near_index, points, node, travel)
+    ox, oy = walls_index.origin
+    cell = walls_index.cell
+    ny, nx = walls_index.shape
+    r = int(math.ceil(radius / near_index.cell - 1e-9))
+    step = 0.5 * cell
+    hits, checked = [], []
+    for pts, pose, t in zip(rays, poses, ray_travel):
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        sx = c * sensor[0] - s * sensor[1] + pose[0]
+        sy = s * sensor[0] + c * sensor[1] + pose[1]
+        lo, hi = t - window, t + window
+        h = n = 0
+        for q in pts:
+            dx = c * q[0] - s * q[1] + pose[0] - sx
+            dy = s * q[0] + c * q[1] + pose[1] - sy
+            length = math.sqrt(dx * dx + dy * dy)
+            if length - margin <= step:
+                continue
+            n += 1
+            ux, uy = dx / length, dy / length
+            for j in range(1, int((length - margin) / step) + 1):
+                wx, wy = sx + j * step * ux, sy + j * step * uy
+                ix, iy = math.floor((wx - ox) / cell), math.floor((wy - oy) / cell)
+                if not (0 <= ix < nx and 0 <= iy < ny):
+                    continue
+                if len([v for v in walls.get((ix, iy), ()) if v < lo or v > hi]) < min_other:
+                    continue
+                cx = math.floor((wx - near_index.origin[0]) / near_index.cell)
+                cy = math.floor((wy - near_index.origin[1]) / near_index.cell)
+                if not any(lo <= v <= hi for xx in range(cx - r, cx + r + 1) for yy in range(cy - r, cy + r + 1)
+                           if (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r for v in near.get((xx, yy), ())):
+                    h += 1
+                    break
+        hits.append(h)
+        checked.append(n)
+    return np.array(hits), np.array(checked)
+
+
+@pytest.mark.parametrize(("seed", "radius"), [(0, 0.5), (1, 1.0), (2, 0.3)])
+def test_kernel_matches_the_python_oracle(seed, radius):
+    rng = np.random.default_rng(seed)
+    # Walls of a 12 m x 8 m box and a pillar, seen by 30 nodes; the last 10 are placed 1.6 m and 10 degrees off.
+    corners = np.array([(0, 0), (12, 0), (12, 8), (0, 8), (0, 0)], float)
+    along = np.concatenate([np.linspace(a, b, 120) for a, b in zip(corners[:-1], corners[1:])] +
+                           [np.array([5.0, 4.0]) + 0.3 * np.stack([np.cos(a), np.sin(a)], 1)
+                            for a in [np.linspace(0, 2 * math.pi, 30)]])
+    n = 30
+    poses = np.column_stack([rng.uniform(1, 11, n), rng.uniform(1, 7, n), rng.uniform(-math.pi, math.pi, n)])
+    placed = poses.copy()
+    placed[20:] = transform.compose(np.array([1.5, -0.5, math.radians(10)]), poses[20:])
+    travel = np.cumsum(rng.uniform(0.2, 1.5, n))
+    rays, world, node = [], [], []
+    for i in range(n):
+        seen = along[rng.choice(len(along), 40, replace=False)] + rng.normal(0, 0.01, (40, 2))
+        local = transform.apply(transform.inverse(poses[i]), seen)  # observed from the true pose
+        rays.append(local)
+        world.append(transform.apply(placed[i], local))  # drawn where the map put the node
+        node.append(np.full(40, i))
+    points, node = np.concatenate(world), np.concatenate(node)
+    walls = ReturnIndex.build(points, node, travel, cell=0.1)
+    near = ReturnIndex.build(points, node, travel, cell=0.2)
+    sensor = np.array([0.15, 0.0])
+    kw = dict(window=3.0, margin=0.5, radius=radius, min_other=2)
+    hits, checked = rays_through_walls(walls, near, rays, placed, travel, sensor, **kw)
+    want_hits, want_checked = reference_see_through(walls, near, points, node, travel, rays, placed, travel, sensor,
+                                                    kw["window"], kw["margin"], kw["radius"], kw["min_other"])
+    np.testing.assert_array_equal(checked, want_checked)
+    np.testing.assert_array_equal(hits, want_hits)
+    assert hits.sum() > 0  # the misplaced nodes do see through
+
+
+def test_index_buckets_hold_one_entry_per_node_sorted_by_travel():
+    points = np.array([[0.05, 0.05], [0.06, 0.04], [0.05, 0.05], [1.0, 1.0], [0.04, 0.06]])
+    node = np.array([0, 0, 1, 1, 2])
+    travel = np.array([0.0, 2.0, 7.5])
+    index = ReturnIndex.build(points, node, travel, cell=0.1)
+    counts = np.diff(index.start)
+    assert counts.sum() == 4 and sorted(counts[counts > 0].tolist()) == [1, 3]
+    busy = int(np.argmax(counts))
+    np.testing.assert_array_equal(index.travel[index.start[busy]:index.start[busy + 1]], [0.0, 2.0, 7.5])
+    with pytest.raises(ValueError, match="node order"):
+        ReturnIndex.build(points, node[::-1], travel)
+
+
+# ------------------------------------------------------------------------------- travel and odometry
+
+
+def test_travel_restarts_far_away_with_every_trajectory():
+    local = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [50, 50, 0], [50, 51, 0]], float)
+    np.testing.assert_allclose(node_travel(local, np.array([0, 0, 0, 1, 1]), gap=11.0), [0, 1, 2, 13, 14])
+
+
+def test_odometry_disagreement_is_zero_for_the_odometry_itself_across_the_yaw_wrap():
+    t = np.linspace(0, 20, 201)
+    # A circle of radius 2 m driven at 0.5 m/s: the yaw crosses +-pi on the way.
+    yaw = transform.wrap_angle(0.25 * t + 2.5)
+    odo = np.column_stack([t, 2 * np.sin(0.25 * t), -2 * np.cos(0.25 * t), yaw])
+    poses = transform.compose(np.array([3.0, -1.0, 0.7]), odo[::4, 1:])  # another frame, same motion
+    travel, shift, turn = odometry_disagreement(t[::4], poses, odo)
+    assert len(travel) > 10 and np.all(travel >= 1.0)
+    assert shift.max() < 1e-9 and turn.max() < 1e-9
