@@ -1,6 +1,7 @@
 """`carto map` as a library call: open, build, write every output. The CLI only parses arguments."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -78,7 +79,9 @@ def run_map(
     recordings = [Path(recording_path).name]
     with opened(recording_path, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic,
                 imu_topic=imu_topic) as source:
-        configured = configure(options, source.recording, source.selection)
+        # --no-odometry: the survey must not count on odometry local SLAM will not get.
+        surveyed = source.selection if use_odometry else dataclasses.replace(source.selection, odometry=None)
+        configured = configure(options, source.recording, surveyed)
         if on_configured is not None:
             on_configured(configured)
         if load_state is not None:
