@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from carto_cli.core import transform
+from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.io.recording import Recording
 from carto_cli.io.topics import TopicSelection
@@ -149,7 +150,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
         elif isinstance(record, Odometry):
             odometry.append((record.time, record.x, record.y, record.yaw))
     if not scans:
-        raise ValueError(f"no scans on {selection.scan}")
+        raise CartoError(f"no scans on {selection.scan}", recording.path)
     times = np.array([s.time for s in scans])
     beams = int(np.median([s.num_beams for s in scans]))
     fov = float(np.median([float(np.ptp(s.angles)) if s.num_beams > 1 else 0.0 for s in scans]))

@@ -214,7 +214,7 @@ def _auto(recording: Recording) -> dict | None:
 
     try:
         regime = survey(recording, select_topics(recording))
-    except (CartoError, ValueError):
+    except CartoError:
         return None
     choice = choose(regime)
     return {"detected": regime.describe(), "regime": regime.to_dict(), "profile": choice.profile,

@@ -66,9 +66,9 @@ SLAM (1.4 %) jumps but its map is still usable, orebro sparse (3.0 %, worse than
 with no ray through a wall: no revisit to conflict with) must fail. loop_closures 50 / 85 %:
 good sparse maps reach 36 %, intel sparse 54.5 %, aces with odometry weights 1e5 (5.25 m) 90 %,
 fhw 100 %. (First set at 75 %; the auto bench run at 1a180e2 then gave orebro, 0.172 m against its
-odometry's 3.77 m, 77.8 % with confirmed closures on 1-3 m key scans: a usable map, so 85 %.) So every map worse than its odometry
-is failed, none under 0.1 m is, and of those in between intel sparse is suspect, the 0.123 m one ok,
-every one from 0.5 m up failed.
+odometry's 3.77 m, 77.8 % with confirmed closures on 1-3 m key scans: a usable map, so 85 %.)
+So every map worse than its odometry is failed, none under 0.1 m is, and of those in between
+intel sparse is suspect, the 0.123 m one ok, every one from 0.5 m up failed.
 
 Checked afterwards on runs not used for choosing (same script): intel sparse with 20-scan submaps
 (0.132 m) suspect (odometry 1.1 %), intel sparse without the online correlative matcher
