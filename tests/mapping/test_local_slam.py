@@ -208,3 +208,30 @@ def test_ccny_bag_maps_with_straight_thin_walls_and_the_check_rejects_a_smeared_
     # constant-velocity guess): it must fail there, or it would not be checking anything.
     smeared = wall_alignment(_ccny_map([]).image.probability)
     assert smeared["walls"] < 4 or smeared["on_wall"] < 0.5
+
+
+def test_motion_scaled_prior_sizes_window_and_prior_to_the_predicted_motion():
+    import math
+
+    from carto_cli.core.records import Odometry
+    from carto_cli.mapping.local_slam import LocalSlam
+
+    rt = "trajectory_builder_2d.real_time_correlative_scan_matcher."
+    options = load_options(None, [rt + "motion_scaled_prior=true"]).trajectory_builder_2d
+    c = options.real_time_correlative_scan_matcher
+    slam = LocalSlam(options)
+    fixed = slam._search_window(np.zeros(3))
+    assert fixed["angular_search_window"] == c.angular_search_window  # no odometry yet: Cartographer's window
+    slam.add_odometry(Odometry(0.0, 0.0, 0.0, 0.0))
+    slam._last_pose = np.zeros(3)
+    # A key scan 1 m on and 30 degrees round: GMapping's noise gives 0.1 m and 0.2 * 0.52 + 0.2 * 1 rad.
+    w = slam._search_window(np.array([1.0, 0.0, math.radians(30.0)]))
+    sigma_t, sigma_r = 0.1, 0.2 * math.radians(30.0) + 0.2
+    assert w["linear_search_window"] == pytest.approx(3 * sigma_t)
+    assert w["angular_search_window"] == pytest.approx(min(3 * sigma_r, c.max_angular_search_window))
+    assert w["translation_delta_cost_weight"] == pytest.approx(1 / (math.sqrt(2) * sigma_t))
+    assert w["rotation_delta_cost_weight"] == pytest.approx(1 / (math.sqrt(2) * sigma_r))
+    # Standing still: the floors, and never narrower than the configured window.
+    still = slam._search_window(np.zeros(3))
+    assert still["rotation_delta_cost_weight"] == pytest.approx(1 / (math.sqrt(2) * c.min_rotation_noise))
+    assert still["linear_search_window"] == c.linear_search_window
