@@ -169,14 +169,6 @@ def build(
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection)
     if judge:
         with slam.timer.stage("quality"):
-            result.quality = assess(result, _odometry_samples(slam.graph, trajectory_id))
+            result.quality = assess(result, slam.graph.odometry_samples(trajectory_id))
     return result
 
-
-def _odometry_samples(graph: PoseGraph, trajectory: int) -> np.ndarray | None:
-    """(n, 4) t, x, y, yaw of the odometry the graph was given for ``trajectory``; None without any."""
-    samples = graph.to_state().odometry_samples.get(trajectory)
-    if samples is None or len(samples[0]) < 2:
-        return None
-    times, poses = samples
-    return np.column_stack([times, poses])

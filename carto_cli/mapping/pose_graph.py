@@ -187,6 +187,13 @@ class PoseGraph:
         times.append((float(time),))
         poses.append(pose)
 
+    def odometry_samples(self, trajectory: int = 0) -> np.ndarray | None:
+        """(n, 4) t, x, y, yaw (unwrapped) of the odometry given for ``trajectory``; None with fewer than two."""
+        samples = self._odometry_samples.get(trajectory)
+        if samples is None or samples[0].n < 2:
+            return None
+        return np.column_stack([samples[0].array[:, 0], samples[1].array])
+
     def node_odometry(self) -> np.ndarray:
         """(N, 3) odometry at every node: the explicit pose if one was given, else odometry interpolated
         at the node's time (Cartographer's InterpolateOdometry), NaN outside the odometry's time range."""
@@ -270,8 +277,10 @@ class PoseGraph:
     # ------------------------------------------------------------------ loop closure
 
     def _confirming_neighbours(self, node: int, submap: int) -> list[int]:
-        """Up to CONFIRM_NEIGHBOURS nodes nearest to ``node`` along its trajectory, not in ``submap``."""
+        """Up to CONFIRM_NEIGHBOURS nodes nearest to ``node`` along its trajectory, not in ``submap`` and without
+        a closure to it already (a second search would only add the same constraint twice)."""
         members = set(self.submaps[submap].nodes)
+        members.update(entry[0] for entry in self._pending_closures.get(submap, ()))
         trajectory = self.node_trajectory[node]
         out = []
         for step in range(1, CONFIRM_MAX_NODES + 1):
@@ -308,9 +317,9 @@ class PoseGraph:
                 if not entry[2]:
                     self._insert_loop_closure(entry[0], lc.submap, entry[1])
                     entry[2] = True
+                    self.unconfirmed_loop_closures -= 1
         pending.append([lc.node, lc.relative_pose, bool(agreeing)])
-        self.unconfirmed_loop_closures = sum(not e[2] for entries in self._pending_closures.values()
-                                             for e in entries)
+        self.unconfirmed_loop_closures += 0 if agreeing else 1
 
     def _closures_agree(self, m: int, rel_m: np.ndarray, n: int, rel_n: np.ndarray) -> bool:
         if m == n or self.node_trajectory[m] != self.node_trajectory[n] or abs(m - n) > CONFIRM_MAX_NODES:

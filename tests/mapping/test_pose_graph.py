@@ -52,6 +52,16 @@ def test_odometry_is_interpolated_at_node_times_including_samples_after_the_node
     np.testing.assert_allclose(g.node_odometry()[2], [2.5, 0.0, math.radians(10)], atol=1e-12)
 
 
+def test_odometry_samples_are_returned_as_given_with_yaw_unwrapped():
+    g = _graph()
+    assert g.odometry_samples() is None
+    g.add_odometry(0.0, (0.0, 0.0, math.radians(170)))
+    g.add_odometry(1.0, (1.0, 0.5, math.radians(-170)))
+    np.testing.assert_allclose(g.odometry_samples(), [[0.0, 0.0, 0.0, math.radians(170)],
+                                                      [1.0, 1.0, 0.5, math.radians(190)]], atol=1e-12)
+    assert g.odometry_samples(trajectory=1) is None
+
+
 def test_odometry_interpolation_unwraps_yaw_across_pi():
     g = _graph()
     sm = _FakeSubmap(0)
