@@ -20,9 +20,11 @@ where there is ground truth, the odometry's own relation error on the same
 relations, wall time split into local SLAM / constraint search / optimization
 from the StageTimer, scans/s, loop closures and the share of them that agree
 with the reference, peak memory. What exactly is computed is written into the
-generated document (``METHOD`` below).
+generated document (``METHOD`` below). ``--algorithm gmapping`` maps every case with the
+particle filter instead (``carto_cli.gmapping``); the document then says so in its header and
+adds the filter's own figures (particles, resamplings, processed scans, time, memory).
 
-    bench/run [--cases intel,aces,dense,...] [--quick] [--set k=v ...] [--profile NAME]
+    bench/run [--cases intel,aces,dense,...] [--quick] [--set k=v ...] [--profile NAME] [--algorithm NAME]
 
 A case that fails (an exception, a crash, the per-case timeout) shows as
 "failed: <reason>" and the others go on. Raw results (one JSON per case, the
@@ -317,6 +319,7 @@ JIT_STAGE, SCAN_STAGE, GLOBAL_STAGE = "jit warm-up", "scan", "global"
 CONSTRAINT_STAGE, OPTIMIZATION_STAGE = "loop closure", "optimization"
 LOCAL_DETAIL = ("preprocess", "extrapolate", "match", "motion filter", "insert")
 CONSTRAINT_DETAIL = ("candidate selection", "precomputation", "branch and bound", "refinement")
+GMAPPING_DETAIL = ("motion model", "scan matching", "weighting", "resampling", "map update")  # under "scan"
 
 
 def split_wall_time(snap) -> dict:
@@ -369,8 +372,23 @@ def stage_detail(snap) -> dict:
     return out
 
 
-def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str], outdir: Path) -> dict:
-    """Build the map of one case and measure it. Runs in the case's own process."""
+def gmapping_detail(snap) -> dict:
+    """Seconds in the particle filter's stages (children of ``scan``), for ``--algorithm gmapping``."""
+    out = dict.fromkeys(GMAPPING_DETAIL, 0.0)
+
+    def visit(node, parent: str):
+        if parent == SCAN_STAGE and node.name in GMAPPING_DETAIL:
+            out[node.name] += node.total_ns / 1e9
+        for c in node.children:
+            visit(c, node.path)
+
+    visit(snap.root, "")
+    return out
+
+
+def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str], outdir: Path,
+             algorithm: str = "cartographer") -> dict:
+    """Build the map of one case with ``algorithm`` and measure it. Runs in the case's own process."""
     t_import = time.perf_counter()
     import numpy as np
 
@@ -406,7 +424,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     with recording as rec:
         selection = select_topics(rec)
         t_survey = time.perf_counter()
-        configured = configure(spec, rec, selection)
+        configured = configure(spec, rec, selection, algorithm)
         options = configured.options
         info["survey_s"] = time.perf_counter() - t_survey
         if configured.auto is not None:
@@ -415,7 +433,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
         total = next((t.count for t in rec.topics() if t.name == selection.scan), None)
         timer = StageTimer()
         result = build(rec, options, selection=selection, timer=timer, on_scan=_progress(case, total),
-                       max_scans=max_scans)
+                       max_scans=max_scans, algorithm=algorithm)
         timer.stop()
         t_eval = time.perf_counter()
         odometry = None
@@ -429,6 +447,8 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     wall = snap.wall_ns / 1e9
     stages = split_wall_time(snap)
     detail = stage_detail(snap)
+    if algorithm == "gmapping":
+        info["gmapping_detail"] = gmapping_detail(snap)
 
     # ---- accuracy
     traj = Trajectory.from_poses(result.times, result.poses)
@@ -481,6 +501,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     return {
         "status": "ok",
         "case": asdict(case),
+        "algorithm": algorithm,
         "quick": quick,
         "max_scans": max_scans,
         "selection": {"scan": selection.scan, "odometry": selection.odometry, "imu": selection.imu},
@@ -505,12 +526,14 @@ def worker_main(args) -> int:
     case = cases[args.worker]
     out = Path(args.out)
     try:
-        res = run_case(case, args.quick, profile_for(case, args.profile), args.set or [], out.parent)
+        res = run_case(case, args.quick, profile_for(case, args.profile), args.set or [], out.parent,
+                       algorithm=args.algorithm)
         code = 0
     except BaseException as e:  # report every failure, KeyboardInterrupt included
         traceback.print_exc()
         msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        res = {"status": "failed", "case": asdict(case), "error": f"{type(e).__name__}: {msg}"[:300]}
+        res = {"status": "failed", "case": asdict(case), "algorithm": args.algorithm,
+               "error": f"{type(e).__name__}: {msg}"[:300]}
         code = 1
     tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps(res, indent=1, default=_json_default))
@@ -569,7 +592,7 @@ def run_in_subprocess(case: Case, args, results: Path) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", case.name, "--out", str(out)]
     if args.quick:
         cmd.append("--quick")
-    cmd += ["--profile", profile_for(case, args.profile) or "default"]
+    cmd += ["--profile", profile_for(case, args.profile) or "default", "--algorithm", args.algorithm]
     for s in args.set or []:
         cmd += ["--set", s]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -633,7 +656,7 @@ def run_in_subprocess(case: Case, args, results: Path) -> dict:
         else:
             last = next((l for l in reversed(tail) if l.strip()), "")
             reason = f"exit status {proc.returncode}" + (f": {last[:200]}" if last else "")
-        res = {"status": "failed", "case": asdict(case), "error": reason}
+        res = {"status": "failed", "case": asdict(case), "algorithm": args.algorithm, "error": reason}
     res["process_wall_s"] = wall
     res["peak_rss_mb"] = usage.ru_maxrss / 1024.0
     res["returncode"] = proc.returncode
@@ -908,6 +931,43 @@ def performance_table(results: list[dict]) -> str:
     return _table(header, rows)
 
 
+GMAPPING_METHOD = """\
+* **GMapping** (`--algorithm gmapping`, `carto_cli/gmapping/`): every case mapped by the Rao-Blackwellized
+  particle filter with the `gmapping.*` options instead of Cartographer; the trajectory is the best particle's
+  (a pose for every scan, the scans between processed ones placed by odometry), so the relation error, ATE and
+  verdict above are computed as for Cartographer. It has no loop closures and no optimization: *local SLAM*
+  in the time table is the whole filter. In the table below *processed* counts the scans the filter
+  processed (odometry moved `linearUpdate` or turned `angularUpdate` since the last one; every scan without
+  odometry), *resamplings* how often the effective sample size fell below the threshold, *mean Neff* its
+  mean over processed scans, *motion model* … *map update* the seconds in each of the filter's stages,
+  *map peak* the most memory all particles' copy-on-write map tiles held at once
+  (`map_memory_peak_bytes`), *peak RSS* the case process's as above.
+"""
+
+
+def gmapping_table(results: list[dict]) -> str:
+    """The particle filter's own figures per case (``--algorithm gmapping``)."""
+    header = ["case", "scans", "processed", "particles", "resamplings", "mean Neff", "build wall s", "scans/s"]
+    header += [f"{n} s" for n in GMAPPING_DETAIL] + ["process wall s", "peak RSS MB", "map peak MB"]
+    rows = []
+    for res in results:
+        name = res["case"]["name"]
+        rss = _f(res.get("peak_rss_mb"), ".0f")
+        pw = _f(res.get("process_wall_s"), ".1f")
+        if res.get("status") != "ok":
+            rows.append([name, "—", _failed(res)] + ["—"] * (len(header) - 6) + [pw, rss, "—"])
+            continue
+        st = res["stats"]
+        d = res.get("gmapping_detail") or {}
+        mem = st.get("map_memory_peak_bytes")
+        rows.append([name, str(st["scans"]), str(st.get("processed_scans", "—")), str(st.get("particles", "—")),
+                     str(st.get("resamplings", "—")), _f(st.get("mean_neff"), ".1f"), _f(res["build_wall_s"], ".1f"),
+                     _f(res["scans_per_s"], ".0f")]
+                    + [_f(d.get(n), ".1f") for n in GMAPPING_DETAIL]
+                    + [pw, rss, _f(None if mem is None else mem / 2**20, ".0f")])
+    return _table(header, rows)
+
+
 def loop_closure_table(results: list[dict]) -> str:
     header = ["case", "loop closures", "B&B searches", "correct vs anchor", "correct vs nearest node",
               "median error vs anchor", "median error vs nearest", "off by > 1 m (nearest)",
@@ -978,10 +1038,16 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
         dirty = f" + uncommitted changes ({len(env['modified'])} modified, {len(env['untracked'])} untracked files)"
     mode = f"quick (`--quick`: every case cut to its first {QUICK_SCANS} scans; sparse intel and aces and " \
            "the CCNY bag are shorter and run in full)" if args.quick else "every scan of every case run"
+    algorithm = getattr(args, "algorithm", "cartographer")
     out = [
         "# Benchmarks\n",
         "Generated by `bench/run` (bench/harness.py); do not edit by hand — rerun it.\n",
         f"* command: `{argv_line}` (from the repository root)",
+    ]
+    if algorithm != "cartographer":
+        out.append(f"* algorithm: {algorithm} (every case mapped by `--algorithm {algorithm}` with the "
+                   f"`{algorithm}.*` options)")
+    out += [
         f"* mode: {mode}",
         f"* date: {started} → {finished}",
         f"* commit: `{env['commit']}`{dirty}",
@@ -1027,13 +1093,18 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
     if vt:
         out.append("\n## Verdicts: does carto know when its map failed?\n")
         out.append(vt)
-    lct = loop_closure_table(results)
+    gmapping = algorithm == "gmapping"
+    # Loop closures and the constraint search's sub-stages are Cartographer's machinery: all zero for gmapping.
+    lct = "" if gmapping else loop_closure_table(results)
     if lct:
         out.append("\n## Loop closures\n")
         out.append(lct)
     out.append("\n## Time and memory\n")
     out.append(performance_table(results))
-    det = detail_table(results)
+    if gmapping:
+        out.append("\nThe particle filter (particles, resamplings, processed scans, its stages in s, memory):\n")
+        out.append(gmapping_table(results))
+    det = "" if gmapping else detail_table(results)
     if det:
         out.append("\nWhere the time goes (s; the sub-stages of local SLAM and of the constraint search):\n")
         out.append(det)
@@ -1043,6 +1114,8 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
                       "relation error, then rotational and the peer's whole-process wall time where given).\n")
     out.append(peers_note)
     out.append("\n" + METHOD)
+    if gmapping:
+        out.append(GMAPPING_METHOD)
     out.append(f"\nRaw results (per-case JSON, stage trees, maps, trajectories, logs) were written to "
                f"`{args.results}`.\n")
     return "\n".join(out)
@@ -1077,6 +1150,8 @@ def _changed_options(profile, overrides):
 
 
 def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
+    from carto_cli.gmapping import ALGORITHMS
+
     p = argparse.ArgumentParser(
         prog=prog, description="Run the SLAM benchmark cases, one fresh process each, and write docs/benchmarks.md.",
         epilog="The document goes to docs/benchmarks.md only for a full run of every case; a --quick or "
@@ -1089,6 +1164,9 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
     p.add_argument("--profile", "-p", default="auto",
                    help="options profile (name or .yaml path); 'auto' (default): sparse for bench/, wheeled for "
                         "bench-dense/ and the simulation, office for the CCNY bag; 'default': Cartographer's stock")
+    p.add_argument("--algorithm", default="cartographer", choices=ALGORITHMS,
+                   help="mapping system for every case: cartographer (default) or gmapping (options gmapping.*, "
+                        "e.g. --set gmapping.particles=30)")
     p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, help="seconds per case (0: none)")
     p.add_argument("--results", help="directory for raw results (default: a new one under $TMPDIR/carto-bench)")
     p.add_argument("--doc", help="where to write the Markdown report")
@@ -1151,9 +1229,12 @@ def main(argv: list[str] | None = None, prog: str = "bench/run") -> int:
         if res.get("status") == "ok":
             acc = (res.get("accuracy") or {}).get("relations")
             err = f", relation error {_rel_cell(acc)}" if acc else ""
-            print(f"== {case.name}: {res['stats']['scans']} scans in {res['build_wall_s']:.1f} s "
-                  f"(process {res['process_wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MB){err}, "
-                  f"loop closures {_lc_cell(res)}", file=sys.stderr, flush=True)
+            st = res["stats"]
+            what = (f"{st['particles']} particles, {st['resamplings']} resamplings, {st['processed_scans']} scans "
+                    "processed" if st.get("algorithm") == "gmapping" else f"loop closures {_lc_cell(res)}")
+            print(f"== {case.name}: {st['scans']} scans in {res['build_wall_s']:.1f} s "
+                  f"(process {res['process_wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MB){err}, {what}",
+                  file=sys.stderr, flush=True)
         else:
             print(f"== {case.name}: {_failed(res)}", file=sys.stderr, flush=True)
 

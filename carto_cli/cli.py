@@ -140,6 +140,12 @@ MAP_PROFILE = typer.Option(
          "(Cartographer's stock values), a profile name (profiles/NAME.yaml) or a path.")
 SET = typer.Option(None, "--set", "-s",
                    help="Override an option: dotted.key=value (repeatable; angles in radians, or '20deg').")
+# The names are carto_cli.gmapping.ALGORITHMS, checked by the command (importing it here would load numba
+# for `carto --help`).
+ALGORITHM = typer.Option(
+    "cartographer", "--algorithm",
+    help="Mapping system: cartographer (the default) or gmapping (a Rao-Blackwellized particle filter). "
+         "GMapping's options are the gmapping.* keys (`carto options gmapping`), e.g. --set gmapping.particles=30.")
 
 
 def _options(profile: str | None, overrides: list[str] | None):
@@ -159,9 +165,11 @@ def _map_options(profile: str | None, overrides: list[str] | None):
     return _options(profile, overrides)
 
 
-def _say_configured(configured) -> None:
+def _say_configured(configured, algorithm: str = "cartographer") -> None:
     if configured.auto is not None and not state.quiet:
-        typer.echo(f"auto: {configured.regime.describe()} -> {configured.auto.describe()}", err=True)
+        # The profile auto names is Cartographer's: say when another system does the mapping.
+        runs = "" if algorithm == "cartographer" else f"; algorithm: {algorithm}"
+        typer.echo(f"auto: {configured.regime.describe()} -> {configured.auto.describe()}{runs}", err=True)
 
 
 @app.command("map")
@@ -189,6 +197,7 @@ def map_(
         None, "--load-state", help="Continue mapping into this map.carto: the recording becomes a new trajectory."
     ),
     strict: bool = typer.Option(False, "--strict", help="Exit 3 on a 'suspect' map too (for CI), not only 'failed'."),
+    algorithm: str = ALGORITHM,
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
 
@@ -208,7 +217,8 @@ def map_(
             recording, outdir, options, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
             laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
             on_total=bar.set_total, loop_closure=not no_loop_closure, state=not no_state,
-            load_state=load_state, on_configured=_say_configured,
+            load_state=load_state, on_configured=functools.partial(_say_configured, algorithm=algorithm),
+            algorithm=algorithm,
         )
     if timings:
         typer.echo(report_tree_text(timer))
@@ -279,6 +289,7 @@ def profile_(
     max_scans: int | None = typer.Option(None, "--max-scans", help="Profile only the first N scans."),
     relocalize_map: Path | None = typer.Option(
         None, "--relocalize", help="Also profile relocalizing every 10th scan of RECORDING in this map.carto."),
+    algorithm: str = ALGORITHM,
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates."""
     from carto_cli.commands.profile import run_profile
@@ -289,7 +300,8 @@ def profile_(
     with progress(f"profiling {recording.name}", None, state.quiet) as bar:
         run = run_profile(recording, options, scan_topic=scan_topic, odom_topic=odom_topic, output=output,
                           baseline=baseline, calibrate_first=calibrate, max_scans=max_scans,
-                          relocalize_map=relocalize_map, on_total=bar.set_total, on_scan=bar.advance)
+                          relocalize_map=relocalize_map, on_total=bar.set_total, on_scan=bar.advance,
+                          algorithm=algorithm)
     report = run.report
     typer.echo(json.dumps(report, indent=2) if as_json else format_report(report))
     if not as_json and "relocalization" in report:
@@ -400,6 +412,10 @@ def tune_(
     seed: int | None = typer.Option(None, "--seed", help="Seed of the TPE sampler."),
     max_scans: int | None = typer.Option(None, "--max-scans", help="Map only the first N scans of each recording."),
     out: Path = typer.Option(..., "--output", "-o", help="The tuned profile (YAML over the base profile)."),
+    algorithm: str = typer.Option(
+        "cartographer", "--algorithm",
+        help="Mapping system each trial maps with: cartographer (the default) or gmapping; with gmapping the "
+             "default --space is the gmapping.* space (spaces/gmapping.yaml)."),
 ):
     """Search options against a measured objective (Optuna TPE) and write the best as a profile."""
     from carto_cli.commands.tune import run_tune, summary_line
@@ -414,7 +430,7 @@ def tune_(
         result = run_tune(recordings, out, space=space, trials=trials, objective=objective, relations=relations,
                           ground_truth=ground_truth, profile=profile, overrides=overrides or [],
                           time_weight=time_weight, storage=storage, study=study, n_jobs=n_jobs, seed=seed,
-                          max_scans=max_scans, on_trial=on_trial)
+                          max_scans=max_scans, on_trial=on_trial, algorithm=algorithm)
     typer.echo(summary_line(result))
 
 

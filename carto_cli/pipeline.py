@@ -13,6 +13,7 @@ import numpy as np
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan
+from carto_cli.gmapping import ALGORITHMS, GMappingSlam
 from carto_cli.io.recording import ReadOptions, Recording
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
@@ -33,9 +34,11 @@ class MapResult(SlamResult):
     quality: MapQuality | None = None  # carto's own verdict on the map (mapping.quality)
 
     def summary(self) -> dict:
-        """What summary.json holds: the verdict, the statistics, and what auto detected and chose."""
+        """What summary.json holds: the mapping system, the verdict, the statistics, and what auto detected and
+        chose."""
         return {
             "schema": "carto.map-summary v1",
+            "algorithm": self.stats.get("algorithm", "cartographer"),  # Slam's stats do not name it
             "quality": self.quality.to_dict() if self.quality is not None else None,
             "stats": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in self.stats.items()},
             "auto": None if self.auto is None or self.regime is None else {
@@ -60,13 +63,15 @@ class Configured:
     auto: AutoChoice | None = None
 
 
-def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection) -> Configured:
+def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection,
+              algorithm: str = "cartographer") -> Configured:
     """The options to map ``recording`` with: ``spec`` itself, or for :class:`Auto` the survey's choice."""
     if isinstance(spec, Options):
         return Configured(spec)
     regime = survey(recording, selection)
     base = load_options(None, list(spec.overrides))
-    choice = choose(regime, base_max_range=base.trajectory_builder_2d.max_range)
+    choice = choose(regime, base_max_range=base.trajectory_builder_2d.max_range, algorithm=algorithm,
+                    gmapping_max_range=base.gmapping.maxRange)
     return Configured(load_options(choice.profile, choice.settings + list(spec.overrides)), regime, choice)
 
 
@@ -131,24 +136,34 @@ def build(
     graph: PoseGraph | None = None,
     trajectory_id: int = 0,
     judge: bool = True,
+    algorithm: str = "cartographer",
 ) -> MapResult:
     """Map one recording. With ``graph`` (e.g. from a loaded map.carto) the recording becomes trajectory
     ``trajectory_id`` of that graph, linked to the earlier ones by loop closures, as Cartographer's
-    offline node does with --load_state_filename."""
+    offline node does with --load_state_filename. ``algorithm`` "gmapping" maps with the particle filter
+    (``options.gmapping``) instead of Cartographer."""
     wall0 = _time.perf_counter()
+    if algorithm not in ALGORITHMS:
+        raise CartoError(f"unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
+    if algorithm == "gmapping" and graph is not None:
+        raise CartoError("gmapping cannot continue a saved map (--load-state is for cartographer)", recording.path)
     selection = selection or select_topics(recording)
     scan_frame = _first_scan_frame(recording, selection.scan)
     if scan_frame is None:
         raise CartoError(f"no scans on {selection.scan}", recording.path)
     mount, mount_source = resolve_laser_pose(recording, scan_frame, laser_pose)
     tb = options.trajectory_builder_2d
-    slam = Slam(options, laser_pose=mount, timer=timer, loop_closure=loop_closure, graph=graph,
-                trajectory_id=trajectory_id, started=wall0)
+    slam: Slam | GMappingSlam
+    if algorithm == "gmapping":
+        slam = GMappingSlam(options, laser_pose=mount, timer=timer, started=wall0)
+    else:
+        slam = Slam(options, laser_pose=mount, timer=timer, loop_closure=loop_closure, graph=graph,
+                    trajectory_id=trajectory_id, started=wall0)
 
     topics = [selection.scan]
     if use_odometry and selection.odometry:
         topics.append(selection.odometry)
-    if use_imu and selection.imu and tb.use_imu_data:
+    if use_imu and selection.imu and tb.use_imu_data and algorithm != "gmapping":
         topics.append(selection.imu)
 
     for record in recording.records(topics):
@@ -167,8 +182,8 @@ def build(
         raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
     core = slam.finish()
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection)
-    if judge:
+    if judge and result.graph is not None:
         with slam.timer.stage("quality"):
-            result.quality = assess(result, slam.graph.odometry_samples(trajectory_id))
+            result.quality = assess(result, result.graph.odometry_samples(trajectory_id))
     return result
 

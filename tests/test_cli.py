@@ -2,6 +2,7 @@ import json
 import subprocess
 import sys
 
+import pytest
 from support import SAMPLE_BAG, shared_path
 from typer.testing import CliRunner
 
@@ -145,3 +146,28 @@ def test_strict_turns_a_suspect_map_into_a_failure(tmp_path, monkeypatch):
     _judged(monkeypatch, "suspect")
     assert run("map", SAMPLE_BAG, "-o", tmp_path / "a", "--profile", "office").exit_code == 0
     assert run("map", SAMPLE_BAG, "-o", tmp_path / "b", "--profile", "office", "--strict").exit_code == 3
+
+
+def test_profile_with_gmapping_prints_the_filter_stages():
+    result = run("profile", SAMPLE_BAG, "--algorithm", "gmapping", "--profile", "default", "--max-scans", 15,
+                 "--set", "gmapping.particles=5")
+    assert result.exit_code == 0, result.output
+    assert "algorithm   gmapping: 15 of 15 scans processed, 5 particles" in result.stdout
+    for stage in ("motion model", "scan matching", "weighting", "resampling", "map update"):
+        assert stage in result.stdout, stage
+
+
+@pytest.mark.parametrize("command", ["map", "profile", "tune"])
+def test_unknown_algorithm_is_a_one_line_error(tmp_path, command):
+    extra = ["-o", tmp_path / "out.yaml"] if command == "tune" else []
+    result = run(command, SAMPLE_BAG, "--algorithm", "bogus", *extra)
+    assert result.exit_code == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert line == "carto: error: --algorithm: unknown algorithm 'bogus' (choose from cartographer, gmapping)"
+    assert "Traceback" not in result.output and list(tmp_path.iterdir()) == []
+
+
+def test_algorithm_help_names_the_gmapping_options():
+    result = run("map", "--help")
+    assert result.exit_code == 0
+    assert "--algorithm" in result.stdout and "gmapping.particles=30" in result.stdout

@@ -7,7 +7,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from carto_cli.commands.common import check_algorithm
 from carto_cli.core import kernels
+from carto_cli.core.errors import CartoError
 from carto_cli.io.atomic import write_text_atomic
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.trajectory import Trajectory, write_trajectory
@@ -68,10 +70,17 @@ def run_map(
     state: bool = True,
     load_state: Path | None = None,
     on_configured: Callable[[Configured], None] | None = None,
+    algorithm: str = "cartographer",
 ) -> tuple[MapResult, MapOutputs]:
     """Map a recording and write every output (to ``default_outdir`` when ``outdir`` is None); with
     ``load_state`` continue an existing map.carto; with :class:`~carto_cli.pipeline.Auto` options chosen
-    from the recording. ``timer`` is stopped once the outputs are written."""
+    from the recording; ``algorithm`` "gmapping" maps with the particle filter (``options.gmapping``).
+    ``timer`` is stopped once the outputs are written."""
+    check_algorithm(algorithm)
+    if load_state is not None and algorithm == "gmapping":
+        # Before the recording is surveyed and the state loaded: build would refuse only after both.
+        raise CartoError("--load-state continues a Cartographer pose graph; gmapping starts every map afresh "
+                         "(drop --load-state or use --algorithm cartographer)", load_state)
     if outdir is None:
         outdir = default_outdir(recording_path)
     graph = None
@@ -81,7 +90,7 @@ def run_map(
                 imu_topic=imu_topic) as source:
         # --no-odometry: the survey must not count on odometry local SLAM will not get.
         surveyed = source.selection if use_odometry else dataclasses.replace(source.selection, odometry=None)
-        configured = configure(options, source.recording, surveyed)
+        configured = configure(options, source.recording, surveyed, algorithm)
         if on_configured is not None:
             on_configured(configured)
         if load_state is not None:
@@ -95,7 +104,7 @@ def run_map(
             on_total(source.scan_count)
         result = build(source.recording, configured.options, selection=source.selection, laser_pose=laser_pose,
                        timer=timer, on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure,
-                       graph=graph, trajectory_id=trajectory_id)
+                       graph=graph, trajectory_id=trajectory_id, algorithm=algorithm)
         result.regime, result.auto = configured.regime, configured.auto
     outputs = write_outputs(result, outdir, configured.options, state=state, recordings=recordings)
     if timer is not None:
@@ -105,6 +114,10 @@ def run_map(
 
 def summary_line(result: MapResult) -> str:
     s = result.stats
+    if s.get("algorithm") == "gmapping":
+        return (f"gmapping: {s['scans']} scans ({s['processed_scans']} processed), {s['particles']} particles, "
+                f"{s['resamplings']} resamplings, {s['map_memory_peak_bytes'] / 2**20:.0f} MB peak map, "
+                f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s")
     return (f"{s['scans']} scans, {s['nodes']} nodes, {s['submaps']} submaps, "
             f"{s.get('loop_closures', 0)} loop closures, "
             f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s")

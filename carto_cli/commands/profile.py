@@ -6,6 +6,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from carto_cli.commands.common import check_algorithm
 from carto_cli.core.errors import CartoError
 from carto_cli.core.timing import StageTimer
 from carto_cli.evaluation.gates import GateResult, compare_profiles
@@ -50,20 +51,26 @@ def run_profile(
     relocalize_map: Path | None = None,
     on_total: Callable[[int], None] | None = None,
     on_scan: Callable[[int], None] | None = None,
+    algorithm: str = "cartographer",
 ) -> ProfileRun:
-    """Map ``recording`` (its first ``max_scans`` scans) under a StageTimer and build the report; with
-    ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with ``output``
-    write the report there. ``on_total`` hears how many scans will be mapped."""
+    """Map ``recording`` (its first ``max_scans`` scans) with ``algorithm`` under a StageTimer and build the
+    report; with ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with
+    ``output`` write the report there. ``on_total`` hears how many scans will be mapped."""
+    check_algorithm(algorithm)
     base = read_baseline(baseline) if baseline is not None else None
+    if base is not None and base.get("algorithm", "cartographer") != algorithm:
+        # The two systems share no stage below 'scan': the gates would compare unrelated work.
+        raise CartoError(f"the baseline was profiled with {base.get('algorithm', 'cartographer')}, this run maps "
+                         f"with {algorithm}: compare a run with a baseline of the same algorithm", baseline)
     calibration = calibrate() if calibrate_first else None
     timer = StageTimer()
     with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic) as source:
-        configured = configure(options, source.recording, source.selection)
+        configured = configure(options, source.recording, source.selection, algorithm)
         total = source.scan_count
         if on_total is not None:
             on_total(min(total, max_scans or total))
         result = build(source.recording, configured.options, selection=source.selection, timer=timer,
-                       on_scan=on_scan, max_scans=max_scans)
+                       on_scan=on_scan, max_scans=max_scans, algorithm=algorithm)
     timer.stop()
     report = build_report(result, timer, configured.options, recording, calibration)
     if configured.auto is not None and configured.regime is not None:

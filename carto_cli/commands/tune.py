@@ -1,10 +1,11 @@
-"""`carto tune` as a library call: the base profile's search space unless one is given, then ``tuning.tune``."""
+"""`carto tune` as a library call: the base profile's search space unless one is given (gmapping's with
+``--algorithm gmapping``), then ``tuning.tune``."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from carto_cli.tuning.space import default_space_path
+from carto_cli.tuning.space import default_space_path, spaces_dir
 from carto_cli.tuning.study import TuneResult, tune
 
 __all__ = ["run_tune", "summary_line"]
@@ -28,13 +29,21 @@ def run_tune(
     seed: int | None = None,
     max_scans: int | None = None,
     on_trial: Callable[[int, float | None, float | None], None] | None = None,
+    algorithm: str = "cartographer",
 ) -> TuneResult:
-    """Run (or resume) the study and write the tuned profile ``out`` with its CSV and report PNG."""
-    space_path = space if space is not None else default_space_path(profile)
+    """Run (or resume) the study and write the tuned profile ``out`` with its CSV and report PNG; every trial
+    maps with ``algorithm``."""
+    if space is not None:
+        space_path = space
+    elif algorithm == "gmapping":
+        # A profile's space varies Cartographer's options, which a gmapping trial would not use.
+        space_path = spaces_dir() / "gmapping.yaml"
+    else:
+        space_path = default_space_path(profile)
     return tune(recordings, space_path, trials=trials, out=out, objective=objective, relations=relations,
                 ground_truth=ground_truth, base_profile=profile, overrides=list(overrides),
                 time_weight=time_weight, storage=storage, study_name=study, n_jobs=n_jobs, seed=seed,
-                max_scans=max_scans, on_trial=on_trial)
+                max_scans=max_scans, on_trial=on_trial, algorithm=algorithm)
 
 
 def summary_line(result: TuneResult) -> str:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 IDENTITY = np.zeros(3)
 
@@ -31,6 +32,12 @@ def wrap_angle(theta):
 
 def wrap_angle_scalar(theta: float) -> float:
     """:func:`wrap_angle` for one plain float."""
+    return (theta + math.pi) % _TWO_PI - math.pi
+
+
+@njit(cache=True)
+def wrap_angle_kernel(theta: float) -> float:
+    """:func:`wrap_angle_scalar` callable from numba kernels."""
     return (theta + math.pi) % _TWO_PI - math.pi
 
 

@@ -5,9 +5,11 @@ Schema (``schema_version`` 1, see ``carto_cli/schemas/profile.schema.json``)::
 
     {
       "schema": "carto.profile", "schema_version": 1, "carto_version": "...",
-      "recording": path, "created": ISO time, "machine": {...},
+      "recording": path, "algorithm": "cartographer" | "gmapping", "created": ISO time, "machine": {...},
       "options_changed": {dotted key: value},
       "counts": {"scans", "nodes", "submaps", "constraints", "loop_closures"},
+      "gmapping": {"processed_scans", "particles", "resamplings", "mean_neff", "map_memory_peak_bytes"},
+                                    # gmapping runs only
       "wall_s": float, "ms_per_scan": float, "scans_per_s": float,
       "compile_ms": float,          # numba compilation / cache loading, reported apart
       "peak_memory_mb": float,      # max RSS of this process
@@ -41,6 +43,8 @@ SCHEMA_PATH = Path(__file__).resolve().parents[1] / "schemas" / "profile.schema.
 
 # Stages whose share of a run is dominated by one-off work; not part of the steady state.
 COMPILE_STAGE = kernels.STAGE
+# What a gmapping run reports besides the counts: the filter's own size and behaviour.
+GMAPPING_STATS = ("processed_scans", "particles", "resamplings", "mean_neff", "map_memory_peak_bytes")
 
 
 def peak_memory_mb() -> float:
@@ -118,11 +122,13 @@ def build_report(result, timer: StageTimer, options: Options, recording: str | P
     scans = int(result.stats["scans"])
     scan_stage = timing["stages"].get("scan")
     ms_per_scan = scan_stage["ms_per_scan"] if scan_stage and scan_stage.get("ms_per_scan") is not None else None
-    return {
+    algorithm = result.stats.get("algorithm", "cartographer")
+    report = {
         "schema": SCHEMA,
         "schema_version": SCHEMA_VERSION,
         "carto_version": __version__,
         "recording": str(recording),
+        "algorithm": algorithm,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "machine": machine_info(),
         "options_changed": dict(changed_options(options)),
@@ -141,12 +147,26 @@ def build_report(result, timer: StageTimer, options: Options, recording: str | P
         "calibration": calibration,
         "timing": timing,
     }
+    if algorithm == "gmapping":
+        # mean_neff is NaN when only the first scan was processed: null keeps the report strict JSON.
+        report["gmapping"] = {k: _finite_or_none(result.stats[k]) for k in GMAPPING_STATS}
+    return report
+
+
+def _finite_or_none(value):
+    return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
 def format_report(report: dict) -> str:
     c = report["counts"]
-    lines = [
-        f"recording   {report['recording']}",
+    lines = [f"recording   {report['recording']}"]
+    g = report.get("gmapping")
+    if g is not None:
+        lines.append(f"algorithm   gmapping: {g['processed_scans']} of {c['scans']} scans processed, "
+                     f"{g['particles']} particles, {g['resamplings']} resamplings, "
+                     f"mean Neff {'-' if g['mean_neff'] is None else format(g['mean_neff'], '.1f')}, "
+                     f"map peak {g['map_memory_peak_bytes'] / 2**20:.0f} MB")
+    lines += [
         f"scans {c['scans']}, nodes {c['nodes']}, submaps {c['submaps']}, constraints {c['constraints']} "
         f"({c['loop_closures']} loop closures)",
         f"steady state {report['ms_per_scan']:.3f} ms/scan ({report['scans_per_s']:.0f} scans/s), "

@@ -17,6 +17,7 @@ from carto_cli.options.profiles import list_profiles, profiles_dir, resolve_prof
 from carto_cli.options.schema import (
     CeresSolverOptions,
     FastCorrelativeScanMatcher,
+    GMapping,
     OptionInfo,
     Options,
     PoseGraph,
@@ -31,7 +32,7 @@ from carto_cli.options.schema import (
 )
 
 __all__ = [
-    "CeresSolverOptions", "FastCorrelativeScanMatcher", "Layer", "OptionInfo", "Options", "PoseGraph",
+    "CeresSolverOptions", "FastCorrelativeScanMatcher", "GMapping", "Layer", "OptionInfo", "Options", "PoseGraph",
     "Relocalization", "TrajectoryBuilder2D", "apply_overrides", "apply_values", "changed_options",
     "dump_options_yaml", "get_option", "list_profiles", "load_options", "option_info", "option_names",
     "options_to_dict", "profiles_dir", "read_yaml", "resolve_profile", "suggestion", "validate_options",

@@ -29,6 +29,7 @@ from carto_cli.core.errors import CartoError
 
 __all__ = [
     "CeresSolverOptions",
+    "GMapping",
     "Leaf",
     "OptionInfo",
     "Options",
@@ -267,6 +268,56 @@ class PoseGraph:
                                                            "found for this long", unit="s", ge=0)
 
 
+# --------------------------------------------------------------------------- gmapping
+
+
+@dataclass(frozen=True)
+class GMapping:
+    """``carto map --algorithm gmapping``: the Rao-Blackwellized particle filter (carto_cli/gmapping).
+
+    Keys are GMapping's own parameter names (slam_gmapping's ROS parameters), so a launch file's
+    ``<param name="linearUpdate" value="0.1"/>`` is ``--set gmapping.linearUpdate=0.1``; defaults are the
+    seeds' template (50 particles, delta 0.03, ogain 3, resampleThreshold 0.5, linearUpdate 0.1,
+    angularUpdate 0.2) over GMapping's own defaults.
+    """
+
+    particles: int = _opt(50, "number of particles (each with its own map, shared copy-on-write)", ge=1)
+    delta: float = _opt(0.03, "map resolution", unit="m", gt=0)
+    maxRange: float = _opt(80.0, "beams longer than this are no return", unit="m", gt=0)
+    maxUrange: float = _opt(80.0, "usable range: longer beams clear free space up to it and are not matched",
+                            unit="m", gt=0)
+    sigma: float = _opt(0.05, "scan matcher: standard deviation of an endpoint's distance to the map's wall",
+                        unit="m", gt=0)
+    kernelSize: int = _opt(1, "scan matcher: cells searched around each endpoint for a wall", ge=0, le=4)
+    lstep: float = _opt(0.05, "scan matcher: initial translational step of the hill climbing", unit="m", gt=0)
+    astep: float = _opt(0.05, "scan matcher: initial rotational step of the hill climbing", unit="rad", gt=0)
+    iterations: int = _opt(5, "scan matcher: times the steps are halved before the climb stops", ge=0)
+    lsigma: float = _opt(0.075, "likelihood: squared endpoint distance is divided by this", unit="m^2", gt=0)
+    ogain: float = _opt(3.0, "weights are exp(log-likelihood / (ogain x particles)): smooths resampling", gt=0)
+    lskip: int = _opt(0, "likelihood: use every (lskip+1)-th beam", ge=0)
+    minimumScore: float = _opt(0.0, "a scan match scoring below this keeps the motion model's pose", ge=0)
+    unknownIsNoEvidence: bool = _opt(
+        True, "likelihood: an endpoint in never-observed space costs what a wall at the kernel's edge would, not "
+        "what an endpoint in free space does (GMapping's choice, false); a key scan seeing new space otherwise "
+        "favours rotations that lay its new endpoints on known walls")
+    srr: float = _opt(0.1, "odometry error in translation as a function of translation", ge=0)
+    srt: float = _opt(0.2, "odometry error in rotation as a function of translation", unit="rad/m", ge=0)
+    str: float = _opt(0.1, "odometry error in translation as a function of rotation", unit="m/rad", ge=0)
+    stt: float = _opt(0.2, "odometry error in rotation as a function of rotation", ge=0)
+    linearUpdate: float = _opt(0.1, "process a scan once the robot has travelled this far", unit="m", ge=0)
+    angularUpdate: float = _opt(0.2, "process a scan once the robot has turned this far", unit="rad", ge=0)
+    temporalUpdate: float = _opt(-1.0, "process a scan at least this often however little the robot moved "
+                                 "(negative: never for time alone)", unit="s")
+    resampleThreshold: float = _opt(0.5, "resample when Neff falls below this share of the particles", gt=0, le=1)
+    adaptiveResampling: bool = _opt(True, "the seed's threshold: resampleThreshold / (1 + 2 H), H the best "
+                                    "particle's map entropy (mean bits per known cell); uncertain maps resample less")
+    llsamplerange: float = _opt(0.01, "proposal: translational half-range sampled around the match", unit="m", ge=0)
+    llsamplestep: float = _opt(0.01, "proposal: translational step of those samples", unit="m", gt=0)
+    lasamplerange: float = _opt(0.005, "proposal: rotational half-range sampled around the match", unit="rad", ge=0)
+    lasamplestep: float = _opt(0.005, "proposal: rotational step of those samples", unit="rad", gt=0)
+    seed: int = _opt(0, "random seed: the same input and seed give byte-identical outputs", ge=0)
+
+
 # --------------------------------------------------------------------------- relocalization
 
 
@@ -337,6 +388,7 @@ class Options:
     trajectory_builder_2d: TrajectoryBuilder2D = _section(TrajectoryBuilder2D)
     pose_graph: PoseGraph = _section(PoseGraph)
     relocalization: Relocalization = _section(Relocalization)
+    gmapping: GMapping = _section(GMapping)
 
 
 # --------------------------------------------------------------------------- introspection

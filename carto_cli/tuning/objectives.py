@@ -3,8 +3,8 @@ resolution and scoring.
 
 One trial = one set of option values (the base profile, ``overrides`` and what the
 sampler drew from the search space), mapped on every recording through the same
-``pipeline.build`` every other command runs, scored by an objective, averaged over
-the recordings (lower is better):
+``pipeline.build`` every other command runs (by the study's algorithm, Cartographer or
+GMapping), scored by an objective, averaged over the recordings (lower is better):
 
 ``relations``
     mean translational relation error (m) + 1 m × mean rotational relation error (rad),
@@ -69,6 +69,8 @@ RELOC_PRIOR_NOISE = (0.3, math.radians(3.0))
 RELOC_SIGMAS = (0.5, math.radians(6.0))
 RELOC_TOLERANCE = (0.3, math.radians(3.0))
 RELOC_ALIGN_RADIUS = 4.0
+
+GMAPPING_PREFIX = "gmapping."  # the options only --algorithm gmapping reads
 
 # Options a map-quality score would reward for themselves rather than for a better map.
 GRID_OPTIONS = ("trajectory_builder_2d.submaps.grid_options_2d.resolution",
@@ -156,8 +158,20 @@ def resolve_objective(objective: str, cases: Sequence[Case]) -> str:
     return objective
 
 
-def check_space(objective: str, names: Sequence[str]) -> None:
-    """CartoError when the objective cannot judge some of the options a space varies."""
+def check_space(objective: str, names: Sequence[str], algorithm: str = "cartographer") -> None:
+    """CartoError when the objective cannot judge some of the options a space varies, or the algorithm
+    does not use them (a study over them would only measure noise)."""
+    if algorithm == "gmapping" and objective != "relocalization":
+        # Relocalization searches map.carto's submaps, built with Cartographer's submap and relocalization
+        # options; every other objective scores only the particle filter's trajectory and map.
+        unused = [name for name in names if not name.startswith(GMAPPING_PREFIX)]
+        if unused:
+            raise CartoError(f"gmapping does not use {', '.join(unused)}: vary gmapping.* options "
+                             "(e.g. the packaged spaces/gmapping.yaml, the default with --algorithm gmapping)")
+    elif algorithm != "gmapping":
+        unused = [name for name in names if name.startswith(GMAPPING_PREFIX)]
+        if unused:
+            raise CartoError(f"{algorithm} does not use {', '.join(unused)}: tune them with --algorithm gmapping")
     if objective == "map-quality":
         bad = [name for name in names if name.startswith(GRID_OPTIONS)]
         if bad:
@@ -180,8 +194,10 @@ def _scans(recording, limit: int | None = None):
             n += 1
 
 
-def prepare(cases: Sequence[Case], objective: str, base: Options, max_scans: int | None) -> None:
-    """What an objective computes once per recording, before any trial (relocalization reference)."""
+def prepare(cases: Sequence[Case], objective: str, base: Options, max_scans: int | None,
+            algorithm: str = "cartographer") -> None:
+    """What an objective computes once per recording, before any trial (relocalization reference, mapped
+    by ``algorithm`` like the trials)."""
     if objective != "relocalization":
         return
     from carto_cli.pipeline import build
@@ -193,7 +209,7 @@ def prepare(cases: Sequence[Case], objective: str, base: Options, max_scans: int
         if case.ground_truth is not None:
             case.reference = case.ground_truth
         else:
-            full = build(case.recording(), base, max_scans=max_scans)
+            full = build(case.recording(), base, max_scans=max_scans, algorithm=algorithm)
             case.reference = Trajectory.from_poses(full.times, full.poses)
 
 
@@ -262,8 +278,8 @@ def map_quality(result, recording=None, max_scans: int | None = None) -> dict[st
     return out
 
 
-def _relocalization_score(case: Case, options: Options, max_scans: int | None, time_weight: float
-                          ) -> tuple[float, dict]:
+def _relocalization_score(case: Case, options: Options, max_scans: int | None, time_weight: float,
+                          algorithm: str = "cartographer") -> tuple[float, dict]:
     from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, summarize_outcomes
     from carto_cli.io.map_file import load_map, save_map
     from carto_cli.pipeline import build
@@ -274,7 +290,7 @@ def _relocalization_score(case: Case, options: Options, max_scans: int | None, t
         raise CartoError("relocalization case not prepared (call tune.prepare first)")
     rec = case.recording()
     n_map = max(5, int(round(RELOC_MAP_FRACTION * n_scans)))
-    result = build(rec, options, max_scans=n_map)
+    result = build(rec, options, max_scans=n_map, algorithm=algorithm)
     with tempfile.TemporaryDirectory(prefix="carto-tune-") as tmp:
         loaded = load_map(save_map(Path(tmp) / "part.carto", result, options))
     reloc = Relocalizer(loaded, options)
@@ -325,16 +341,16 @@ def _with_time(value: float, metrics: dict, result, time_weight: float) -> dict:
 
 
 def score_case(case: Case, options: Options, objective: str, *, max_scans: int | None = None,
-               time_weight: float = 0.0) -> tuple[float, dict]:
-    """(score, metrics) of ``options`` on one recording; score includes the time term."""
+               time_weight: float = 0.0, algorithm: str = "cartographer") -> tuple[float, dict]:
+    """(score, metrics) of ``options`` mapped by ``algorithm`` on one recording; score includes the time term."""
     if objective == "relocalization":
         if case.reference is None:
             raise CartoError("relocalization case not prepared (call tune.prepare first)")
-        _, metrics = _relocalization_score(case, options, max_scans, time_weight)
+        _, metrics = _relocalization_score(case, options, max_scans, time_weight, algorithm)
         return metrics["score"], metrics
     from carto_cli.pipeline import build
 
-    result = build(case.recording(), options, max_scans=max_scans)
+    result = build(case.recording(), options, max_scans=max_scans, algorithm=algorithm)
     traj = Trajectory.from_poses(result.times, result.poses)
     if objective == "relations":
         if case.relations is None:
@@ -359,13 +375,14 @@ def score_case(case: Case, options: Options, objective: str, *, max_scans: int |
 
 
 def evaluate_options(options: Options, cases: Sequence[Case], objective: str, *, max_scans: int | None = None,
-                     time_weight: float = 0.0, report: Callable[[int, float], None] | None = None
-                     ) -> tuple[float, dict]:
-    """Mean score of ``options`` over ``cases`` and the mean of each metric; ``report(i, running_mean)``
-    is called after each recording (the tuner prunes from it)."""
+                     time_weight: float = 0.0, report: Callable[[int, float], None] | None = None,
+                     algorithm: str = "cartographer") -> tuple[float, dict]:
+    """Mean score of ``options`` (mapped by ``algorithm``) over ``cases`` and the mean of each metric;
+    ``report(i, running_mean)`` is called after each recording (the tuner prunes from it)."""
     scores, metrics_all = [], []
     for i, case in enumerate(cases):
-        score, metrics = score_case(case, options, objective, max_scans=max_scans, time_weight=time_weight)
+        score, metrics = score_case(case, options, objective, max_scans=max_scans, time_weight=time_weight,
+                                    algorithm=algorithm)
         if not math.isfinite(score):
             raise CartoError(f"non-finite score on {case.name}")
         scores.append(score)

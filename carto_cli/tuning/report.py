@@ -32,7 +32,7 @@ def _nest(flat: dict[str, Any]) -> dict:
 
 def write_profile(path: Path, options: Options, *, best=None, objective: str = "", n_trials: int = 0,
                   base_profile=None, overrides=(), tuned: Sequence[str] = (), baseline: float | None = None,
-                  time_weight: float = 0.0, max_scans: int | None = None) -> Path:
+                  time_weight: float = 0.0, max_scans: int | None = None, algorithm: str = "cartographer") -> Path:
     """``options`` as a profile: the keys that differ from the packaged defaults (so the file stands
     alone under ``--profile``, base profile included), with a header saying where it came from."""
 
@@ -50,6 +50,9 @@ def write_profile(path: Path, options: Options, *, best=None, objective: str = "
     if best is not None:
         lines.append(f"# best value: {best.value:.6g} (trial {best.number} of {n_trials})"
                      + (f"; base options scored {baseline:.6g}" if baseline is not None else ""))
+    if algorithm != "cartographer":
+        # A profile does not choose the mapping system: the tuned values take effect only with the flag.
+        lines.append(f"# algorithm: {algorithm} (map with --algorithm {algorithm} --profile {path.name})")
     if max_scans:
         lines.append(f"# scored on the first {max_scans} scans of each recording")
     if tuned:

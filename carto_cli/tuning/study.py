@@ -24,6 +24,7 @@ from typing import Any
 import carto_cli.pipeline  # noqa: F401  (imports every mapping kernel, registering its warm-up)
 from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
+from carto_cli.gmapping import ALGORITHMS
 from carto_cli.options import Options, apply_overrides, load_options
 from carto_cli.tuning.objectives import Case, check_space, evaluate_options, make_cases, prepare, resolve_objective
 from carto_cli.tuning.report import draw_report, write_profile, write_trials_csv
@@ -70,6 +71,7 @@ class _Job:
     max_scans: int | None
     seed: int | None
     startup: int
+    algorithm: str = "cartographer"
 
 
 def _storage(url: str):
@@ -105,7 +107,7 @@ def _objective(job: _Job):
 
         try:
             value, metrics = evaluate_options(options, job.cases, job.objective, max_scans=job.max_scans,
-                                              time_weight=job.time_weight, report=report)
+                                              time_weight=job.time_weight, report=report, algorithm=job.algorithm)
         except optuna.TrialPruned:
             raise
         except Exception as e:  # recorded on the failed trial, the study goes on
@@ -176,9 +178,11 @@ def tune(
     seed: int | None = None,
     max_scans: int | None = None,
     on_trial: Callable[[int, float | None, float | None], None] | None = None,
+    algorithm: str = "cartographer",
 ) -> TuneResult:
     """Run (or resume) a study of ``trials`` more trials and write the tuned profile ``out``,
-    ``<out stem>.trials.csv`` and ``<out stem>.report.png`` next to it.
+    ``<out stem>.trials.csv`` and ``<out stem>.report.png`` next to it. Every trial maps with
+    ``algorithm`` (``carto_cli.gmapping.ALGORITHMS``); a study keeps the algorithm it was started with.
 
     ``recordings`` are paths (or Recording objects); ``relations`` / ``ground_truth`` one per
     recording (paths; ground truths may also be (m, 4) t x y yaw arrays). ``space`` is a
@@ -198,14 +202,16 @@ def tune(
         raise CartoError(f"--time-weight must be a non-negative number, got {time_weight}")
     if max_scans is not None and max_scans < 1:
         raise CartoError(f"--max-scans must be at least 1, got {max_scans}")
+    if algorithm not in ALGORITHMS:
+        raise CartoError(f"--algorithm: unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
     params = load_space(space)
     base = load_options(base_profile, []) if isinstance(overrides, dict) else load_options(base_profile, overrides)
     if isinstance(overrides, dict):
         base = apply_overrides(base, overrides)
     cases = make_cases(recordings, relations, ground_truth)
     objective = resolve_objective(objective, cases)
-    check_space(objective, [p.name for p in params])
-    prepare(cases, objective, base, max_scans)
+    check_space(objective, [p.name for p in params], algorithm)
+    prepare(cases, objective, base, max_scans, algorithm)
     if time_weight > 0:
         # Kernels load (or compile) before the first trial, so its time is not the compiler's.
         kernels.warm_up()
@@ -219,12 +225,18 @@ def tune(
                                     load_if_exists=True)
     except Exception as e:
         raise CartoError(f"cannot open the study storage {storage}: {e}") from None
+    # Studies from before --algorithm carry no name: they mapped with Cartographer.
+    started_with = study.user_attrs.get("algorithm", "cartographer" if study.trials else algorithm)
+    if started_with != algorithm:
+        raise CartoError(f"study '{study_name}' in {storage} maps with {started_with}, not {algorithm}: resume it "
+                         "with the same --algorithm, or start another study (--study NAME or another -o)")
     if not study.trials:
+        study.set_user_attr("algorithm", algorithm)
         baseline = base_values(base, params)
         if baseline:
             study.enqueue_trial(baseline, user_attrs={"baseline": True})
     job = _Job(storage, study_name, params, base, cases, objective, time_weight, max_scans, seed,
-               startup=max(3, min(10, trials // 2)))
+               startup=max(3, min(10, trials // 2)), algorithm=algorithm)
 
     previous = signal.getsignal(signal.SIGINT)
     _STOP["requested"] = False
@@ -296,7 +308,7 @@ def _finish(study_name: str, storage: str, job: _Job, out: Path, objective: str,
     baseline = next((t.value for t in complete if t.user_attrs.get("baseline")), None)
     write_profile(out, options, best=best, objective=objective, n_trials=len(trials), base_profile=base_profile,
                   overrides=overrides, tuned=[p.name for p in job.params], baseline=baseline,
-                  time_weight=job.time_weight, max_scans=job.max_scans)
+                  time_weight=job.time_weight, max_scans=job.max_scans, algorithm=job.algorithm)
     state = optuna.trial.TrialState
     return TuneResult(
         best_value=float(study.best_value), best_params=dict(best.params), n_trials=len(trials), profile_path=out,

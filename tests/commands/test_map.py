@@ -1,10 +1,14 @@
-"""`carto map` end to end through the CLI: outputs, their formats, --load-state, --no-state, bad input."""
+"""`carto map` end to end through the CLI: outputs, their formats, --load-state, --no-state, --algorithm,
+bad input."""
+import json
+
 import numpy as np
 import pytest
 import yaml
 from typer.testing import CliRunner
 
 from carto_cli.cli import app
+from carto_cli.core.errors import CartoError
 from carto_cli.io.map_file import load_map
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.io.trajectory import read_trajectory
@@ -114,3 +118,81 @@ def test_run_map_as_a_library_call(sim_bag, tmp_path):
     assert summary_line(result).startswith(f"{result.stats['scans']} scans, ")
     note = compile_note(timer)
     assert note == "" or note.startswith(" (incl. ")
+
+
+GMAPPING_FAST = ["--algorithm", "gmapping", "--set", "gmapping.particles=5"]
+
+
+def test_gmapping_writes_every_output_and_names_itself(tmp_path, sim_bag):
+    bag, sim = sim_bag
+    out = tmp_path / "gm"
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), *GMAPPING_FAST])
+    assert r.exit_code == 0, r.output
+    assert {p.name for p in out.iterdir()} == {"map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto",
+                                               "summary.json"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["algorithm"] == "gmapping"
+    assert summary["stats"]["particles"] == 5 and summary["stats"]["loop_closures"] == 0
+    assert r.stdout.startswith(f"gmapping: {sim.counts()['/scan']} scans (")
+    assert "5 particles" in r.stdout and "resamplings" in r.stdout
+    # No profile: auto still chose Cartographer's options, and its line says which system mapped.
+    assert "auto: " in r.stderr and "algorithm: gmapping" in r.stderr
+    assert len(read_trajectory(out / "trajectory.tum")) == sim.counts()["/scan"]
+    assert len(load_map(out / "map.carto").submaps) > 0
+
+
+def test_cartographer_summary_names_its_algorithm(tmp_path, sim_bag):
+    bag, _ = sim_bag
+    out = tmp_path / "c"
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--no-state", *FAST])
+    assert r.exit_code == 0, r.output
+    assert json.loads((out / "summary.json").read_text())["algorithm"] == "cartographer"
+    assert "auto: " in r.stderr and "algorithm" not in r.stderr  # the auto line as before --algorithm
+
+
+def test_unknown_algorithm_is_one_line(tmp_path, sim_bag):
+    bag, _ = sim_bag
+    out = tmp_path / "o"
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--algorithm", "bogus"])
+    assert r.exit_code == 2
+    (line,) = r.stderr.strip().splitlines()
+    assert "--algorithm" in line and "'bogus'" in line and "cartographer, gmapping" in line
+    assert "Traceback" not in r.output and not out.exists()
+
+
+def test_gmapping_cannot_continue_a_saved_map(tmp_path, sim_bag):
+    bag, _ = sim_bag
+    out = tmp_path / "o"
+    state = tmp_path / "earlier.carto"
+    state.write_bytes(b"never read")  # refused before it is opened
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--load-state", str(state), *GMAPPING_FAST])
+    assert r.exit_code == 2
+    (line,) = r.stderr.strip().splitlines()
+    assert "earlier.carto" in line and "gmapping" in line and "--load-state" in line
+    assert "Traceback" not in r.output and not out.exists()
+
+
+def test_run_map_refuses_gmapping_with_a_state_before_reading(tmp_path):
+    from carto_cli.commands.map import run_map
+    from carto_cli.options import load_options
+
+    with pytest.raises(CartoError, match="gmapping starts every map afresh") as e:
+        run_map(tmp_path / "no-such.bag", tmp_path / "o", load_options(), load_state=tmp_path / "m.carto",
+                algorithm="gmapping")
+    assert e.value.path == str(tmp_path / "m.carto")
+    with pytest.raises(CartoError, match="unknown algorithm 'ekf'"):
+        run_map(tmp_path / "no-such.bag", tmp_path / "o", load_options(), algorithm="ekf")
+
+
+def test_summary_line_per_algorithm():
+    from types import SimpleNamespace
+
+    from carto_cli.commands.map import summary_line
+
+    carto = {"scans": 200, "nodes": 40, "submaps": 3, "loop_closures": 2, "wall_time_s": 4.0, "scans_per_s": 50.0}
+    assert summary_line(SimpleNamespace(stats=carto)) == (
+        "200 scans, 40 nodes, 3 submaps, 2 loop closures, 4.0 s wall, 50 scans/s")
+    gm = dict(carto, algorithm="gmapping", processed_scans=83, particles=30, resamplings=7, loop_closures=0,
+              map_memory_peak_bytes=12 * 2**20)
+    assert summary_line(SimpleNamespace(stats=gm)) == (
+        "gmapping: 200 scans (83 processed), 30 particles, 7 resamplings, 12 MB peak map, 4.0 s wall, 50 scans/s")

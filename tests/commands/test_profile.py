@@ -1,11 +1,14 @@
-"""`carto profile` as a library call: the report of a timed run, written when asked, gated against a baseline."""
+"""`carto profile` as a library call: the report of a timed run, written when asked, gated against a baseline
+of the same algorithm."""
 import json
 
+import jsonschema
 import pytest
 from support import SAMPLE_BAG
 
 from carto_cli.commands.profile import ProfileRun, read_baseline, run_profile
 from carto_cli.core.errors import CartoError
+from carto_cli.evaluation.profiling import SCHEMA_PATH, format_report
 from carto_cli.options import load_options
 
 
@@ -50,3 +53,41 @@ def test_bad_baseline_fails_before_mapping(tmp_path):
     bad.write_text("{not json")
     with pytest.raises(CartoError, match="cannot read baseline"):
         read_baseline(bad)
+
+
+@pytest.fixture(scope="module")
+def gmapping_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("profile") / "gmapping.json"
+    run = run_profile(SAMPLE_BAG, load_options(None, ["gmapping.particles=5"]), output=out, max_scans=20,
+                      algorithm="gmapping")
+    return run, out
+
+
+def test_gmapping_report_has_the_filter_and_its_stages(gmapping_run):
+    run, out = gmapping_run
+    report = run.report
+    assert report["algorithm"] == "gmapping" and report["counts"]["scans"] == 20
+    # The CCNY bag has no odometry: the filter processes every scan.
+    assert report["gmapping"]["particles"] == 5 and report["gmapping"]["processed_scans"] == 20
+    for stage in ("motion model", "scan matching", "weighting", "resampling", "map update"):
+        assert f"scan/{stage}" in report["timing"]["stages"], stage
+    jsonschema.validate(json.loads(out.read_text()), json.loads(SCHEMA_PATH.read_text()))
+    assert "algorithm   gmapping: 20 of 20 scans processed, 5 particles, " in format_report(report)
+
+
+def test_a_baseline_of_the_other_algorithm_is_refused_before_mapping(first, gmapping_run, tmp_path):
+    _, carto_out, _, _ = first
+    _, gmapping_out = gmapping_run
+    assert read_baseline(carto_out)["algorithm"] == "cartographer"
+    with pytest.raises(CartoError, match="profiled with gmapping, this run maps with cartographer") as e:
+        run_profile(tmp_path / "no-such-recording.bag", load_options(), baseline=gmapping_out)
+    assert e.value.path == str(gmapping_out)
+    with pytest.raises(CartoError, match="profiled with cartographer, this run maps with gmapping"):
+        run_profile(tmp_path / "no-such-recording.bag", load_options(), baseline=carto_out, algorithm="gmapping")
+    # A report from before --algorithm names none: it was Cartographer's.
+    old = read_baseline(carto_out)
+    del old["algorithm"]
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    with pytest.raises(CartoError, match="profiled with cartographer"):
+        run_profile(tmp_path / "no-such-recording.bag", load_options(), baseline=tmp_path / "old.json",
+                    algorithm="gmapping")

@@ -23,6 +23,19 @@ def test_default_space_is_the_profiles(tmp_path):
     assert "# base profile: sparse" in result.profile_path.read_text()
 
 
+def test_gmapping_tunes_the_gmapping_space_unless_given_one(monkeypatch, tmp_path):
+    import carto_cli.commands.tune as command
+    from carto_cli.tuning.space import default_space_path, spaces_dir
+
+    calls = []
+    monkeypatch.setattr(command, "tune", lambda recordings, space, **kw: calls.append((space, kw["algorithm"])))
+    run_tune(["r.bag"], tmp_path / "t.yaml", algorithm="gmapping")
+    run_tune(["r.bag"], tmp_path / "t.yaml", algorithm="gmapping", space=tmp_path / "mine.yaml")
+    run_tune(["r.bag"], tmp_path / "t.yaml", profile="sparse")
+    assert calls == [(spaces_dir() / "gmapping.yaml", "gmapping"), (tmp_path / "mine.yaml", "gmapping"),
+                     (default_space_path("sparse"), "cartographer")]
+
+
 def test_summary_line():
     result = TuneResult(best_value=0.01234, best_params={}, n_trials=5, profile_path=Path("out/t.yaml"),
                         csv_path=Path("out/t.trials.csv"), png_path=Path("out/t.report.png"),

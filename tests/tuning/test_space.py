@@ -88,3 +88,19 @@ def test_base_values_keep_only_what_lies_inside_the_space():
     inside = apply_overrides(Options(), {"trajectory_builder_2d.submaps.num_range_data": 40})
     assert base_values(inside, params)["trajectory_builder_2d.submaps.num_range_data"] == 40
     assert not Param("x", "categorical", choices=(1, 2)).contains(True)  # True == 1, but not a choice
+
+
+def test_the_gmapping_space_varies_the_particle_filter():
+    params = {p.name: p for p in load_space(spaces_dir() / "gmapping.yaml")}
+    assert all(name.startswith("gmapping.") for name in params)
+    ranges = {name[len("gmapping."):]: (p.kind, p.low, p.high, p.log) for name, p in params.items()}
+    assert ranges == {
+        "particles": ("int", 10, 60, False),
+        "srr": ("float", 0.01, 0.4, True), "srt": ("float", 0.01, 0.4, True),
+        "str": ("float", 0.01, 0.4, True), "stt": ("float", 0.01, 0.4, True),
+        "sigma": ("float", 0.02, 0.1, False), "lsigma": ("float", 0.02, 0.2, True),
+        "ogain": ("float", 1.0, 5.0, False), "resampleThreshold": ("float", 0.2, 0.8, False),
+        "linearUpdate": ("float", 0.0, 1.0, False), "angularUpdate": ("float", 0.0, 0.5, False),
+    }
+    # GMapping's defaults lie inside, so a study's first trial measures them.
+    assert set(base_values(Options(), list(params.values()))) == set(params)

@@ -123,6 +123,31 @@ print(result.n_trials, result.n_complete, len(seen))
 """
 
 
+def test_a_gmapping_study_maps_every_trial_with_gmapping_and_keeps_to_it(sim, tmp_path, monkeypatch):
+    import carto_cli.pipeline
+
+    seen = []
+    real = carto_cli.pipeline.build
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("algorithm", "cartographer"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(carto_cli.pipeline, "build", spy)
+    space = {"gmapping.srr": {"low": 0.01, "high": 0.4, "log": True}, "gmapping.sigma": {"low": 0.02, "high": 0.1}}
+    out = tmp_path / "gm.yaml"
+    result = tune([sim.recording()], space, trials=2, objective="map-quality", overrides=["gmapping.particles=5"],
+                  seed=0, out=out, max_scans=30, algorithm="gmapping")
+    assert result.n_complete == 2 and seen == ["gmapping", "gmapping"]
+    assert "# algorithm: gmapping (map with --algorithm gmapping --profile gm.yaml)" in out.read_text()
+    carto_space = {"pose_graph.constraint_builder.min_score": {"low": 0.5, "high": 0.7}}
+    with pytest.raises(CartoError, match="maps with gmapping, not cartographer"):
+        tune([sim.recording()], carto_space, trials=1, objective="map-quality", out=out, max_scans=30)
+    with pytest.raises(CartoError, match="unknown algorithm 'ekf'"):
+        tune([sim.recording()], carto_space, trials=1, out=tmp_path / "x.yaml", algorithm="ekf")
+    assert seen == ["gmapping", "gmapping"]
+
+
 def test_parallel_processes_share_the_study(tmp_path):
     # In a fresh interpreter, as `carto tune --n-jobs 2` runs: forking pytest's own process is not what users do.
     import subprocess

@@ -1,0 +1,11 @@
+"""GMapping (Grisetti et al.'s Rao-Blackwellized particle filter), carto's second mapping system.
+
+``filter.GMappingSlam`` is the core object; ``maps`` holds the particles' copy-on-write maps,
+``matcher`` the scan matcher and improved proposal, ``motion`` the odometry motion model and
+``resampling`` the weights and selective resampling.
+"""
+from carto_cli.gmapping.filter import GMappingSlam
+
+ALGORITHMS = ("cartographer", "gmapping")
+
+__all__ = ["ALGORITHMS", "GMappingSlam"]

@@ -1,0 +1,351 @@
+"""Every particle's occupancy map, shared copy-on-write in tiles.
+
+A particle's map is a table of tile ids into one pool of 32 x 32-cell tiles. Resampling copies
+tables, not cells: a child shares every tile with its parent until it writes one, and only then
+gets its own copy (OpenSLAM GMapping shares reference-counted patches the same way). What the
+particles hold apart is what they saw since they last had a common ancestor, so memory follows the
+divergence of the filter, not particles x building.
+
+A cell keeps GMapping's counts: rays that ended in it (hits), rays that reached it (visits) and the
+sum of the endpoints that fell in it; its occupancy is hits / visits and its wall sits at the mean
+endpoint, which is what the scan matcher measures distances to (sub-cell precision at any delta).
+
+Writing happens in three steps so that particles update in parallel without locks: the tiles each
+particle's rays cross are marked (in parallel), marked tiles that are missing or shared get a fresh
+tile from the pool (sequential, cheap), then the cells are updated (in parallel; each particle writes
+only tiles it now owns).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+TILE_BITS = 5
+TILE = 1 << TILE_BITS  # cells per tile side: 16 KB per tile, ~1 m at the default delta
+TILE_MASK = TILE - 1  # cell >> TILE_BITS and cell & TILE_MASK: floor division and modulo, negatives too
+_GROW_MARGIN = 8  # tiles added on each side when the table grows
+_CELL_BYTES = 4 + 4 + 8  # hits, visits, endpoint sum (2 x float32)
+
+
+class TiledMaps:
+    """The maps of ``particles`` particles at ``resolution`` (metres per cell), cells on the world lattice
+    ``floor(x / resolution)``."""
+
+    def __init__(self, particles: int, resolution: float, capacity: int = 64):
+        self.resolution = float(resolution)
+        self.hits = np.zeros((capacity, TILE, TILE), np.int32)
+        self.visits = np.zeros((capacity, TILE, TILE), np.int32)
+        self.acc = np.zeros((capacity, TILE, TILE, 2), np.float32)
+        self.refs = np.zeros(capacity, np.int32)
+        self.table = np.full((particles, 1, 1), -1, np.int32)
+        self.marks = np.zeros((particles, 1, 1), np.uint8)
+        self.tile_origin = (0, 0)  # world tile index (tx, ty) of table[:, 0, 0]
+        self._free = np.arange(capacity - 1, -1, -1, dtype=np.int32)
+        self._nfree = capacity
+        self.peak_tiles = 0
+
+    # ------------------------------------------------------------------ geometry
+
+    @property
+    def particles(self) -> int:
+        return self.table.shape[0]
+
+    @property
+    def capacity(self) -> int:
+        return self.refs.shape[0]
+
+    @property
+    def tiles_in_use(self) -> int:
+        return self.capacity - self._nfree
+
+    @property
+    def memory_bytes(self) -> int:
+        """Bytes held by the pool (used and free tiles) and the tables."""
+        return (self.capacity * TILE * TILE * _CELL_BYTES + self.refs.nbytes + self.table.nbytes
+                + self.marks.nbytes + self._free.nbytes)
+
+    def ensure_covers(self, xmin: float, ymin: float, xmax: float, ymax: float) -> None:
+        """Grow every table to cover the box (world metres), keeping what is there."""
+        span = self.resolution * TILE
+        tx0, ty0 = math.floor(xmin / span), math.floor(ymin / span)
+        tx1, ty1 = math.floor(xmax / span), math.floor(ymax / span)
+        ox, oy = self.tile_origin
+        h, w = self.table.shape[1:]
+        if self.table.shape[1] > 1 or self.table[:, 0, 0].max() >= 0:
+            if tx0 >= ox and ty0 >= oy and tx1 < ox + w and ty1 < oy + h:
+                return
+            tx0, ty0 = min(tx0, ox), min(ty0, oy)
+            tx1, ty1 = max(tx1, ox + w - 1), max(ty1, oy + h - 1)
+        tx0 -= _GROW_MARGIN
+        ty0 -= _GROW_MARGIN
+        tx1 += _GROW_MARGIN
+        ty1 += _GROW_MARGIN
+        table = np.full((self.particles, ty1 - ty0 + 1, tx1 - tx0 + 1), -1, np.int32)
+        if self.table.max() >= 0:
+            table[:, oy - ty0:oy - ty0 + h, ox - tx0:ox - tx0 + w] = self.table
+        self.table = table
+        self.marks = np.zeros(table.shape, np.uint8)
+        self.tile_origin = (tx0, ty0)
+
+    # ------------------------------------------------------------------ particles
+
+    def reindex(self, parents: np.ndarray) -> None:
+        """After resampling: particle ``i`` takes the map of particle ``parents[i]`` (tiles shared)."""
+        self.table = np.ascontiguousarray(self.table[parents])
+        used = self.table[self.table >= 0]
+        self.refs = np.bincount(used, minlength=self.capacity).astype(np.int32)
+        free = np.flatnonzero(self.refs == 0).astype(np.int32)
+        self._free = np.ascontiguousarray(free[::-1])
+        self._nfree = free.shape[0]
+
+    # ------------------------------------------------------------------ writing
+
+    def insert(self, poses: np.ndarray, origin: np.ndarray, ends: np.ndarray, hit: np.ndarray) -> None:
+        """Cast every ray into every particle's map: particle ``p`` at ``poses[p]``, rays from ``origin`` to
+        ``ends`` (tracking frame); a ray with ``hit`` ends in a wall, the others only clear free space."""
+        poses = np.ascontiguousarray(poses, dtype=np.float64)
+        ends = np.ascontiguousarray(ends, dtype=np.float64)
+        if ends.shape[0] == 0:
+            return
+        world_x, world_y = _world_extent(poses, origin, ends)
+        self.ensure_covers(world_x[0], world_y[0], world_x[1], world_y[1])
+        ox, oy = self.tile_origin
+        span = self.resolution * TILE
+        _mark_tiles(self.marks, poses, float(origin[0]), float(origin[1]), ends, span, ox, oy)
+        needed = _count_needed(self.table, self.marks, self.refs)
+        if needed > self._nfree:
+            self._grow_pool(needed - self._nfree)
+        self._nfree = _claim_tiles(self.table, self.marks, self.refs, self.hits, self.visits, self.acc,
+                                   self._free, self._nfree)
+        _update_cells(self.table, self.marks, self.hits, self.visits, self.acc, poses, float(origin[0]),
+                      float(origin[1]), ends, np.ascontiguousarray(hit, dtype=np.bool_), self.resolution, ox, oy)
+        self.peak_tiles = max(self.peak_tiles, self.tiles_in_use)
+
+    def _grow_pool(self, at_least: int) -> None:
+        old = self.capacity
+        new = max(old * 2, old + at_least)
+        self.hits = _grown(self.hits, new)
+        self.visits = _grown(self.visits, new)
+        self.acc = _grown(self.acc, new)
+        self.refs = _grown(self.refs, new)
+        free = np.concatenate([np.arange(new - 1, old - 1, -1, dtype=np.int32), self._free[:self._nfree]])
+        self._free = np.ascontiguousarray(free)
+        self._nfree = free.shape[0]
+
+    # ------------------------------------------------------------------ reading
+
+    def occupancy(self, particle: int) -> tuple[np.ndarray, tuple[float, float]]:
+        """``particle``'s map as float32 probabilities hits / visits (NaN unknown), cropped to its known
+        tiles, and the world position of cell [0, 0]'s lower-left corner."""
+        own = self.table[particle]
+        known = np.argwhere(own >= 0)
+        if known.shape[0] == 0:
+            return np.full((1, 1), np.nan, np.float32), (0.0, 0.0)
+        (y0, x0), (y1, x1) = known.min(axis=0), known.max(axis=0)
+        prob = _occupancy(own[y0:y1 + 1, x0:x1 + 1], self.hits, self.visits)
+        ox, oy = self.tile_origin
+        span = self.resolution * TILE
+        return prob, ((ox + x0) * span, (oy + y0) * span)
+
+    def entropy(self, particle: int) -> float:
+        """Mean binary entropy (bits) of ``particle``'s known cells: 0 when every cell is certain, 1 when every
+        known cell is as often hit as crossed."""
+        return float(_entropy(self.table[particle], self.hits, self.visits))
+
+
+def _grown(a: np.ndarray, capacity: int) -> np.ndarray:
+    out = np.zeros((capacity,) + a.shape[1:], a.dtype)
+    out[:a.shape[0]] = a
+    return out
+
+
+def _world_extent(poses, origin, ends):
+    """Bounding box of every particle's rays (world metres)."""
+    pts = np.vstack([ends, np.asarray(origin, dtype=np.float64)[None, :]])
+    # Whatever a particle's heading, its rays stay within their farthest reach of its position.
+    reach = float(np.sqrt(np.max(np.sum(pts * pts, axis=1))))
+    xs, ys = poses[:, 0], poses[:, 1]
+    return (xs.min() - reach, xs.max() + reach), (ys.min() - reach, ys.max() + reach)
+
+
+@njit(cache=True)
+def traverse(x0, y0, x1, y1, size, out):
+    """Every cell of side ``size`` the segment (x0, y0)-(x1, y1) passes through, in order (Amanatides-Woo),
+    written as integer (ix, iy) rows into ``out``; returns how many. The last one holds (x1, y1)."""
+    ix = int(math.floor(x0 / size))
+    iy = int(math.floor(y0 / size))
+    ex = int(math.floor(x1 / size))
+    ey = int(math.floor(y1 / size))
+    dx = x1 - x0
+    dy = y1 - y0
+    step_x = 1 if dx > 0 else -1
+    step_y = 1 if dy > 0 else -1
+    inf = 1e300
+    if dx != 0.0:
+        t_max_x = ((ix + (1 if dx > 0 else 0)) * size - x0) / dx
+        t_delta_x = size / abs(dx)
+    else:
+        t_max_x = inf
+        t_delta_x = inf
+    if dy != 0.0:
+        t_max_y = ((iy + (1 if dy > 0 else 0)) * size - y0) / dy
+        t_delta_y = size / abs(dy)
+    else:
+        t_max_y = inf
+        t_delta_y = inf
+    n = 0
+    limit = min(out.shape[0], abs(ex - ix) + abs(ey - iy) + 1)
+    out[0, 0] = ix
+    out[0, 1] = iy
+    n = 1
+    while n < limit and (ix != ex or iy != ey):
+        if t_max_x < t_max_y:
+            t_max_x += t_delta_x
+            ix += step_x
+        else:
+            t_max_y += t_delta_y
+            iy += step_y
+        out[n, 0] = ix
+        out[n, 1] = iy
+        n += 1
+    # Rounding can leave the walk one step short of the end cell: the end cell is always last.
+    out[n - 1, 0] = ex
+    out[n - 1, 1] = ey
+    return n
+
+
+@njit(cache=True, parallel=True)
+def _mark_tiles(marks, poses, lx, ly, ends, span, ox, oy):
+    n_particles = poses.shape[0]
+    h, w = marks.shape[1], marks.shape[2]
+    for p in prange(n_particles):
+        x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
+        c, s = math.cos(th), math.sin(th)
+        sx = x + c * lx - s * ly
+        sy = y + s * lx + c * ly
+        buf = np.empty((4 * (h + w) + 8, 2), np.int64)
+        for i in range(ends.shape[0]):
+            ex = x + c * ends[i, 0] - s * ends[i, 1]
+            ey = y + s * ends[i, 0] + c * ends[i, 1]
+            k = traverse(sx, sy, ex, ey, span, buf)
+            for j in range(k):
+                tx = buf[j, 0] - ox
+                ty = buf[j, 1] - oy
+                if 0 <= tx < w and 0 <= ty < h:
+                    marks[p, ty, tx] = 1
+
+
+@njit(cache=True)
+def _count_needed(table, marks, refs):
+    needed = 0
+    for p in range(table.shape[0]):
+        for ty in range(table.shape[1]):
+            for tx in range(table.shape[2]):
+                if marks[p, ty, tx]:
+                    t = table[p, ty, tx]
+                    if t < 0 or refs[t] > 1:
+                        needed += 1
+    return needed
+
+
+@njit(cache=True)
+def _claim_tiles(table, marks, refs, hits, visits, acc, free, nfree):
+    """Give each particle its own copy of every tile it is about to write (a fresh one where it has none)."""
+    for p in range(table.shape[0]):
+        for ty in range(table.shape[1]):
+            for tx in range(table.shape[2]):
+                if not marks[p, ty, tx]:
+                    continue
+                t = table[p, ty, tx]
+                if t >= 0 and refs[t] == 1:
+                    continue
+                nfree -= 1
+                fresh = free[nfree]
+                if t < 0:
+                    hits[fresh] = 0
+                    visits[fresh] = 0
+                    acc[fresh] = 0.0
+                else:
+                    hits[fresh] = hits[t]
+                    visits[fresh] = visits[t]
+                    acc[fresh] = acc[t]
+                    refs[t] -= 1
+                refs[fresh] = 1
+                table[p, ty, tx] = fresh
+    return nfree
+
+
+@njit(cache=True, parallel=True)
+def _update_cells(table, marks, hits, visits, acc, poses, lx, ly, ends, hit, res, ox, oy):
+    n_particles = poses.shape[0]
+    h, w = table.shape[1], table.shape[2]
+    for p in prange(n_particles):
+        x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
+        c, s = math.cos(th), math.sin(th)
+        sx = x + c * lx - s * ly
+        sy = y + s * lx + c * ly
+        cap = 16
+        buf = np.empty((cap, 2), np.int64)
+        for i in range(ends.shape[0]):
+            ex = x + c * ends[i, 0] - s * ends[i, 1]
+            ey = y + s * ends[i, 0] + c * ends[i, 1]
+            need = int(abs(ex - sx) / res + abs(ey - sy) / res) + 4
+            if need > cap:
+                cap = 2 * need
+                buf = np.empty((cap, 2), np.int64)
+            k = traverse(sx, sy, ex, ey, res, buf)
+            for j in range(k):
+                cx = buf[j, 0]
+                cy = buf[j, 1]
+                tx = (cx >> TILE_BITS) - ox
+                ty = (cy >> TILE_BITS) - oy
+                if tx < 0 or ty < 0 or tx >= w or ty >= h or not marks[p, ty, tx]:
+                    continue  # only on a ray grazing a tile corner the tile walk rounded the other way
+                t = table[p, ty, tx]
+                u = (cx & TILE_MASK)
+                v = (cy & TILE_MASK)
+                visits[t, v, u] += 1
+                if j == k - 1 and hit[i]:
+                    hits[t, v, u] += 1
+                    acc[t, v, u, 0] += ex
+                    acc[t, v, u, 1] += ey
+        marks[p, :, :] = 0
+
+
+@njit(cache=True)
+def _occupancy(own, hits, visits):
+    th, tw = own.shape
+    out = np.full((th * TILE, tw * TILE), np.nan, np.float32)
+    for ty in range(th):
+        for tx in range(tw):
+            t = own[ty, tx]
+            if t < 0:
+                continue
+            for v in range(TILE):
+                for u in range(TILE):
+                    n = visits[t, v, u]
+                    if n > 0:
+                        out[ty * TILE + v, tx * TILE + u] = hits[t, v, u] / n
+    return out
+
+
+@njit(cache=True)
+def _entropy(own, hits, visits):
+    total = 0.0
+    known = 0
+    for ty in range(own.shape[0]):
+        for tx in range(own.shape[1]):
+            t = own[ty, tx]
+            if t < 0:
+                continue
+            for v in range(TILE):
+                for u in range(TILE):
+                    n = visits[t, v, u]
+                    if n > 0:
+                        q = hits[t, v, u] / n
+                        known += 1
+                        if 0.0 < q < 1.0:
+                            total -= q * math.log2(q) + (1.0 - q) * math.log2(1.0 - q)
+    return total / known if known > 0 else 0.0

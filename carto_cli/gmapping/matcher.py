@@ -1,0 +1,266 @@
+"""GMapping's scan matcher and improved proposal, every particle against its own map in parallel.
+
+An endpoint is compared with the walls its particle's map holds around it: within ``kernel`` cells,
+the nearest cell that is occupied (hits / visits above ``FULLNESS``) and seen from the side the beam
+came from (the cell one step back along the beam is not occupied), measured to that cell's mean
+endpoint. Matching climbs the sum of exp(-d^2 / 2 sigma^2) over the beams from the motion model's pose
+(six moves, halving the steps ``iterations`` times). The proposal then samples a small lattice around
+the climb's result, weights each sample by its likelihood and by the motion model, draws the particle's
+pose from the Gaussian those weights make, and adds the log of their sum to the particle's weight
+(Grisetti et al. 2007, "Improved Techniques for Grid Mapping With Rao-Blackwellized Particle Filters").
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from carto_cli.core.transform import wrap_angle_kernel
+from carto_cli.gmapping.maps import TILE, TILE_BITS, TILE_MASK
+
+FULLNESS = 0.1  # a cell hit on more than this share of the rays reaching it is a wall
+NULL_LIKELIHOOD = -0.5  # an endpoint with no wall near it, before dividing by lsigma
+MAX_CLIMBS_PER_LEVEL = 10  # bounds a slow drift at one step size; a level normally stops after a few
+
+
+@njit(cache=True, inline="always")
+def _occupied(table, p, h, w, hits, visits, cx, cy, ox, oy):
+    """Tile id of cell (cx, cy) in particle p's map when the cell is a wall, else -1."""
+    tx = (cx >> TILE_BITS) - ox
+    ty = (cy >> TILE_BITS) - oy
+    if tx < 0 or ty < 0 or tx >= w or ty >= h:
+        return -1
+    t = table[p, ty, tx]
+    if t < 0:
+        return -1
+    u = (cx & TILE_MASK)
+    v = (cy & TILE_MASK)
+    n = visits[t, v, u]
+    if n > 0 and hits[t, v, u] > FULLNESS * n:
+        return t
+    return -1
+
+
+@njit(cache=True, inline="always")
+def _visited(table, p, h, w, visits, cx, cy, ox, oy):
+    tx = (cx >> TILE_BITS) - ox
+    ty = (cy >> TILE_BITS) - oy
+    if tx < 0 or ty < 0 or tx >= w or ty >= h:
+        return False
+    t = table[p, ty, tx]
+    return t >= 0 and visits[t, cy & TILE_MASK, cx & TILE_MASK] > 0
+
+
+@njit(cache=True)
+def _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma, lsigma,
+              stride, unknown_ll):
+    """(score, log-likelihood) of ``points`` (tracking frame) seen from pose (x, y, th) in particle p's map;
+    the likelihood uses every ``stride``-th point, and ``unknown_ll`` for one with no wall near it that fell
+    in a cell never observed (GMapping: the same as one in free space)."""
+    h, w = table.shape[1], table.shape[2]
+    c, s = math.cos(th), math.sin(th)
+    sx = x + c * lx - s * ly
+    sy = y + s * lx + c * ly
+    inv_two_sigma2 = 0.5 / (sigma * sigma)
+    inv_res = 1.0 / res
+    score = 0.0
+    loglik = 0.0
+    for i in range(points.shape[0]):
+        px = x + c * points[i, 0] - s * points[i, 1]
+        py = y + s * points[i, 0] + c * points[i, 1]
+        dx = px - sx
+        dy = py - sy
+        norm = math.sqrt(dx * dx + dy * dy)
+        if norm <= res:
+            continue
+        ix = int(math.floor(px * inv_res))
+        iy = int(math.floor(py * inv_res))
+        # The cell one step back towards the sensor: a wall only counts if the beam came from free space.
+        bx = int(math.floor((px - res * dx / norm) * inv_res)) - ix
+        by = int(math.floor((py - res * dy / norm) * inv_res)) - iy
+        best = 1e300
+        known = False
+        u0 = ix & TILE_MASK
+        v0 = iy & TILE_MASK
+        reach = kernel + 1  # the kernel and the step back stay within this many cells of the endpoint
+        if reach <= u0 < TILE - reach and reach <= v0 < TILE - reach:
+            # Most endpoints: the whole neighbourhood lies in one tile, looked up once.
+            tx = (ix >> TILE_BITS) - ox
+            ty = (iy >> TILE_BITS) - oy
+            t = -1
+            if 0 <= tx < w and 0 <= ty < h:
+                t = table[p, ty, tx]
+            if t >= 0:
+                th_ = hits[t]
+                tv = visits[t]
+                ta = acc[t]
+                known = tv[v0, u0] > 0
+                for ky in range(-kernel, kernel + 1):
+                    for kx in range(-kernel, kernel + 1):
+                        u = u0 + kx
+                        v = v0 + ky
+                        n = tv[v, u]
+                        if n == 0 or th_[v, u] <= FULLNESS * n:
+                            continue
+                        nb = tv[v + by, u + bx]
+                        if nb > 0 and th_[v + by, u + bx] > FULLNESS * nb:
+                            continue
+                        m = th_[v, u]
+                        mx = ta[v, u, 0] / m
+                        my = ta[v, u, 1] / m
+                        d2 = (px - mx) * (px - mx) + (py - my) * (py - my)
+                        if d2 < best:
+                            best = d2
+        else:
+            known = _visited(table, p, h, w, visits, ix, iy, ox, oy)
+            for ky in range(-kernel, kernel + 1):
+                for kx in range(-kernel, kernel + 1):
+                    cx = ix + kx
+                    cy = iy + ky
+                    t = _occupied(table, p, h, w, hits, visits, cx, cy, ox, oy)
+                    if t < 0:
+                        continue
+                    if _occupied(table, p, h, w, hits, visits, cx + bx, cy + by, ox, oy) >= 0:
+                        continue
+                    u = (cx & TILE_MASK)
+                    v = (cy & TILE_MASK)
+                    n = hits[t, v, u]
+                    mx = acc[t, v, u, 0] / n
+                    my = acc[t, v, u, 1] / n
+                    d2 = (px - mx) * (px - mx) + (py - my) * (py - my)
+                    if d2 < best:
+                        best = d2
+        if best < 1e300:
+            score += math.exp(-best * inv_two_sigma2)
+        if i % stride == 0:
+            if best < 1e300:
+                loglik -= best / lsigma
+            elif known:
+                loglik += NULL_LIKELIHOOD / lsigma
+            else:
+                loglik += unknown_ll
+    return score, loglik
+
+
+@njit(cache=True, parallel=True)
+def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, sigma, lstep, astep, iterations):
+    """Hill-climb every particle's pose on its own map. Returns (poses, scores)."""
+    n_particles = poses.shape[0]
+    out = poses.copy()
+    scores = np.zeros(n_particles)
+    for p in prange(n_particles):
+        x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
+        best, _ = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma,
+                            1.0, 1, 0.0)
+        ls = lstep
+        a = astep
+        level = 0
+        climbs = 0
+        while level <= iterations:
+            climbs += 1
+            bx, by, bt = x, y, th
+            moved = False
+            for move in range(6):
+                cx, cy, ct = x, y, th
+                if move == 0:
+                    cx += ls
+                elif move == 1:
+                    cx -= ls
+                elif move == 2:
+                    cy += ls
+                elif move == 3:
+                    cy -= ls
+                elif move == 4:
+                    ct += a
+                else:
+                    ct -= a
+                sc, _ = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, cx, cy, ct, kernel,
+                                  sigma, 1.0, 1, 0.0)
+                if sc > best:
+                    best = sc
+                    bx, by, bt = cx, cy, ct
+                    moved = True
+            if moved:
+                x, y, th = bx, by, bt
+            if not moved or climbs >= MAX_CLIMBS_PER_LEVEL:
+                climbs = 0
+                level += 1
+                ls *= 0.5
+                a *= 0.5
+        out[p, 0] = x
+        out[p, 1] = y
+        out[p, 2] = th
+        scores[p] = best
+    return out, scores
+
+
+@njit(cache=True, parallel=True)
+def propose(table, hits, visits, acc, ox, oy, res, points, lx, ly, modes, means, sigmas, normals, kernel, sigma,
+            lsigma, stride, unknown_ll, lin_range, lin_step, ang_range, ang_step):
+    """The improved proposal around each particle's match.
+
+    ``modes``: the climbs' poses; ``means`` and ``sigmas`` (x, y, theta standard deviations): the motion
+    model's Gaussian for each particle; ``normals``: standard normal draws (particles x 3) that make the
+    sample. Returns (poses, log weight increments, log-likelihoods at the modes).
+    """
+    n_particles = modes.shape[0]
+    nl = int(math.floor(lin_range / lin_step + 1e-9))
+    na = int(math.floor(ang_range / ang_step + 1e-9))
+    m = (2 * nl + 1) * (2 * nl + 1) * (2 * na + 1)
+    out = modes.copy()
+    log_eta = np.zeros(n_particles)
+    at_mode = np.zeros(n_particles)
+    for p in prange(n_particles):
+        xs = np.empty((m, 3))
+        logs = np.empty(m)
+        k = 0
+        for i in range(-nl, nl + 1):
+            for j in range(-nl, nl + 1):
+                for a in range(-na, na + 1):
+                    x = modes[p, 0] + i * lin_step
+                    y = modes[p, 1] + j * lin_step
+                    th = modes[p, 2] + a * ang_step
+                    _, ll = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th, kernel,
+                                      sigma, lsigma, stride, unknown_ll)
+                    if i == 0 and j == 0 and a == 0:
+                        at_mode[p] = ll
+                    ex = (x - means[p, 0]) / sigmas[p, 0]
+                    ey = (y - means[p, 1]) / sigmas[p, 1]
+                    d = th - means[p, 2]
+                    d = wrap_angle_kernel(d)
+                    et = d / sigmas[p, 2]
+                    xs[k, 0] = x
+                    xs[k, 1] = y
+                    xs[k, 2] = th
+                    logs[k] = ll - 0.5 * (ex * ex + ey * ey + et * et)
+                    k += 1
+        top = logs.max()
+        wsum = 0.0
+        mu = np.zeros(3)
+        wts = np.empty(m)
+        for k in range(m):
+            wts[k] = math.exp(logs[k] - top)
+            wsum += wts[k]
+            for d in range(3):
+                mu[d] += wts[k] * xs[k, d]
+        mu /= wsum
+        cov = np.zeros((3, 3))
+        for k in range(m):
+            for r in range(3):
+                for q in range(3):
+                    cov[r, q] += wts[k] * (xs[k, r] - mu[r]) * (xs[k, q] - mu[q])
+        cov /= wsum
+        # A lattice this fine resolves the peak's width only when the peak is wider than a step:
+        # keep a floor of a tenth of a step so the Cholesky factor exists.
+        cov[0, 0] += (0.1 * lin_step) ** 2
+        cov[1, 1] += (0.1 * lin_step) ** 2
+        cov[2, 2] += (0.1 * ang_step) ** 2
+        chol = np.linalg.cholesky(cov)
+        for r in range(3):
+            v = mu[r]
+            for q in range(r + 1):
+                v += chol[r, q] * normals[p, q]
+            out[p, r] = v
+        log_eta[p] = top + math.log(wsum)
+    return out, log_eta, at_mode
