@@ -101,8 +101,8 @@ class GMappingSlam:
         self.empty_scans = 0
         self.neff_history: list[float] = []
         self._entropy_cache: tuple[int, float] | None = None
-        # An endpoint in never-observed space is no evidence against the pose: it costs what a wall at the edge
-        # of the search kernel would, not what an endpoint in free space does (GMapping charges both alike).
+        # GMapping charges an endpoint in never-observed space like one in free space; unknownIsNoEvidence
+        # charges it like a wall at the edge of the search kernel (measured worse: docs/gmapping.md).
         g = self.g
         self._unknown_ll = (-((g.kernelSize + 0.5) * g.delta) ** 2 / g.lsigma if g.unknownIsNoEvidence
                             else matcher.NULL_LIKELIHOOD / g.lsigma)

@@ -20,6 +20,7 @@ from carto_cli.core.transform import wrap_angle_kernel
 from carto_cli.gmapping.maps import TILE, TILE_BITS, TILE_MASK
 
 FULLNESS = 0.1  # a cell hit on more than this share of the rays reaching it is a wall
+FREE_STEP = math.sqrt(2.0)  # cells back along the beam to the cell that must not be a wall
 NULL_LIKELIHOOD = -0.5  # an endpoint with no wall near it, before dividing by lsigma
 MAX_CLIMBS_PER_LEVEL = 10  # bounds a slow drift at one step size; a level normally stops after a few
 
@@ -76,14 +77,16 @@ def _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th
             continue
         ix = int(math.floor(px * inv_res))
         iy = int(math.floor(py * inv_res))
-        # The cell one step back towards the sensor: a wall only counts if the beam came from free space.
-        bx = int(math.floor((px - res * dx / norm) * inv_res)) - ix
-        by = int(math.floor((py - res * dy / norm) * inv_res)) - iy
+        # The cell one step back towards the sensor: a wall only counts if the beam came from free space. The
+        # step is sqrt(2) cells (GMapping's freeCellRatio): one cell often stays inside the endpoint's own cell,
+        # which then rejected the wall itself (a fifth of the beams of a scan against its own map).
+        bx = int(math.floor((px - FREE_STEP * res * dx / norm) * inv_res)) - ix
+        by = int(math.floor((py - FREE_STEP * res * dy / norm) * inv_res)) - iy
         best = 1e300
         known = False
         u0 = ix & TILE_MASK
         v0 = iy & TILE_MASK
-        reach = kernel + 1  # the kernel and the step back stay within this many cells of the endpoint
+        reach = kernel + 2  # the kernel and the step back stay within this many cells of the endpoint
         if reach <= u0 < TILE - reach and reach <= v0 < TILE - reach:
             # Most endpoints: the whole neighbourhood lies in one tile, looked up once.
             tx = (ix >> TILE_BITS) - ox
