@@ -19,9 +19,11 @@ PACKAGE = ROOT / "carto_cli"
 # The kernel tests, run once more with numba off so that coverage (and Python's own integer and dtype
 # rules) see inside the kernels; tests/reference holds the oracles they compare against.
 KERNEL_TESTS = ["tests/sensor", "tests/grid", "tests/matching", "tests/mapping/test_optimization.py",
-                "tests/mapping/test_quality.py"]
+                "tests/mapping/test_quality.py", "tests/gmapping/test_maps.py", "tests/gmapping/test_matcher.py",
+                "tests/gmapping/test_motion.py", "tests/gmapping/test_resampling.py"]
 KERNEL_PACKAGES = ["carto_cli.sensor", "carto_cli.grid", "carto_cli.matching", "carto_cli.mapping.optimization",
-                   "carto_cli.mapping.quality"]
+                   "carto_cli.mapping.quality", "carto_cli.gmapping.maps", "carto_cli.gmapping.matcher",
+                   "carto_cli.gmapping.motion", "carto_cli.gmapping.resampling"]
 
 
 def _run(*cmd: str, env: dict | None = None, timeout: float = 900) -> subprocess.CompletedProcess:

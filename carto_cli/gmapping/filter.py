@@ -34,7 +34,8 @@ from carto_cli.sensor.range_filter import RangeData, crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter
 
 ODOMETRY_EXTRAPOLATION_S = 0.5
-ENTROPY_EVERY = 10  # a scan this far past the newest odometry still gets it extrapolated
+ENTROPY_EVERY = 10
+MAX_SWEEP = math.radians(45.0)  # beyond this a scan's own symmetries compete  # a scan this far past the newest odometry still gets it extrapolated
 
 
 @register_warm_up
@@ -47,7 +48,7 @@ def warm_up() -> None:
     maps.insert(poses, np.zeros(2), ends, np.ones(32, bool))
     ox, oy = maps.tile_origin
     modes, _ = matcher.climb(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, 0.05, ends, 0.0, 0.0, poses, 1,
-                             0.05, 0.05, 0.05, 1)
+                             0.05, 0.05, 0.05, 1, np.full(2, 0.05))
     matcher.propose(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, 0.05, ends, 0.0, 0.0, modes, poses,
                     np.full((2, 3), 0.1), np.zeros((2, 3)), 1, 0.05, 0.075, 1, -0.1, 0.01, 0.01, 0.005, 0.005)
     maps.occupancy(0)
@@ -207,13 +208,18 @@ class GMappingSlam:
                      else np.zeros(3))
             sigma = motion.sigmas(delta, g.srr, g.srt, g.str, g.stt)
             means = motion.predict(self.poses, delta, np.zeros((n, 3)))
+            # The noise is drawn in the frame of the pose each particle moves from, so that frame turns it.
+            world_sigma = motion.world_sigmas(self.poses, sigma)
             self.poses = motion.sample(self.poses, delta, sigma, self.rng)
-            world_sigma = motion.world_sigmas(means, sigma)
         ox, oy = maps.tile_origin
+        # Headings within sweepSigmas of the motion model's rotational noise are tried before climbing: a key
+        # scan's turn leaves most particles tens of degrees off, beyond the climb's reach (orebro: 0.07 m
+        # instead of metres; docs/gmapping.md).
+        sweeps = np.minimum(g.sweepSigmas * world_sigma[:, 2], MAX_SWEEP)
         with timer.stage("scan matching"):
             modes, scores = matcher.climb(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, g.delta,
                                           beams.points, lx, ly, self.poses, g.kernelSize, g.sigma, g.lstep,
-                                          g.astep, g.iterations)
+                                          g.astep, g.iterations, sweeps)
             if g.minimumScore > 0:
                 weak = scores < g.minimumScore
                 modes[weak] = self.poses[weak]

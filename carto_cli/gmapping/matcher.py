@@ -147,8 +147,10 @@ def _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th
 
 
 @njit(cache=True, parallel=True)
-def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, sigma, lstep, astep, iterations):
-    """Hill-climb every particle's pose on its own map. Returns (poses, scores)."""
+def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, sigma, lstep, astep, iterations,
+          sweeps):
+    """Hill-climb every particle's pose on its own map, first trying headings every astep / 2 within
+    +-``sweeps[p]`` of its own (0: none). Returns (poses, scores)."""
     n_particles = poses.shape[0]
     out = poses.copy()
     scores = np.zeros(n_particles)
@@ -156,6 +158,17 @@ def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, 
         x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
         best, _ = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma,
                             1.0, 1, 0.0)
+        step = 0.5 * astep
+        n_sweep = int(sweeps[p] / step)
+        th0 = th
+        for k in range(-n_sweep, n_sweep + 1):
+            if k == 0:
+                continue
+            sc, _ = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th0 + k * step,
+                              kernel, sigma, 1.0, 1, 0.0)
+            if sc > best:
+                best = sc
+                th = th0 + k * step
         ls = lstep
         a = astep
         level = 0

@@ -295,6 +295,10 @@ class GMapping:
     lstep: float = _opt(0.05, "scan matcher: initial translational step of the hill climbing", unit="m", gt=0)
     astep: float = _opt(0.05, "scan matcher: initial rotational step of the hill climbing", unit="rad", gt=0)
     iterations: int = _opt(5, "scan matcher: times the steps are halved before the climb stops", ge=0)
+    sweepSigmas: float = _opt(
+        3.0, "scan matcher: before climbing, try headings every astep/2 within this many standard deviations of "
+        "the motion model's rotational noise (capped at 45 degrees); 0: GMapping's climb alone, which cannot "
+        "reach a heading a key scan's turn left tens of degrees off", ge=0)
     lsigma: float = _opt(0.075, "likelihood: squared endpoint distance is divided by this", unit="m^2", gt=0)
     ogain: float = _opt(3.0, "weights are exp(log-likelihood / (ogain x particles)): smooths resampling", gt=0)
     lskip: int = _opt(0, "likelihood: use every (lskip+1)-th beam", ge=0)

@@ -42,10 +42,11 @@ def _map(particles, pose, points):
     return maps
 
 
-def _climb(maps, points, starts):
+def _climb(maps, points, starts, sweep=0.0):
     ox, oy = maps.tile_origin
+    starts = np.ascontiguousarray(starts, dtype=np.float64)
     return matcher.climb(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, RES, points, MOUNT[0], MOUNT[1],
-                         np.ascontiguousarray(starts, dtype=np.float64), KERNEL, SIGMA, LSTEP, ASTEP, ITERATIONS)
+                         starts, KERNEL, SIGMA, LSTEP, ASTEP, ITERATIONS, np.full(len(starts), sweep))
 
 
 def _propose(maps, points, modes, means, sigmas, normals, lin=(0.01, 0.01), ang=(0.005, 0.005),
@@ -82,6 +83,22 @@ def test_climb_finds_the_pose_of_a_scan_from_5_to_10_cm_and_3_degrees_off(room_m
         assert np.all(np.hypot(err[:, 0], err[:, 1]) < 0.015), err
         assert np.all(np.abs(np.degrees(wrap_angle(err[:, 2]))) < 0.5), err
         assert np.all(scores > 0.8 * len(points)), scores  # most endpoints lie on a wall of the map
+
+
+def test_the_heading_sweep_recovers_a_turn_the_climb_alone_cannot():
+    """In a 30 m x 20 m hall (walls 10-15 m away) a heading 15 degrees off is beyond the climb's reach: the score
+    is flat that far out (measured: the climb alone stays 14.8 degrees off, from 10 degrees on). Trying headings
+    within +-30 degrees first brings it back (measured 0.13 degrees, 2.6 cm)."""
+    walls = _room(w=30.0, h=20.0)
+    map_pose, truth = np.array([15.0, 10.0, 0.3]), np.array([15.4, 9.8, 0.25])
+    maps = _map(1, map_pose, _scan(map_pose, walls, noise=0.005, seed=1))
+    points = _scan(truth, walls, seed=21)
+    start = (truth + [0.03, -0.02, np.radians(15.0)])[None, :]
+    alone, _ = _climb(maps, points, start)
+    swept, _ = _climb(maps, points, start, sweep=np.radians(30.0))
+    assert abs(np.degrees(wrap_angle(alone[0, 2] - truth[2]))) > 5.0
+    assert abs(np.degrees(wrap_angle(swept[0, 2] - truth[2]))) < 0.5
+    assert np.hypot(*(swept[0, :2] - truth[:2])) < 0.05
 
 
 def test_climb_leaves_each_particle_on_its_own_map():
@@ -173,7 +190,7 @@ def _beams_finding_a_wall(maps, points, pose):
     exp(-d^2 / 2 sigma^2) = 1 to within 1e-12 and the others 0, and steps of 1e-12 leave the pose where it is."""
     ox, oy = maps.tile_origin
     _, score = matcher.climb(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, RES, points, MOUNT[0], MOUNT[1],
-                             np.ascontiguousarray(pose[None, :]), KERNEL, 1e5, 1e-12, 1e-12, 0)
+                             np.ascontiguousarray(pose[None, :]), KERNEL, 1e5, 1e-12, 1e-12, 0, np.zeros(1))
     return float(score[0])
 
 
