@@ -33,9 +33,9 @@ from carto_cli.options import Options
 from carto_cli.sensor.range_filter import RangeData, crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter
 
-ODOMETRY_EXTRAPOLATION_S = 0.5
-ENTROPY_EVERY = 10
-MAX_SWEEP = math.radians(45.0)  # beyond this a scan's own symmetries compete  # a scan this far past the newest odometry still gets it extrapolated
+ODOMETRY_EXTRAPOLATION_S = 0.5  # a scan this far past the newest odometry still gets it extrapolated
+ENTROPY_EVERY = 10  # processed scans between two computations of the map's entropy
+MAX_SWEEP = math.radians(45.0)  # beyond this a scan's own symmetries compete with its true heading
 
 
 @register_warm_up
