@@ -29,7 +29,7 @@ def main() -> int:
     args = ap.parse_args()
 
     from carto_cli.core.records import Odometry, Scan
-    from carto_cli.gmapping import GMappingSlam
+    from carto_cli.gmapping.filter import GMappingSlam
     from carto_cli.gmapping.maps import TILE
     from carto_cli.options import load_options
     from carto_cli.sim import loop_building, loop_trajectory, simulate

@@ -13,7 +13,8 @@ import numpy as np
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan
-from carto_cli.gmapping import ALGORITHMS, GMappingSlam
+from carto_cli.gmapping import ALGORITHMS
+from carto_cli.gmapping.filter import GMappingSlam
 from carto_cli.io.recording import ReadOptions, Recording
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf

@@ -7,7 +7,7 @@ import pytest
 from carto_cli.core import transform
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.evaluation.metrics import ate
-from carto_cli.gmapping import GMappingSlam
+from carto_cli.gmapping.filter import GMappingSlam
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.options import load_options
 from carto_cli.sim import OdometryModel, loop_trajectory, room, simulate
