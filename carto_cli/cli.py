@@ -143,8 +143,9 @@ SET = typer.Option(None, "--set", "-s",
 # The names are carto_cli.gmapping.ALGORITHMS, checked by the command (importing it here would load numba
 # for `carto --help`).
 ALGORITHM = typer.Option(
-    "cartographer", "--algorithm",
-    help="Mapping system: cartographer (the default) or gmapping (a Rao-Blackwellized particle filter). "
+    None, "--algorithm",
+    help="Mapping system: cartographer or gmapping (a Rao-Blackwellized particle filter). Default: what auto "
+         "chooses from the recording (gmapping for key scans with odometry), cartographer with a named profile. "
          "GMapping's options are the gmapping.* keys (`carto options gmapping`), e.g. --set gmapping.particles=30.")
 
 
@@ -165,11 +166,10 @@ def _map_options(profile: str | None, overrides: list[str] | None):
     return _options(profile, overrides)
 
 
-def _say_configured(configured, algorithm: str = "cartographer") -> None:
+def _say_configured(configured) -> None:
     if configured.auto is not None and not state.quiet:
-        # The profile auto names is Cartographer's: say when another system does the mapping.
-        runs = "" if algorithm == "cartographer" else f"; algorithm: {algorithm}"
-        typer.echo(f"auto: {configured.regime.describe()} -> {configured.auto.describe()}{runs}", err=True)
+        # describe() names the mapping system (auto's choice, or the user's --algorithm) when it is not Cartographer.
+        typer.echo(f"auto: {configured.regime.describe()} -> {configured.auto.describe()}", err=True)
 
 
 @app.command("map")
@@ -197,7 +197,7 @@ def map_(
         None, "--load-state", help="Continue mapping into this map.carto: the recording becomes a new trajectory."
     ),
     strict: bool = typer.Option(False, "--strict", help="Exit 3 on a 'suspect' map too (for CI), not only 'failed'."),
-    algorithm: str = ALGORITHM,
+    algorithm: str | None = ALGORITHM,
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
 
@@ -217,7 +217,7 @@ def map_(
             recording, outdir, options, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
             laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
             on_total=bar.set_total, loop_closure=not no_loop_closure, state=not no_state,
-            load_state=load_state, on_configured=functools.partial(_say_configured, algorithm=algorithm),
+            load_state=load_state, on_configured=_say_configured,
             algorithm=algorithm,
         )
     if timings:
@@ -289,7 +289,7 @@ def profile_(
     max_scans: int | None = typer.Option(None, "--max-scans", help="Profile only the first N scans."),
     relocalize_map: Path | None = typer.Option(
         None, "--relocalize", help="Also profile relocalizing every 10th scan of RECORDING in this map.carto."),
-    algorithm: str = ALGORITHM,
+    algorithm: str | None = ALGORITHM,
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates."""
     from carto_cli.commands.profile import run_profile

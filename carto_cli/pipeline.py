@@ -43,7 +43,8 @@ class MapResult(SlamResult):
             "quality": self.quality.to_dict() if self.quality is not None else None,
             "stats": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in self.stats.items()},
             "auto": None if self.auto is None or self.regime is None else {
-                "detected": self.regime.to_dict(), "profile": self.auto.profile, "settings": self.auto.settings,
+                "detected": self.regime.to_dict(), "algorithm": self.auto.algorithm, "profile": self.auto.profile,
+                "settings": self.auto.settings,
                 "reasons": self.auto.reasons},
             "laser_pose_source": self.laser_pose_source,
         }
@@ -62,18 +63,21 @@ class Configured:
     options: Options
     regime: Regime | None = None
     auto: AutoChoice | None = None
+    algorithm: str = "cartographer"  # what maps: the caller's choice, else auto's, else Cartographer
 
 
 def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection,
-              algorithm: str = "cartographer") -> Configured:
-    """The options to map ``recording`` with: ``spec`` itself, or for :class:`Auto` the survey's choice."""
+              algorithm: str | None = None) -> Configured:
+    """The options and mapping system for ``recording``: ``spec`` itself (Cartographer unless ``algorithm``
+    says otherwise), or for :class:`Auto` the survey's choice (``algorithm``, when given, wins)."""
     if isinstance(spec, Options):
-        return Configured(spec)
+        return Configured(spec, algorithm=algorithm or "cartographer")
     regime = survey(recording, selection)
     base = load_options(None, list(spec.overrides))
     choice = choose(regime, base_max_range=base.trajectory_builder_2d.max_range, algorithm=algorithm,
                     gmapping_max_range=base.gmapping.maxRange)
-    return Configured(load_options(choice.profile, choice.settings + list(spec.overrides)), regime, choice)
+    return Configured(load_options(choice.profile, choice.settings + list(spec.overrides)), regime, choice,
+                      choice.algorithm)
 
 
 @dataclass

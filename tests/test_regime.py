@@ -41,10 +41,16 @@ def test_key_scans_are_recognised_by_motion_not_by_timestamps(world):
     sim = simulate(world, loop_trajectory(world), duration=60.0, scan_rate=0.5, odom_rate=0.5, beams=180)
     regime, _ = _survey(sim)
     assert regime.sparse and regime.step_median > 0.25
+    # With odometry, key scans go to GMapping (docs/gmapping.md), its range set below the no-return reading.
     choice = choose(regime)
-    assert choice.profile == "sparse"
-    assert any("motion_scaled_prior=true" in s for s in choice.settings)
-    assert len(choice.reasons) >= len(choice.settings) - 1
+    assert choice.algorithm == "gmapping" and choice.profile == "sparse"
+    assert "algorithm gmapping" in choice.describe()
+    assert not any("motion_scaled_prior" in s for s in choice.settings)  # Cartographer's matcher is not used
+    # A user's --algorithm cartographer gets Cartographer's key-scan settings.
+    forced = choose(regime, algorithm="cartographer")
+    assert forced.algorithm == "cartographer" and forced.profile == "sparse"
+    assert any("motion_scaled_prior=true" in s for s in forced.settings)
+    assert len(forced.reasons) >= len(forced.settings) - 1
 
 
 def test_without_odometry_the_motion_comes_from_scan_matching():
@@ -60,6 +66,7 @@ def test_without_odometry_the_motion_comes_from_scan_matching():
     # to tell the regimes apart, which is all the survey uses it for.
     assert true_step / 2 < regime.step_median < 1.5 * true_step
     assert choose(regime).profile == "office"
+    assert choose(regime).algorithm == "cartographer"  # GMapping needs odometry
 
 
 def test_no_return_marker_needs_many_identical_top_readings():

@@ -70,13 +70,17 @@ def run_map(
     state: bool = True,
     load_state: Path | None = None,
     on_configured: Callable[[Configured], None] | None = None,
-    algorithm: str = "cartographer",
+    algorithm: str | None = None,
 ) -> tuple[MapResult, MapOutputs]:
     """Map a recording and write every output (to ``default_outdir`` when ``outdir`` is None); with
     ``load_state`` continue an existing map.carto; with :class:`~carto_cli.pipeline.Auto` options chosen
-    from the recording; ``algorithm`` "gmapping" maps with the particle filter (``options.gmapping``).
-    ``timer`` is stopped once the outputs are written."""
-    check_algorithm(algorithm)
+    from the recording; ``algorithm`` "gmapping" maps with the particle filter (``options.gmapping``), None
+    leaves the choice to auto (Cartographer for a named profile). ``timer`` is stopped once the outputs are
+    written."""
+    if algorithm is not None:
+        check_algorithm(algorithm)
+    elif load_state is not None:
+        algorithm = "cartographer"  # continuing a map.carto's pose graph is Cartographer's
     if load_state is not None and algorithm == "gmapping":
         # Before the recording is surveyed and the state loaded: build would refuse only after both.
         raise CartoError("--load-state continues a Cartographer pose graph; gmapping starts every map afresh "
@@ -104,7 +108,7 @@ def run_map(
             on_total(source.scan_count)
         result = build(source.recording, configured.options, selection=source.selection, laser_pose=laser_pose,
                        timer=timer, on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure,
-                       graph=graph, trajectory_id=trajectory_id, algorithm=algorithm)
+                       graph=graph, trajectory_id=trajectory_id, algorithm=configured.algorithm)
         result.regime, result.auto = configured.regime, configured.auto
     outputs = write_outputs(result, outdir, configured.options, state=state, recordings=recordings)
     if timer is not None:

@@ -51,21 +51,31 @@ def run_profile(
     relocalize_map: Path | None = None,
     on_total: Callable[[int], None] | None = None,
     on_scan: Callable[[int], None] | None = None,
-    algorithm: str = "cartographer",
+    algorithm: str | None = None,
 ) -> ProfileRun:
     """Map ``recording`` (its first ``max_scans`` scans) with ``algorithm`` under a StageTimer and build the
     report; with ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with
     ``output`` write the report there. ``on_total`` hears how many scans will be mapped."""
-    check_algorithm(algorithm)
+    if algorithm is not None:
+        check_algorithm(algorithm)
     base = read_baseline(baseline) if baseline is not None else None
-    if base is not None and base.get("algorithm", "cartographer") != algorithm:
+
+    def check_baseline(runs: str) -> None:
         # The two systems share no stage below 'scan': the gates would compare unrelated work.
-        raise CartoError(f"the baseline was profiled with {base.get('algorithm', 'cartographer')}, this run maps "
-                         f"with {algorithm}: compare a run with a baseline of the same algorithm", baseline)
+        if base is not None and base.get("algorithm", "cartographer") != runs:
+            raise CartoError(f"the baseline was profiled with {base.get('algorithm', 'cartographer')}, this run "
+                             f"maps with {runs}: compare a run with a baseline of the same algorithm", baseline)
+
+    # Known before the recording is opened unless auto is to choose it.
+    known = algorithm or (None if isinstance(options, Auto) else "cartographer")
+    if known is not None:
+        check_baseline(known)
     calibration = calibrate() if calibrate_first else None
     timer = StageTimer()
     with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic) as source:
         configured = configure(options, source.recording, source.selection, algorithm)
+        algorithm = configured.algorithm
+        check_baseline(algorithm)
         total = source.scan_count
         if on_total is not None:
             on_total(min(total, max_scans or total))
@@ -75,7 +85,7 @@ def run_profile(
     report = build_report(result, timer, configured.options, recording, calibration)
     if configured.auto is not None and configured.regime is not None:
         report["auto"] = {"detected": configured.regime.describe(), "profile": configured.auto.profile,
-                          "settings": configured.auto.settings}
+                          "settings": configured.auto.settings, "algorithm": configured.auto.algorithm}
     if relocalize_map is not None:
         from carto_cli.evaluation.profiling import profile_relocalization
         from carto_cli.io.map_file import load_map

@@ -136,7 +136,8 @@ def test_gmapping_writes_every_output_and_names_itself(tmp_path, sim_bag):
     assert r.stdout.startswith(f"gmapping: {sim.counts()['/scan']} scans (")
     assert "5 particles" in r.stdout and "resamplings" in r.stdout
     # No profile: auto still chose Cartographer's options, and its line says which system mapped.
-    assert "auto: " in r.stderr and "algorithm: gmapping" in r.stderr
+    # Auto would pick Cartographer for this dense recording; the line says which system maps.
+    assert "auto: " in r.stderr and "algorithm gmapping" in r.stderr
     assert len(read_trajectory(out / "trajectory.tum")) == sim.counts()["/scan"]
     assert len(load_map(out / "map.carto").submaps) > 0
 
