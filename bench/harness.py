@@ -746,15 +746,24 @@ def parse_peers(path: Path) -> dict:
                     continue
                 if hl.startswith("cartographer") and entry["cartographer"] is None:
                     entry["cartographer"] = v
-                m = re.match(r"\s*(\d+(?:\.\d+)?) m\b", v)
+                m = re.match(r"\s*(\d+(?:\.\d+)?)(?: ± \d+(?:\.\d+)?)? m\b", v)  # "0.047 m" or "0.047 ± 0.045 m"
                 if m and float(m.group(1)) < best_val:
                     best_val, best_txt = float(m.group(1)), f"{m.group(1)} m ({h.split(' (')[0]})"
             entry["best"] = best_txt
             fam[c[0]] = entry
         best_line = re.search(r"Best figure per case[^:]*:(.*)", body)
         if best_line:
-            for case, val, who in re.findall(r"([\w.-]+) (\d+(?:\.\d+)?) m \(([^)]*)\)", best_line.group(1)):
-                fam.setdefault(case, {"odometry": None, "cartographer": None, "best": None})["best"] = f"{val} m ({who})"
+            # "intel 0.041 m, aces 0.059 m, fhw 0.065 m (all GMapping), freiburg-079 0.018 m (Cartographer)": a
+            # name in parentheses covers the cases listed since the previous one.
+            pending: list[tuple[str, str]] = []
+            for case, val, who in re.findall(r"([\w.-]+) (\d+(?:\.\d+)?) m(?: \(([^)]*)\))?", best_line.group(1)):
+                pending.append((case, val))
+                if who:
+                    who = who.removeprefix("all ")
+                    for c, v in pending:
+                        fam.setdefault(c, {"odometry": None, "cartographer": None, "best": None})["best"] = \
+                            f"{v} m ({who})"
+                    pending = []
         out[family] = fam
     return out
 
