@@ -195,8 +195,8 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
     ``algorithm`` None lets the regime choose: GMapping for key scans with odometry, where it was measured
     better than Cartographer on four of the five key-scan buildings (intel 0.063 vs 0.127 m, edmonton 0.056
     vs 0.077, fhw 0.062 vs 0.114, orebro 0.051 vs 0.167) and worse on one (aces 0.33 vs 0.048, which the
-    verdict reports as suspect; docs/gmapping.md), Cartographer otherwise. With GMapping the particle filter's range is also set, its
-    default (80 m) being far beyond Cartographer's."""
+    verdict reports as suspect; docs/gmapping.md), Cartographer otherwise. With GMapping the particle filter's
+    range is also set, its default (80 m) being far beyond Cartographer's."""
     settings: list[str] = []
     reasons: list[str] = []
     if algorithm is None:
