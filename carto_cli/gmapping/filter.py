@@ -4,7 +4,8 @@ The same shape as :class:`carto_cli.mapping.slam.Slam` (``add_scan``, ``add_odom
 pipeline drives either system and writes the same outputs.
 
 One processed scan: every particle moves by the odometry since the last processed scan with the motion
-model's noise, climbs to the best match of the scan on its own map, draws its pose from the improved
+model's noise, tries headings within a few sigma of that noise and climbs to the best match of the scan on
+its own map, draws its pose from the improved
 proposal around that match and adds the proposal's normaliser to its weight; when the effective sample
 size falls below the threshold the particles are resampled (low variance); then every surviving
 particle's map takes the scan. A scan is processed once odometry has moved ``linearUpdate`` or turned

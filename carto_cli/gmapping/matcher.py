@@ -1,12 +1,13 @@
 """GMapping's scan matcher and improved proposal, every particle against its own map in parallel.
 
-An endpoint is compared with the walls its particle's map holds around it: within ``kernel`` cells,
-the nearest cell that is occupied (hits / visits above ``FULLNESS``) and seen from the side the beam
-came from (the cell one step back along the beam is not occupied), measured to that cell's mean
-endpoint. Matching climbs the sum of exp(-d^2 / 2 sigma^2) over the beams from the motion model's pose
-(six moves, halving the steps ``iterations`` times). The proposal then samples a small lattice around
-the climb's result, weights each sample by its likelihood and by the motion model, draws the particle's
-pose from the Gaussian those weights make, and adds the log of their sum to the particle's weight
+An endpoint is compared with the walls its particle's map holds around it: within ``kernel`` cells, the
+nearest cell that is occupied (hits / visits above ``FULLNESS``) and seen from the side the beam came from
+(the cell sqrt(2) cells back along the beam is not occupied), measured to that cell's mean endpoint. Matching
+climbs the sum of exp(-d^2 / 2 sigma^2) over the beams from the motion model's pose (six moves, halving the
+steps ``iterations`` times), after trying headings around it: the score is flat beyond a cell of each wall, so
+the climb alone cannot bring back a heading a key scan's turn left far off. The proposal then samples a small
+lattice around the climb's result, weights each sample by its likelihood and by the motion model, draws the
+particle's pose from the Gaussian those weights make, and adds the log of their sum to the particle's weight
 (Grisetti et al. 2007, "Improved Techniques for Grid Mapping With Rao-Blackwellized Particle Filters").
 """
 from __future__ import annotations
