@@ -400,7 +400,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
     from carto_cli.options import load_options
-    from carto_cli.pipeline import build, read_options
+    from carto_cli.pipeline import build_configured, read_options
 
     import_s = time.perf_counter() - t_import
     import carto_cli
@@ -426,8 +426,6 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
         selection = select_topics(rec)
         t_survey = time.perf_counter()
         configured = configure(spec, rec, selection, algorithm)
-        options = configured.options
-        algorithm = configured.algorithm
         info["survey_s"] = time.perf_counter() - t_survey
         if configured.auto is not None:
             info["auto"] = {"regime": configured.regime.to_dict(), "describe": configured.regime.describe(),
@@ -435,8 +433,14 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
                             "algorithm": configured.auto.algorithm}
         total = next((t.count for t in rec.topics() if t.name == selection.scan), None)
         timer = StageTimer()
-        result = build(rec, options, selection=selection, timer=timer, on_scan=_progress(case, total),
-                       max_scans=max_scans, algorithm=algorithm)
+        result, configured = build_configured(rec, configured, spec, selection=selection, timer=timer,
+                                              on_scan=_progress(case, total), max_scans=max_scans)
+        algorithm = configured.algorithm
+        if configured.auto is not None:
+            info["auto"]["note"] = configured.auto.note
+            info["auto"]["settings"] = configured.auto.settings
+            info["auto"]["profile"] = configured.auto.profile
+            info["auto"]["algorithm"] = configured.auto.algorithm
         timer.stop()
         t_eval = time.perf_counter()
         odometry = None
@@ -1101,7 +1105,9 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
     if autos:
         out.append("\n## What `auto` chose\n")
         out.append(_table(["case", "detected", "algorithm", "base profile", "derived settings"],
-                          [[r["case"]["name"], r["auto"]["describe"], r["auto"].get("algorithm", "cartographer"),
+                          [[r["case"]["name"], r["auto"]["describe"],
+                            r["auto"].get("algorithm", "cartographer")
+                            + (f" ({r['auto']['note']})" if r["auto"].get("note") else ""),
                             f"`{r['auto']['profile']}`",
                             "<br>".join(f"`{x}`" for x in r["auto"]["settings"]) or "-"] for r in autos]))
     vt = verdict_table(results)

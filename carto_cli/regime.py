@@ -90,11 +90,14 @@ class AutoChoice:
     settings: list[str] = field(default_factory=list)  # "key=value", applied before the user's --set
     reasons: list[str] = field(default_factory=list)
     algorithm: str = "cartographer"  # the mapping system (carto_cli.gmapping.ALGORITHMS)
+    chose_algorithm: bool = False  # auto chose it (not the user's --algorithm): it may fall back
+    note: str = ""  # what happened after the choice (a fallback)
 
     def describe(self) -> str:
         extra = f" + {len(self.settings)} derived settings" if self.settings else ""
         system = "" if self.algorithm == "cartographer" else f", algorithm {self.algorithm}"
-        return f"profile {self.profile}{extra}{system}"
+        note = f" ({self.note})" if self.note else ""
+        return f"profile {self.profile}{extra}{system}{note}"
 
 
 def no_return_value(ranges: np.ndarray) -> float | None:
@@ -199,6 +202,7 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
     range is also set, its default (80 m) being far beyond Cartographer's."""
     settings: list[str] = []
     reasons: list[str] = []
+    chose = algorithm is None
     if algorithm is None:
         if regime.sparse and regime.odometry:
             algorithm = "gmapping"
@@ -242,4 +246,4 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
         # on a circle around every pose (aces: 50 m readings, 0.36 m error before this).
         settings.append(f"gmapping.maxRange={max(regime.no_return - 0.1, 0.1):.3f}")
         reasons.append(f"'no return' is reported as {regime.no_return:.4g} m: gmapping skips those beams")
-    return AutoChoice(profile, settings, reasons, algorithm)
+    return AutoChoice(profile, settings, reasons, algorithm, chose)

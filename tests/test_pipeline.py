@@ -48,3 +48,48 @@ def test_laser_pose_from_the_command_line_then_static_tf_then_identity(sim_bag):
         assert source.startswith("static TF") and np.allclose(pose, sim.laser_pose)
         pose, source = resolve_laser_pose(o.recording, "no_such_frame", None)
         assert source.startswith("identity") and np.allclose(pose, 0.0)
+
+
+def _fake_build(verdicts, calls):
+    from types import SimpleNamespace
+
+    def build(recording, options, *, algorithm, **kwargs):
+        calls.append(algorithm)
+        return SimpleNamespace(quality=SimpleNamespace(verdict=verdicts[algorithm]), algorithm=algorithm)
+    return build
+
+
+@pytest.mark.parametrize("gm, carto, kept", [("suspect", "ok", "cartographer"), ("failed", "suspect", "cartographer"),
+                                             ("suspect", "suspect", "cartographer"), ("suspect", "failed", "gmapping"),
+                                             ("ok", "ok", "gmapping")])
+def test_auto_falls_back_to_cartographer_when_gmappings_map_is_judged_worse(monkeypatch, gm, carto, kept):
+    from carto_cli import pipeline
+    from carto_cli.options import load_options
+    from carto_cli.regime import AutoChoice
+
+    calls: list[str] = []
+    monkeypatch.setattr(pipeline, "build", _fake_build({"gmapping": gm, "cartographer": carto}, calls))
+    monkeypatch.setattr(pipeline, "configure_regime", lambda regime, spec, algorithm: pipeline.Configured(
+        load_options(), regime, AutoChoice("sparse", algorithm=algorithm), algorithm))
+    chosen = pipeline.Configured(load_options(), object(), AutoChoice("sparse", algorithm="gmapping",
+                                                                      chose_algorithm=True), "gmapping")
+    result, configured = pipeline.build_configured(None, chosen, pipeline.Auto())
+    assert result.algorithm == kept == configured.algorithm
+    assert calls == (["gmapping"] if gm == "ok" else ["gmapping", "cartographer"])
+    if gm != "ok":
+        assert "gmapping's map judged" in configured.auto.note or "kept gmapping's" in configured.auto.note
+
+
+def test_no_fallback_when_the_user_chose_gmapping(monkeypatch):
+    from carto_cli import pipeline
+    from carto_cli.options import load_options
+    from carto_cli.regime import AutoChoice
+
+    calls: list[str] = []
+    monkeypatch.setattr(pipeline, "build", _fake_build({"gmapping": "failed", "cartographer": "ok"}, calls))
+    forced = pipeline.Configured(load_options(), object(), AutoChoice("sparse", algorithm="gmapping"), "gmapping")
+    _, configured = pipeline.build_configured(None, forced, pipeline.Auto())
+    assert calls == ["gmapping"] and configured is forced
+    named = pipeline.Configured(load_options(), algorithm="gmapping")
+    _, configured = pipeline.build_configured(None, named, load_options())
+    assert calls == ["gmapping", "gmapping"] and configured is named

@@ -14,7 +14,7 @@ from carto_cli.io.atomic import write_text_atomic
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
-from carto_cli.pipeline import Auto, Configured, MapResult, build, configure, opened, read_options
+from carto_cli.pipeline import Auto, Configured, MapResult, build_configured, configure, opened, read_options
 
 __all__ = ["MapOutputs", "compile_note", "default_outdir", "run_map", "summary_line", "write_outputs"]
 
@@ -106,9 +106,13 @@ def run_map(
             recordings = list(loaded.metadata.recordings) + recordings
         if on_total is not None:
             on_total(source.scan_count)
-        result = build(source.recording, configured.options, selection=source.selection, laser_pose=laser_pose,
-                       timer=timer, on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure,
-                       graph=graph, trajectory_id=trajectory_id, algorithm=configured.algorithm)
+        chosen = configured
+        result, configured = build_configured(
+            source.recording, configured, options, selection=source.selection, laser_pose=laser_pose, timer=timer,
+            on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure, graph=graph,
+            trajectory_id=trajectory_id)
+        if configured is not chosen and on_configured is not None:
+            on_configured(configured)  # auto fell back to another system: say so
         result.regime, result.auto = configured.regime, configured.auto
     outputs = write_outputs(result, outdir, configured.options, state=state, recordings=recordings)
     if timer is not None:

@@ -13,7 +13,7 @@ from carto_cli.evaluation.gates import GateResult, compare_profiles
 from carto_cli.evaluation.profiling import build_report, calibrate
 from carto_cli.io.atomic import write_text_atomic
 from carto_cli.options import Options
-from carto_cli.pipeline import Auto, build, configure, opened, read_options
+from carto_cli.pipeline import Auto, build_configured, configure, opened, read_options
 
 __all__ = ["ProfileRun", "read_baseline", "run_profile"]
 
@@ -79,13 +79,14 @@ def run_profile(
         total = source.scan_count
         if on_total is not None:
             on_total(min(total, max_scans or total))
-        result = build(source.recording, configured.options, selection=source.selection, timer=timer,
-                       on_scan=on_scan, max_scans=max_scans, algorithm=algorithm)
+        result, configured = build_configured(source.recording, configured, options, selection=source.selection,
+                                              timer=timer, on_scan=on_scan, max_scans=max_scans)
     timer.stop()
     report = build_report(result, timer, configured.options, recording, calibration)
     if configured.auto is not None and configured.regime is not None:
         report["auto"] = {"detected": configured.regime.describe(), "profile": configured.auto.profile,
-                          "settings": configured.auto.settings, "algorithm": configured.auto.algorithm}
+                          "settings": configured.auto.settings, "algorithm": configured.auto.algorithm,
+                          "note": configured.auto.note}
     if relocalize_map is not None:
         from carto_cli.evaluation.profiling import profile_relocalization
         from carto_cli.io.map_file import load_map
