@@ -36,6 +36,9 @@ from carto_cli.sensor.voxel_filter import adaptive_voxel_filter
 
 ODOMETRY_EXTRAPOLATION_S = 0.5  # a scan this far past the newest odometry still gets it extrapolated
 ENTROPY_EVERY = 10  # processed scans between two computations of the map's entropy
+GMAPPING_OCC_THRESH = 0.25  # slam_gmapping's occ_thresh
+# map.yaml's occupied_thresh (io.map_image.OCCUPIED_THRESH; the core does not import io, a test keeps them equal)
+OCCUPIED_THRESH = 0.65
 MAX_SWEEP = math.radians(45.0)  # beyond this a scan's own symmetries compete with its true heading
 
 
@@ -298,7 +301,11 @@ class GMappingSlam:
                     poses[i] = transform.compose(steps[k], motion.increment(base, odo))
             best = self.best_particle()
             prob, origin = self.maps.occupancy(best)
-            image = OccupancyImage(prob, self.g.delta, origin)
+            # A GMapping cell holds how often rays ending near it stopped there, not a probability: slam_gmapping
+            # calls it occupied above 0.25. Scaled so that 0.25 lands on map.yaml's occupied_thresh, the walls
+            # nav2 sees are the ones slam_gmapping would publish (unscaled, grazed walls read as unknown).
+            image = OccupancyImage(np.minimum(prob * np.float32(OCCUPIED_THRESH / GMAPPING_OCC_THRESH), 1.0),
+                                   self.g.delta, origin)
             graph, submaps, node_scans = self._submaps(steps)
         wall = _time.perf_counter() - self._started
         stats = {
