@@ -292,13 +292,15 @@ class GMappingSlam:
         timer = self.timer
         with timer.stage("assemble map"):
             steps = self.best_trajectory()
-            poses = np.empty((len(self._scan_times), 3))
-            for i, (k, odo) in enumerate(zip(self._scan_step, self._scan_odometry)):
-                base = self._step_odometry[k]
-                if odo is None or base is None:
-                    poses[i] = steps[k]
-                else:
-                    poses[i] = transform.compose(steps[k], motion.increment(base, odo))
+            step_of = np.asarray(self._scan_step, dtype=np.int64)
+            poses = steps[step_of]
+            # Scans between processed ones: the processed scan's pose moved on by odometry, where there is some.
+            moved = [i for i, (k, odo) in enumerate(zip(step_of, self._scan_odometry))
+                     if odo is not None and self._step_odometry[k] is not None]
+            if moved:
+                base = np.array([self._step_odometry[step_of[i]] for i in moved])
+                odo = np.array([self._scan_odometry[i] for i in moved])
+                poses[moved] = transform.compose(poses[moved], motion.increment(base, odo))
             best = self.best_particle()
             prob, origin = self.maps.occupancy(best)
             # A GMapping cell holds how often rays ending near it stopped there, not a probability: slam_gmapping

@@ -39,8 +39,8 @@ class TiledMaps:
         self.visits = np.zeros((capacity, TILE, TILE), np.int32)
         self.acc = np.zeros((capacity, TILE, TILE, 2), np.float32)
         self.refs = np.zeros(capacity, np.int32)
-        self.table = np.full((particles, 1, 1), -1, np.int32)
-        self.marks = np.zeros((particles, 1, 1), np.uint8)
+        self.table = np.full((particles, 0, 0), -1, np.int32)  # covers nothing until the first insert
+        self.marks = np.zeros((particles, 0, 0), np.uint8)
         self.tile_origin = (0, 0)  # world tile index (tx, ty) of table[:, 0, 0]
         self._free = np.arange(capacity - 1, -1, -1, dtype=np.int32)
         self._nfree = capacity
@@ -73,7 +73,7 @@ class TiledMaps:
         tx1, ty1 = math.floor(xmax / span), math.floor(ymax / span)
         ox, oy = self.tile_origin
         h, w = self.table.shape[1:]
-        if self.table.shape[1] > 1 or self.table[:, 0, 0].max() >= 0:
+        if h and w:
             if tx0 >= ox and ty0 >= oy and tx1 < ox + w and ty1 < oy + h:
                 return
             tx0, ty0 = min(tx0, ox), min(ty0, oy)
@@ -83,8 +83,7 @@ class TiledMaps:
         tx1 += _GROW_MARGIN
         ty1 += _GROW_MARGIN
         table = np.full((self.particles, ty1 - ty0 + 1, tx1 - tx0 + 1), -1, np.int32)
-        if self.table.max() >= 0:
-            table[:, oy - ty0:oy - ty0 + h, ox - tx0:ox - tx0 + w] = self.table
+        table[:, oy - ty0:oy - ty0 + h, ox - tx0:ox - tx0 + w] = self.table
         self.table = table
         self.marks = np.zeros(table.shape, np.uint8)
         self.tile_origin = (tx0, ty0)
@@ -216,20 +215,26 @@ def traverse(x0, y0, x1, y1, size, out):
     return n
 
 
+@njit(cache=True)
+def _rays_in_world(pose, lx, ly, ends):
+    """The sensor (sx, sy) and the rays' ends (n, 2) of a particle at ``pose``, in the world."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    world = np.empty_like(ends)
+    for i in range(ends.shape[0]):
+        world[i, 0] = pose[0] + c * ends[i, 0] - s * ends[i, 1]
+        world[i, 1] = pose[1] + s * ends[i, 0] + c * ends[i, 1]
+    return pose[0] + c * lx - s * ly, pose[1] + s * lx + c * ly, world
+
+
 @njit(cache=True, parallel=True)
 def _mark_tiles(marks, poses, lx, ly, ends, span, ox, oy):
     n_particles = poses.shape[0]
     h, w = marks.shape[1], marks.shape[2]
     for p in prange(n_particles):
-        x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
-        c, s = math.cos(th), math.sin(th)
-        sx = x + c * lx - s * ly
-        sy = y + s * lx + c * ly
+        sx, sy, world = _rays_in_world(poses[p], lx, ly, ends)
         buf = np.empty((4 * (h + w) + 8, 2), np.int64)
         for i in range(ends.shape[0]):
-            ex = x + c * ends[i, 0] - s * ends[i, 1]
-            ey = y + s * ends[i, 0] + c * ends[i, 1]
-            k = traverse(sx, sy, ex, ey, span, buf)
+            k = traverse(sx, sy, world[i, 0], world[i, 1], span, buf)
             for j in range(k):
                 tx = buf[j, 0] - ox
                 ty = buf[j, 1] - oy
@@ -282,15 +287,11 @@ def _update_cells(table, marks, hits, visits, acc, poses, lx, ly, ends, hit, res
     n_particles = poses.shape[0]
     h, w = table.shape[1], table.shape[2]
     for p in prange(n_particles):
-        x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
-        c, s = math.cos(th), math.sin(th)
-        sx = x + c * lx - s * ly
-        sy = y + s * lx + c * ly
+        sx, sy, world = _rays_in_world(poses[p], lx, ly, ends)
         cap = 16
         buf = np.empty((cap, 2), np.int64)
         for i in range(ends.shape[0]):
-            ex = x + c * ends[i, 0] - s * ends[i, 1]
-            ey = y + s * ends[i, 0] + c * ends[i, 1]
+            ex, ey = world[i, 0], world[i, 1]
             need = int(abs(ex - sx) / res + abs(ey - sy) / res) + 4
             if need > cap:
                 cap = 2 * need

@@ -22,11 +22,7 @@ MIN_SIGMA_THETA = math.radians(0.05)
 
 def increment(previous, current) -> np.ndarray:
     """Odometry ``current`` seen from ``previous`` (both (x, y, theta)): the motion to apply to particles."""
-    x0, y0, t0 = (float(v) for v in previous)
-    x1, y1, t1 = (float(v) for v in current)
-    c, s = math.cos(t0), math.sin(t0)
-    dx, dy = x1 - x0, y1 - y0
-    return np.array([c * dx + s * dy, -s * dx + c * dy, transform.wrap_angle_scalar(t1 - t0)])
+    return transform.relative(previous, current)
 
 
 def sigmas(delta, srr: float, srt: float, str_: float, stt: float) -> np.ndarray:
@@ -41,14 +37,7 @@ def sigmas(delta, srr: float, srt: float, str_: float, stt: float) -> np.ndarray
 
 def predict(poses: np.ndarray, delta, noise: np.ndarray) -> np.ndarray:
     """Each particle moved by ``delta`` (robot frame) perturbed by its row of ``noise`` (same frame)."""
-    poses = np.asarray(poses, dtype=np.float64)
-    d = np.asarray(delta, dtype=np.float64)[None, :] + noise
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    out = np.empty_like(poses)
-    out[:, 0] = poses[:, 0] + c * d[:, 0] - s * d[:, 1]
-    out[:, 1] = poses[:, 1] + s * d[:, 0] + c * d[:, 1]
-    out[:, 2] = transform.wrap_angle(poses[:, 2] + d[:, 2])
-    return out
+    return transform.compose(np.asarray(poses, dtype=np.float64), np.asarray(delta, dtype=np.float64)[None, :] + noise)
 
 
 def sample(poses: np.ndarray, delta, sigma: np.ndarray, rng: np.random.Generator) -> np.ndarray:
