@@ -24,7 +24,7 @@ from carto_cli.core import kernels, transform
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
-from carto_cli.gmapping import matcher, motion, resampling
+from carto_cli.gmapping import matcher, motion, refine, resampling
 from carto_cli.gmapping.maps import TILE, TiledMaps
 from carto_cli.grid.occupancy_image import OccupancyImage
 from carto_cli.mapping.pose_graph import PoseGraph
@@ -92,6 +92,7 @@ class GMappingSlam:
         self._step_odometry: list[np.ndarray | None] = []
         self._step_times: list[float] = []
         self._step_data: list[RangeData] = []
+        self._step_rays: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # origin, ends, hit: to redraw the map
         # Every scan: its time, odometry, and the processed step at or before it.
         self._scan_times: list[float] = []
         self._scan_odometry: list[np.ndarray | None] = []
@@ -268,6 +269,7 @@ class GMappingSlam:
         self._step_odometry.append(odometry)
         self._step_times.append(t)
         self._step_data.append(beams.data)
+        self._step_rays.append((beams.origin, beams.ends, beams.hit))
 
     # ------------------------------------------------------------------ output
 
@@ -290,8 +292,12 @@ class GMappingSlam:
         if not self._step_poses:
             raise ValueError("no scan was processed")
         timer = self.timer
+        steps = self.best_trajectory()
+        if self.g.refineIterations > 0:
+            with timer.stage("refine"):
+                steps = refine.refine_poses(steps, self._step_data, resolution=self.g.delta,
+                                            iterations=self.g.refineIterations)
         with timer.stage("assemble map"):
-            steps = self.best_trajectory()
             step_of = np.asarray(self._scan_step, dtype=np.int64)
             poses = steps[step_of]
             # Scans between processed ones: the processed scan's pose moved on by odometry, where there is some.
@@ -301,8 +307,7 @@ class GMappingSlam:
                 base = np.array([self._step_odometry[step_of[i]] for i in moved])
                 odo = np.array([self._scan_odometry[i] for i in moved])
                 poses[moved] = transform.compose(poses[moved], motion.increment(base, odo))
-            best = self.best_particle()
-            prob, origin = self.maps.occupancy(best)
+            prob, origin = self._map(steps)
             # A GMapping cell holds how often rays ending near it stopped there, not a probability: slam_gmapping
             # calls it occupied above 0.25. Scaled so that 0.25 lands on map.yaml's occupied_thresh, the walls
             # nav2 sees are the ones slam_gmapping would publish (unscaled, grazed walls read as unknown).
@@ -332,6 +337,16 @@ class GMappingSlam:
             times=np.array(self._scan_times), poses=poses, local_poses=poses.copy(), node_scans=node_scans,
             submaps=submaps, submap_poses=graph.submap_global_poses, image=image, laser_pose=self.laser_pose,
             stats=stats, graph=graph)
+
+    def _map(self, steps: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+        """The map at ``steps``: the best particle's own when they are its poses, else drawn again from the
+        processed scans (one particle's worth of tiles)."""
+        if self.g.refineIterations == 0:
+            return self.maps.occupancy(self.best_particle())
+        drawn = TiledMaps(1, self.g.delta)
+        for pose, (origin, ends, hit) in zip(steps, self._step_rays):
+            drawn.insert(pose[None, :], origin, ends, hit)
+        return drawn.occupancy(0)
 
     def _submaps(self, steps: np.ndarray):
         """The processed scans inserted into Cartographer submaps at the best particle's poses, as nodes of a

@@ -315,6 +315,10 @@ class GMapping:
     angularUpdate: float = _opt(0.2, "process a scan once the robot has turned this far", unit="rad", ge=0)
     temporalUpdate: float = _opt(-1.0, "process a scan at least this often however little the robot moved "
                                  "(negative: never for time alone)", unit="s")
+    refineIterations: int = _opt(
+        2, "carto: rounds of re-matching every processed scan of the best particle against the map of all of "
+        "them at the end (Cartographer's least-squares matcher), the map drawn again from the moved scans; "
+        "0: the particle's poses and map as the filter left them (GMapping)", ge=0)
     resampleThreshold: float = _opt(0.5, "resample when Neff falls below this share of the particles", gt=0, le=1)
     adaptiveResampling: bool = _opt(True, "the seed's threshold: resampleThreshold / (1 + 2 H), H the best "
                                     "particle's map entropy (mean bits per known cell); uncertain maps resample less")

@@ -1,0 +1,50 @@
+"""The best particle's trajectory, each scan re-matched against the map all of its scans make together.
+
+A particle's pose at a scan was chosen against the map as it stood then: a few scans of a corridor seen once,
+before the loop that later confirmed it. At the end the best particle's whole map is known; matching every
+processed scan against it once more (Cartographer's least-squares matcher on one probability grid of all the
+scans, nearly free to move: the map, not the old pose, decides) and rebuilding the map from the moved scans
+removes the jitter the filter leaves between neighbouring scans. The particle filter still decides the
+topology (which lineage, which loop); this only moves scans by centimetres (docs/gmapping.md: 8-15 % lower
+relation error on every key-scan building).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from carto_cli.grid.probability_grid import ProbabilityGrid
+from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
+from carto_cli.matching.least_squares import match
+from carto_cli.sensor.range_filter import RangeData
+
+# The matcher's pull back to the pose it started from, against the grid's own cost (Cartographer's
+# ceres_scan_matcher weights, with occupied_space_weight 1): weak, so the whole map decides where a scan sits.
+TRANSLATION_WEIGHT = 1.0
+ROTATION_WEIGHT = 1.0
+HIT_PROBABILITY = 0.55  # Cartographer's submap inserter defaults
+MISS_PROBABILITY = 0.49
+
+
+def map_of(poses: np.ndarray, scans: list[RangeData], resolution: float) -> ProbabilityGrid:
+    """One probability grid of every scan inserted at its pose."""
+    grid = ProbabilityGrid(resolution, (0.0, 0.0), (16, 16))
+    inserter = ProbabilityGridRangeDataInserter(hit_probability=HIT_PROBABILITY, miss_probability=MISS_PROBABILITY)
+    for pose, scan in zip(poses, scans):
+        world = scan.transformed(pose)
+        grid.grow_to_include(np.vstack([world.returns, world.misses, world.origin[None, :]]))
+        inserter.insert(world, grid)
+    return grid
+
+
+def refine_poses(poses: np.ndarray, scans: list[RangeData], *, resolution: float, iterations: int) -> np.ndarray:
+    """``poses`` (n, 3) moved so each scan matches the map of all of them; ``iterations`` rounds of
+    (build the map, re-match every scan). 0 returns a copy."""
+    out = np.array(poses, dtype=np.float64, copy=True)
+    for _ in range(iterations):
+        grid = map_of(out, scans, resolution)
+        for k, scan in enumerate(scans):
+            if scan.returns.shape[0] == 0:
+                continue
+            out[k] = match(grid, scan.returns, out[k], translation_weight=TRANSLATION_WEIGHT,
+                           rotation_weight=ROTATION_WEIGHT).pose
+    return out
