@@ -174,11 +174,15 @@ def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, 
         a = astep
         level = 0
         climbs = 0
+        undo = -1  # the move back to where the last step came from: known to score lower, not evaluated
         while level <= iterations:
             climbs += 1
             bx, by, bt = x, y, th
             moved = False
+            taken = -1
             for move in range(6):
+                if move == undo:
+                    continue
                 cx, cy, ct = x, y, th
                 if move == 0:
                     cx += ls
@@ -198,9 +202,12 @@ def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, 
                     best = sc
                     bx, by, bt = cx, cy, ct
                     moved = True
+                    taken = move
+            undo = taken ^ 1 if moved else -1  # moves come in opposite pairs: 0/1, 2/3, 4/5
             if moved:
                 x, y, th = bx, by, bt
             if not moved or climbs >= MAX_CLIMBS_PER_LEVEL:
+                undo = -1
                 climbs = 0
                 level += 1
                 ls *= 0.5

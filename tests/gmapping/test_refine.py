@@ -8,7 +8,7 @@ from carto_cli.gmapping.refine import map_of, refine_poses
 from carto_cli.sensor.range_filter import RangeData
 from carto_cli.sim import room
 from carto_cli.sim.lidar import cast
-from carto_cli.sim.world import box, merge, World
+from carto_cli.sim.world import World, box, merge
 
 
 def _scans(world, poses, beams=360):
