@@ -43,7 +43,9 @@ def test_run_case_maps_with_the_algorithm_and_records_it(harness, tmp_path):
     res = harness.run_case(case, True, None, ["gmapping.particles=5"], tmp_path / "out", algorithm="gmapping")
     assert res["status"] == "ok" and res["algorithm"] == "gmapping"
     assert res["stats"]["algorithm"] == "gmapping" and res["stats"]["particles"] == 5 and res["stats"]["scans"] == 40
-    assert set(res["gmapping_detail"]) == set(harness.GMAPPING_DETAIL) and res["gmapping_detail"]["scan matching"] > 0
+    detail = res["gmapping_detail"]
+    assert set(detail) == set(harness.GMAPPING_DETAIL + harness.GMAPPING_FINAL)
+    assert detail["scan matching"] > 0 and detail["refine"] > 0
 
 
 def _result(harness, name: str, algorithm: str) -> dict:
@@ -61,7 +63,7 @@ def _result(harness, name: str, algorithm: str) -> dict:
            "process_wall_s": 4.0, "peak_rss_mb": 321.0}
     if algorithm == "gmapping":
         res["gmapping_detail"] = {"motion model": 0.01, "scan matching": 0.9, "weighting": 0.4, "resampling": 0.02,
-                                  "map update": 0.2}
+                                  "map update": 0.2, "refine": 0.1}
     return res
 
 
