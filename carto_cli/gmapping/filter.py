@@ -10,7 +10,9 @@ proposal around that match and adds the proposal's normaliser to its weight; whe
 size falls below the threshold the particles are resampled (low variance); then every surviving
 particle's map takes the scan. A scan is processed once odometry has moved ``linearUpdate`` or turned
 ``angularUpdate`` since the last one (every scan without odometry); the others get the best particle's
-pose at the last processed scan moved on by odometry.
+pose at the last processed scan moved on by odometry. At the end the best particle's processed scans are
+re-matched against the map of all of them (``refine``, ``refineIterations`` rounds) and its map drawn again
+from the moved scans.
 """
 from __future__ import annotations
 
