@@ -55,7 +55,8 @@ def _fake_build(verdicts, calls):
 
     def build(recording, options, *, algorithm, **kwargs):
         calls.append(algorithm)
-        return SimpleNamespace(quality=SimpleNamespace(verdict=verdicts[algorithm]), algorithm=algorithm)
+        return SimpleNamespace(quality=SimpleNamespace(verdict=verdicts[algorithm]), algorithm=algorithm,
+                               stats={"scans": 10, "wall_time_s": 0.0})
     return build
 
 
@@ -78,6 +79,8 @@ def test_auto_falls_back_to_cartographer_when_gmappings_map_is_judged_worse(monk
     assert calls == (["gmapping"] if gm == "ok" else ["gmapping", "cartographer"])
     if gm != "ok":
         assert "gmapping's map judged" in configured.auto.note or "kept gmapping's" in configured.auto.note
+        # The time reported is both mappings', not the second one's alone.
+        assert result.stats["wall_time_s"] > 0 and "first_pass_wall_time_s" in result.stats
 
 
 def test_no_fallback_when_the_user_chose_gmapping(monkeypatch):
