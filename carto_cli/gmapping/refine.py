@@ -6,7 +6,7 @@ processed scan against it once more (Cartographer's least-squares matcher on one
 scans, nearly free to move: the map, not the old pose, decides) and rebuilding the map from the moved scans
 removes the jitter the filter leaves between neighbouring scans. The particle filter still decides the
 topology (which lineage, which loop); this only moves scans by centimetres (docs/gmapping.md: 8-15 % lower
-relation error on every key-scan building).
+relation error on each of the four key-scan buildings GMapping maps under auto).
 """
 from __future__ import annotations
 
