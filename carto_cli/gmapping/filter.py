@@ -69,7 +69,7 @@ class _Beams:
     ends: np.ndarray  # (n, 2) where each ray stops (a wall, or the usable range)
     hit: np.ndarray  # (n,) the ray ends in a wall
     points: np.ndarray  # (m, 2) endpoints within the usable range: what is matched
-    data: RangeData  # the cropped scan, for rebuilding submaps at the end
+    data: RangeData  # the cropped scan: the refinement and the submaps at the end
 
 
 class GMappingSlam:
@@ -93,8 +93,7 @@ class GMappingSlam:
         self._step_parents: list[np.ndarray] = []
         self._step_odometry: list[np.ndarray | None] = []
         self._step_times: list[float] = []
-        self._step_data: list[RangeData] = []
-        self._step_rays: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # origin, ends, hit: to redraw the map
+        self._step_beams: list[_Beams] = []  # for the submaps, the refinement and redrawing the map at the end
         # Every scan: its time, odometry, and the processed step at or before it.
         self._scan_times: list[float] = []
         self._scan_odometry: list[np.ndarray | None] = []
@@ -270,8 +269,7 @@ class GMappingSlam:
         self._step_parents.append(np.asarray(parents, np.int32))
         self._step_odometry.append(odometry)
         self._step_times.append(t)
-        self._step_data.append(beams.data)
-        self._step_rays.append((beams.origin, beams.ends, beams.hit))
+        self._step_beams.append(beams)
 
     # ------------------------------------------------------------------ output
 
@@ -297,7 +295,7 @@ class GMappingSlam:
         steps = self.best_trajectory()
         if self.g.refineIterations > 0:
             with timer.stage("refine"):
-                steps = refine.refine_poses(steps, self._step_data, resolution=self.g.delta,
+                steps = refine.refine_poses(steps, [b.data for b in self._step_beams], resolution=self.g.delta,
                                             iterations=self.g.refineIterations)
         with timer.stage("assemble map"):
             step_of = np.asarray(self._scan_step, dtype=np.int64)
@@ -346,8 +344,8 @@ class GMappingSlam:
         if self.g.refineIterations == 0:
             return self.maps.occupancy(self.best_particle())
         drawn = TiledMaps(1, self.g.delta)
-        for pose, (origin, ends, hit) in zip(steps, self._step_rays):
-            drawn.insert(pose[None, :], origin, ends, hit)
+        for pose, b in zip(steps, self._step_beams):
+            drawn.insert(pose[None, :], b.origin, b.ends, b.hit)
         return drawn.occupancy(0)
 
     def _submaps(self, steps: np.ndarray):
@@ -364,7 +362,8 @@ class GMappingSlam:
             graph.add_odometry(t, pose)
         lc = tb.loop_closure_adaptive_voxel_filter
         submaps = {}
-        for k, (data, pose) in enumerate(zip(self._step_data, steps)):
+        for k, (beams, pose) in enumerate(zip(self._step_beams, steps)):
+            data = beams.data
             inserted = active.insert(data.transformed(pose))
             for sm in inserted:
                 submaps[sm.index] = sm
