@@ -10,9 +10,10 @@ proposal around that match and adds the proposal's normaliser to its weight; whe
 size falls below the threshold the particles are resampled (low variance); then every surviving
 particle's map takes the scan. A scan is processed once odometry has moved ``linearUpdate`` or turned
 ``angularUpdate`` since the last one (every scan without odometry); the others get the best particle's
-pose at the last processed scan moved on by odometry. At the end the best particle's processed scans are
-re-matched against the map of all of them (``refine``, ``refineIterations`` rounds) and its map drawn again
-from the moved scans.
+pose at the last processed scan moved on by odometry. At the end the best particle's trajectory is made
+consistent where it revisits a place (``loops``, a pose graph of loop closures between passes), its processed
+scans are re-matched against the map of all of them (``refine``, ``refineIterations`` rounds), and its map is
+drawn again from the moved scans.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from carto_cli.core import kernels, transform
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
-from carto_cli.gmapping import matcher, motion, refine, resampling
+from carto_cli.gmapping import loops, matcher, motion, refine, resampling
 from carto_cli.gmapping.maps import TILE, TiledMaps
 from carto_cli.grid.occupancy_image import OccupancyImage
 from carto_cli.mapping.pose_graph import PoseGraph
@@ -293,10 +294,18 @@ class GMappingSlam:
             raise ValueError("no scan was processed")
         timer = self.timer
         steps = self.best_trajectory()
-        if self.g.refineIterations > 0:
+        scans = [b.data for b in self._step_beams]
+        closed = loops.LoopRefinement(steps, 0, 0)
+        if self.g.refineLoops or self.g.refineIterations > 0:
             with timer.stage("refine"):
-                steps = refine.refine_poses(steps, [b.data for b in self._step_beams], resolution=self.g.delta,
-                                            iterations=self.g.refineIterations)
+                if self.g.refineLoops:
+                    with timer.stage("loop closure"):
+                        closed = loops.close_loops(steps, scans, resolution=self.g.delta)
+                    steps = closed.poses
+                if self.g.refineIterations > 0:
+                    with timer.stage("re-match"):
+                        steps = refine.refine_poses(steps, scans, resolution=self.g.delta,
+                                                    iterations=self.g.refineIterations)
         with timer.stage("assemble map"):
             step_of = np.asarray(self._scan_step, dtype=np.int64)
             poses = steps[step_of]
@@ -331,7 +340,8 @@ class GMappingSlam:
             "scans_per_s": self.num_scans / wall if wall > 0 else float("nan"),
             "empty_scans": self.empty_scans,
             "constraints": len(graph.constraints),
-            "loop_closures": 0,
+            "loop_closures": closed.accepted,
+            "loop_closure_candidates": closed.candidates,
         }
         return SlamResult(
             times=np.array(self._scan_times), poses=poses, local_poses=poses.copy(), node_scans=node_scans,
@@ -341,7 +351,7 @@ class GMappingSlam:
     def _map(self, steps: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
         """The map at ``steps``: the best particle's own when they are its poses, else drawn again from the
         processed scans (one particle's worth of tiles)."""
-        if self.g.refineIterations == 0:
+        if self.g.refineIterations == 0 and not self.g.refineLoops:
             return self.maps.occupancy(self.best_particle())
         drawn = TiledMaps(1, self.g.delta)
         for pose, b in zip(steps, self._step_beams):

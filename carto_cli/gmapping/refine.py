@@ -25,10 +25,11 @@ HIT_PROBABILITY = 0.55  # Cartographer's submap inserter defaults
 MISS_PROBABILITY = 0.49
 
 
-def map_of(poses: np.ndarray, scans: list[RangeData], resolution: float) -> ProbabilityGrid:
+def map_of(poses: np.ndarray, scans: list[RangeData], resolution: float, *, hit_probability: float = HIT_PROBABILITY,
+           miss_probability: float = MISS_PROBABILITY) -> ProbabilityGrid:
     """One probability grid of every scan inserted at its pose."""
     grid = ProbabilityGrid(resolution, (0.0, 0.0), (16, 16))
-    inserter = ProbabilityGridRangeDataInserter(hit_probability=HIT_PROBABILITY, miss_probability=MISS_PROBABILITY)
+    inserter = ProbabilityGridRangeDataInserter(hit_probability=hit_probability, miss_probability=miss_probability)
     for pose, scan in zip(poses, scans):
         world = scan.transformed(pose)
         grid.grow_to_include(np.vstack([world.returns, world.misses, world.origin[None, :]]))

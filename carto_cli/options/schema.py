@@ -319,6 +319,11 @@ class GMapping:
         2, "carto: rounds of re-matching every processed scan of the best particle against the map of all of "
         "them at the end (Cartographer's least-squares matcher), the map drawn again from the moved scans; "
         "0: the particle's poses and map as the filter left them (GMapping)", ge=0)
+    refineLoops: bool = _opt(
+        True, "carto: before the re-matching, match every processed scan of the best particle against the scans "
+        "of other times near it and optimize the trajectory with those loop closures (a pose graph), so a "
+        "revisit that came back a few decimetres off no longer leaves two versions of the walls; false: "
+        "GMapping's trajectory as the filter left it")
     resampleThreshold: float = _opt(0.5, "resample when Neff falls below this share of the particles", gt=0, le=1)
     adaptiveResampling: bool = _opt(True, "the seed's threshold: resampleThreshold / (1 + 2 H), H the best "
                                     "particle's map entropy (mean bits per known cell); uncertain maps resample less")
