@@ -955,12 +955,13 @@ GMAPPING_METHOD = """\
 * **GMapping** (`--algorithm gmapping`, `carto_cli/gmapping/`): every case mapped by the Rao-Blackwellized
   particle filter with the `gmapping.*` options instead of Cartographer; the trajectory is the best particle's
   (a pose for every scan, the scans between processed ones placed by odometry), so the relation error, ATE and
-  verdict above are computed as for Cartographer. It has no loop closures and no optimization: *local SLAM*
-  in the time table is the whole filter. In the table below *processed* counts the scans the filter
+  verdict above are computed as for Cartographer. Its only loop closures and optimization come after the last
+  scan, in the final refinement (*loop closures* counts them): *local SLAM* in the time table is the whole filter. In the table below *processed* counts the scans the filter
   processed (odometry moved `linearUpdate` or turned `angularUpdate` since the last one; every scan without
   odometry), *resamplings* how often the effective sample size fell below the threshold, *mean Neff* its
   mean over processed scans, *motion model* … *map update* the seconds in each of the filter's stages,
-  *refine* the final re-matching of the best particle's scans against its whole map (`gmapping.refineIterations`),
+  *refine* the final refinement of the best particle's trajectory: loop closures between its passes in a pose
+  graph (`gmapping.refineLoops`), then its scans re-matched against its whole map (`gmapping.refineIterations`),
   *map peak* the most memory all particles' copy-on-write map tiles held at once
   (`map_memory_peak_bytes`), *peak RSS* the case process's as above.
 """
@@ -1187,8 +1188,9 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
                    help=f"only the first {QUICK_SCANS} scans of each case (sparse intel and aces run in full)")
     p.add_argument("--set", "-s", action="append", metavar="KEY=VALUE", help="option override (repeatable)")
     p.add_argument("--profile", "-p", default="auto",
-                   help="options profile (name or .yaml path); 'auto' (default): sparse for bench/, wheeled for "
-                        "bench-dense/ and the simulation, office for the CCNY bag; 'default': Cartographer's stock")
+                   help="options profile (name or .yaml path); 'auto' (default): what `carto map` does with no "
+                        "profile, settings and system chosen from each recording's survey; 'default': "
+                        "Cartographer's stock")
     p.add_argument("--algorithm", default=None, choices=ALGORITHMS,
                    help="mapping system for every case: cartographer or gmapping (options gmapping.*, e.g. --set "
                         "gmapping.particles=30); default: what auto chooses per case (cartographer for a named "

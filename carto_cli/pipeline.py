@@ -89,8 +89,10 @@ def build_configured(recording: Recording, configured: Configured, spec: Options
                      **kwargs) -> tuple[MapResult, Configured]:
     """:func:`build` with ``configured``'s options and system. When auto chose GMapping and judges its map
     less than ``ok``, the recording is mapped again with Cartographer's key-scan settings and the map the
-    verdict prefers is kept (Cartographer's on a tie): the particle filter's outcome varies from run to run
-    (aces: 0.05 m with 30 particles, 0.33 m with 50, judged suspect) where Cartographer's does not.
+    verdict prefers is kept: the particle filter's outcome varies from run to run (aces: 0.05 m with 30
+    particles, 0.33 m with 50, judged suspect) where Cartographer's does not. On a tie GMapping's stays, the
+    system auto chose for the regime (key scans: better on four of five buildings left out one at a time,
+    docs/gmapping.md; fhw: both judged suspect, GMapping's 0.053 m against Cartographer's 0.114 m).
     Returns the map and the configuration that made it; after a second mapping its ``wall_time_s`` and
     ``scans_per_s`` cover both, and ``first_pass_wall_time_s`` the first."""
     started = _time.perf_counter()
@@ -107,7 +109,7 @@ def build_configured(recording: Recording, configured: Configured, spec: Options
     for r in (result, again):
         r.stats.update(wall_time_s=wall, first_pass_wall_time_s=first_wall,
                        scans_per_s=r.stats["scans"] / wall if wall > 0 else float("nan"))
-    if again.quality is None or LEVELS.index(again.quality.verdict) <= LEVELS.index(result.quality.verdict):
+    if again.quality is None or LEVELS.index(again.quality.verdict) < LEVELS.index(result.quality.verdict):
         note = (f"gmapping's map judged {result.quality.verdict}; mapped again with cartographer, judged "
                 f"{again.quality.verdict if again.quality else 'not'}")
         return again, dataclasses.replace(other, auto=dataclasses.replace(other.auto, note=note))

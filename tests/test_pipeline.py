@@ -61,7 +61,7 @@ def _fake_build(verdicts, calls):
 
 
 @pytest.mark.parametrize("gm, carto, kept", [("suspect", "ok", "cartographer"), ("failed", "suspect", "cartographer"),
-                                             ("suspect", "suspect", "cartographer"), ("suspect", "failed", "gmapping"),
+                                             ("suspect", "suspect", "gmapping"), ("suspect", "failed", "gmapping"),
                                              ("ok", "ok", "gmapping")])
 def test_auto_falls_back_to_cartographer_when_gmappings_map_is_judged_worse(monkeypatch, gm, carto, kept):
     from carto_cli import pipeline
