@@ -70,3 +70,16 @@ def test_the_map_holds_every_scan():
     assert grid.contains(grid.cell_index(walls)).all()
     # Both ends of the room are known, whoever saw them.
     assert np.all(grid.is_known(grid.cell_index(np.array([[1.0, 1.0], [7.0, 5.0]]))))
+
+
+def test_a_scan_left_decimetres_off_finds_its_place():
+    """Beyond least squares' reach from where the filter left it: the correlative search before it finds it."""
+    world = _world()
+    n = 30
+    t = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    truth = np.column_stack([4.0 + 2.5 * np.cos(t), 3.0 + 1.5 * np.sin(t), t + math.pi / 2]) + [0.025, 0.025, 0.0]
+    scans = _scans(world, truth)
+    off = truth.copy()
+    off[7, :2] += (0.3, -0.25)
+    refined = refine_poses(off, scans, resolution=0.05, iterations=2)
+    assert np.hypot(*(refined[7, :2] - truth[7, :2])) < 0.03
