@@ -132,7 +132,9 @@ def test_gmapping_writes_every_output_and_names_itself(tmp_path, sim_bag):
                                                "summary.json"}
     summary = json.loads((out / "summary.json").read_text())
     assert summary["algorithm"] == "gmapping"
-    assert summary["stats"]["particles"] == 5 and summary["stats"]["loop_closures"] == 0
+    # Its loop closures are the final refinement's, between passes of the best particle's trajectory.
+    assert summary["stats"]["particles"] == 5
+    assert 0 <= summary["stats"]["loop_closures"] <= summary["stats"]["loop_closure_candidates"]
     assert r.stdout.startswith(f"gmapping: {sim.counts()['/scan']} scans (")
     assert "5 particles" in r.stdout and "resamplings" in r.stdout
     # No profile: auto still chose Cartographer's options, and its line says which system mapped.
