@@ -293,7 +293,7 @@ class GMappingSlam:
         if not self._step_poses:
             raise ValueError("no scan was processed")
         timer = self.timer
-        steps = self.best_trajectory()
+        steps = unrefined = self.best_trajectory()
         scans = [b.data for b in self._step_beams]
         closed = loops.LoopRefinement(steps, 0, 0)
         if self.g.refineLoops or self.g.refineIterations > 0:
@@ -346,7 +346,7 @@ class GMappingSlam:
         return SlamResult(
             times=np.array(self._scan_times), poses=poses, local_poses=poses.copy(), node_scans=node_scans,
             submaps=submaps, submap_poses=graph.submap_global_poses, image=image, laser_pose=self.laser_pose,
-            stats=stats, graph=graph)
+            stats=stats, graph=graph, unrefined_node_poses=None if steps is unrefined else unrefined)
 
     def _map(self, steps: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
         """The map at ``steps``: the best particle's own when they are its poses, else drawn again from the

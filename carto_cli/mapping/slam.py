@@ -32,6 +32,9 @@ class SlamResult:
     stats: dict = field(default_factory=dict)
     loop_closures: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (K, 4) x1 y1 x2 y2 for drawing
     graph: PoseGraph | None = None
+    # (N, 3) the nodes' poses before a final refinement that made the map consistent (GMapping's loop step and
+    # re-matching): the verdict judges them too, since consistency after that refinement is what it maximized
+    unrefined_node_poses: np.ndarray | None = None
 
 
 class Slam:

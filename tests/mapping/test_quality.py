@@ -1,5 +1,6 @@
 """The reference-free map verdict: a consistent map is ok, a misplaced part is not, and the ray kernel
 agrees with a plain-Python oracle."""
+import dataclasses
 import json
 import math
 from types import SimpleNamespace
@@ -69,6 +70,26 @@ def test_a_misplaced_second_half_is_caught_by_rays_through_walls(mapped):
     assert see_through.level != "ok"
     assert any("through walls" in reason for reason in quality.reasons)
     assert quality.line().startswith(f"map quality: {quality.verdict} — ")
+
+
+@pytest.mark.slow_without_jit  # maps a simulated recording
+def test_a_map_made_consistent_by_a_final_refinement_is_judged_as_it_was_built(mapped):
+    """The refined poses are consistent; the ones the system built (a misplaced second half) are judged too."""
+    result, odometry = mapped
+    graph = result.graph
+    half = graph.num_nodes // 2
+    built = graph.global_poses.copy()
+    built[half:] = transform.compose(np.array([1.0, 0.0, math.radians(10.0)]), built[half:])
+    refined = dataclasses.replace(result, unrefined_node_poses=built)
+    quality = assess(refined, odometry)
+    levels = {c.name: c.level for c in quality.checks}
+    assert levels["see_through"] == "ok" and levels["see_through_unrefined"] != "ok"
+    assert quality.verdict != "ok"
+    assert any("before the final refinement" in reason for reason in quality.reasons)
+    # Unrefined poses equal to the refined ones measure the same.
+    same = assess(dataclasses.replace(result, unrefined_node_poses=graph.global_poses.copy()), odometry)
+    values = {c.name: c.value for c in same.checks}
+    assert values["see_through_unrefined"] == values["see_through"] and same.verdict == "ok"
 
 
 @pytest.mark.slow_without_jit  # maps a simulated recording
