@@ -1,6 +1,7 @@
 """A reference-free verdict on a finished map: ``ok``, ``suspect`` or ``failed``, with reasons.
 
-Three signals, each a share in percent with two thresholds (``QualityCheck``); the verdict is the worst.
+Three signals (the first measured twice after a final refinement), each a share in percent with two
+thresholds (``QualityCheck``); the verdict is the worst.
 
 ``see_through``
     Share of scans (up to 400 nodes evenly spread, up to 50 rays each) that send more than 20 % of
