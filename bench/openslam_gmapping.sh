@@ -38,11 +38,12 @@ g++ -O3 -DNDEBUG -w -Iinclude -Igen -o "$work/gfs_nogui" \
 zcat "$data/scans.clf.gz" > "$work/scans.clf"
 cd "$work"
 echo "== OpenSLAM GMapping, $case, $particles particles, every scan"
-/usr/bin/time -f "wall %e s, peak RSS %M KB" ./gfs_nogui -filename scans.clf -outfilename out.gfs \
+/usr/bin/time -o time.txt -f "wall %e s, peak RSS %M KB" ./gfs_nogui -filename scans.clf -outfilename out.gfs \
     -particles "$particles" -delta 0.05 -maxrange 80 -maxUrange 80 -sigma 0.05 -kernelSize 1 -lstep 0.05 \
     -astep 0.05 -iterations 5 -lsigma 0.075 -lobsGain 3.0 -lskip 0 -srr 0.1 -srt 0.2 -str 0.1 -stt 0.2 \
     -resampleThreshold 0.5 -llsamplerange 0.01 -llsamplestep 0.01 -lasamplerange 0.005 -lasamplestep 0.005 \
-    -xmin -100 -xmax 100 -ymin -100 -ymax 100 -linearUpdate 0 -angularUpdate 0 > gfs.log
+    -xmin -100 -xmax 100 -ymin -100 -ymax 100 -linearUpdate 0 -angularUpdate 0 > gfs.log 2>&1
+cat time.txt
 echo "== carto gmapping, $case, $particles particles"
 cd "$root"
 bench/run --algorithm gmapping --set "gmapping.particles=$particles" --cases "$case" --results "$work/carto" \
