@@ -87,6 +87,10 @@ def run_map(
                          "(drop --load-state or use --algorithm cartographer)", load_state)
     if outdir is None:
         outdir = default_outdir(recording_path)
+    if Path(outdir).exists() and not Path(outdir).is_dir():
+        # Before mapping: writing the outputs would fail only after the whole recording was mapped.
+        raise CartoError("exists and is not a directory; the outputs go into a directory (give another -o)",
+                         outdir)
     graph = None
     trajectory_id = 0
     recordings = [Path(recording_path).name]

@@ -199,3 +199,14 @@ def test_summary_line_per_algorithm():
               map_memory_peak_bytes=12 * 2**20)
     assert summary_line(SimpleNamespace(stats=gm)) == (
         "gmapping: 200 scans (83 processed), 30 particles, 7 resamplings, 12 MB peak map, 4.0 s wall, 50 scans/s")
+
+
+def test_an_output_path_that_is_a_file_is_refused_before_mapping(tmp_path, sim_bag):
+    bag, _ = sim_bag
+    taken = tmp_path / "notes.txt"
+    taken.write_text("keep me\n")
+    r = runner.invoke(app, ["map", str(bag), "-o", str(taken)])
+    assert r.exit_code == 2
+    assert f"{taken}: exists and is not a directory" in r.output and "Traceback" not in r.output
+    assert taken.read_text() == "keep me\n"
+    assert "scans" not in r.output  # refused before the recording was mapped
