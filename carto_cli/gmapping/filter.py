@@ -295,8 +295,9 @@ class GMappingSlam:
         timer = self.timer
         steps = unrefined = self.best_trajectory()
         scans = [b.data for b in self._step_beams]
-        closed = loops.LoopRefinement(steps, 0, 0)
-        if self.g.refineLoops or self.g.refineIterations > 0:
+        refined = self.g.refineLoops or self.g.refineIterations > 0
+        closed = loops.LoopRefinement(steps, 0, 0)  # what "no loop step" reports
+        if refined:
             with timer.stage("refine"):
                 if self.g.refineLoops:
                     with timer.stage("loop closure"):
@@ -316,7 +317,7 @@ class GMappingSlam:
                 base = np.array([self._step_odometry[step_of[i]] for i in moved])
                 odo = np.array([self._scan_odometry[i] for i in moved])
                 poses[moved] = transform.compose(poses[moved], motion.increment(base, odo))
-            prob, origin = self._map(steps)
+            prob, origin = self._map(steps) if refined else self.maps.occupancy(self.best_particle())
             # A GMapping cell holds how often rays ending near it stopped there, not a probability: slam_gmapping
             # calls it occupied above 0.25. Scaled so that 0.25 lands on map.yaml's occupied_thresh, the walls
             # nav2 sees are the ones slam_gmapping would publish (unscaled, grazed walls read as unknown).
@@ -346,13 +347,10 @@ class GMappingSlam:
         return SlamResult(
             times=np.array(self._scan_times), poses=poses, local_poses=poses.copy(), node_scans=node_scans,
             submaps=submaps, submap_poses=graph.submap_global_poses, image=image, laser_pose=self.laser_pose,
-            stats=stats, graph=graph, unrefined_node_poses=None if steps is unrefined else unrefined)
+            stats=stats, graph=graph, unrefined_node_poses=unrefined if refined else None)
 
     def _map(self, steps: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
-        """The map at ``steps``: the best particle's own when they are its poses, else drawn again from the
-        processed scans (one particle's worth of tiles)."""
-        if self.g.refineIterations == 0 and not self.g.refineLoops:
-            return self.maps.occupancy(self.best_particle())
+        """The map drawn again from the processed scans at ``steps`` (one particle's worth of tiles)."""
         drawn = TiledMaps(1, self.g.delta)
         for pose, b in zip(steps, self._step_beams):
             drawn.insert(pose[None, :], b.origin, b.ends, b.hit)

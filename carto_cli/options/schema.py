@@ -317,7 +317,8 @@ class GMapping:
                                  "(negative: never for time alone)", unit="s")
     refineIterations: int = _opt(
         2, "carto: rounds of re-matching every processed scan of the best particle against the map of all of "
-        "them at the end (Cartographer's least-squares matcher), the map drawn again from the moved scans; "
+        "them at the end (a correlative search within 0.4 m / 3 deg, then Cartographer's least-squares matcher), "
+        "the map drawn again from the moved scans; "
         "0: the particle's poses and map as the filter left them (GMapping)", ge=0)
     refineLoops: bool = _opt(
         True, "carto: before the re-matching, match every processed scan of the best particle against the scans "

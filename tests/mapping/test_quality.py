@@ -54,14 +54,21 @@ def test_a_consistent_map_is_ok(mapped):
     assert {c.name for c in quality.checks} == {"see_through", "loop_closures", "odometry"}
 
 
+def _second_half_misplaced(poses):
+    """``poses`` with every pose of the second half moved 1 m and turned 10 degrees."""
+    out = poses.copy()
+    half = len(out) // 2
+    out[half:] = transform.compose(np.array([1.0, 0.0, math.radians(10.0)]), out[half:])
+    return out
+
+
 @pytest.mark.slow_without_jit  # maps a simulated recording
 def test_a_misplaced_second_half_is_caught_by_rays_through_walls(mapped):
     result, odometry = mapped
     graph = result.graph
-    half = graph.num_nodes // 2
     before = graph.global_poses.copy()
     try:
-        graph.global_poses[half:] = transform.compose(np.array([1.0, 0.0, math.radians(10.0)]), before[half:])
+        graph.global_poses[:] = _second_half_misplaced(before)
         quality = assess(result, odometry)
     finally:
         graph.global_poses[:] = before
@@ -77,10 +84,7 @@ def test_a_map_made_consistent_by_a_final_refinement_is_judged_as_it_was_built(m
     """The refined poses are consistent; the ones the system built (a misplaced second half) are judged too."""
     result, odometry = mapped
     graph = result.graph
-    half = graph.num_nodes // 2
-    built = graph.global_poses.copy()
-    built[half:] = transform.compose(np.array([1.0, 0.0, math.radians(10.0)]), built[half:])
-    refined = dataclasses.replace(result, unrefined_node_poses=built)
+    refined = dataclasses.replace(result, unrefined_node_poses=_second_half_misplaced(graph.global_poses))
     quality = assess(refined, odometry)
     levels = {c.name: c.level for c in quality.checks}
     assert levels["see_through"] == "ok" and levels["see_through_unrefined"] != "ok"
