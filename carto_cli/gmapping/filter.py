@@ -54,9 +54,9 @@ def warm_up() -> None:
     poses = np.zeros((2, 3))
     maps.insert(poses, np.zeros(2), ends, np.ones(32, bool))
     ox, oy = maps.tile_origin
-    modes, _ = matcher.climb(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, 0.05, ends, 0.0, 0.0, poses, 1,
+    modes, _ = matcher.climb(maps.table, maps.state, maps.mean, ox, oy, 0.05, ends, 0.0, 0.0, poses, 1,
                              0.05, 0.05, 0.05, 1, np.full(2, 0.05))
-    matcher.propose(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, 0.05, ends, 0.0, 0.0, modes, poses,
+    matcher.propose(maps.table, maps.state, maps.mean, ox, oy, 0.05, ends, 0.0, 0.0, modes, poses,
                     np.full((2, 3), 0.1), np.zeros((2, 3)), 1, 0.05, 0.075, 1, -0.1, 0.01, 0.01, 0.005, 0.005)
     maps.occupancy(0)
     maps.entropy(0)
@@ -224,7 +224,7 @@ class GMappingSlam:
         # instead of metres; docs/gmapping.md).
         sweeps = np.minimum(g.sweepSigmas * world_sigma[:, 2], MAX_SWEEP)
         with timer.stage("scan matching"):
-            modes, scores = matcher.climb(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, g.delta,
+            modes, scores = matcher.climb(maps.table, maps.state, maps.mean, ox, oy, g.delta,
                                           beams.points, lx, ly, self.poses, g.kernelSize, g.sigma, g.lstep,
                                           g.astep, g.iterations, sweeps)
             if g.minimumScore > 0:
@@ -233,7 +233,7 @@ class GMappingSlam:
         with timer.stage("weighting"):
             normals = self.rng.standard_normal((n, 3))
             self.poses, log_eta, _ = matcher.propose(
-                maps.table, maps.hits, maps.visits, maps.acc, ox, oy, g.delta, beams.points, lx, ly, modes, means,
+                maps.table, maps.state, maps.mean, ox, oy, g.delta, beams.points, lx, ly, modes, means,
                 world_sigma, normals, g.kernelSize, g.sigma, g.lsigma, g.lskip + 1, self._unknown_ll, g.llsamplerange,
                 g.llsamplestep, g.lasamplerange, g.lasamplestep)
             self.poses[:, 2] = transform.wrap_angle(self.poses[:, 2])

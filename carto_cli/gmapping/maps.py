@@ -7,8 +7,12 @@ particles hold apart is what they saw since they last had a common ancestor, so 
 divergence of the filter, not particles x building.
 
 A cell keeps GMapping's counts: rays that ended in it (hits), rays that reached it (visits) and the
-sum of the endpoints that fell in it; its occupancy is hits / visits and its wall sits at the mean
-endpoint, which is what the scan matcher measures distances to (sub-cell precision at any delta).
+mean of the endpoints that fell in it; its occupancy is hits / visits and its wall sits at the mean
+endpoint, which is what the scan matcher measures distances to (sub-cell precision at any delta). What
+the matcher asks of a cell (never seen, seen, or a wall) is also kept as one byte, updated with the
+counts: the matcher reads a 3 x 3 neighbourhood per endpoint some hundred times per particle and scan,
+and one byte per cell and the means of the walls touch a fraction of the memory the counts would
+(1.6x faster matching on intel, docs/gmapping.md).
 
 Writing happens in three steps so that particles update in parallel without locks: the tiles each
 particle's rays cross are marked (in parallel), marked tiles that are missing or shared get a fresh
@@ -26,7 +30,9 @@ TILE_BITS = 5
 TILE = 1 << TILE_BITS  # cells per tile side: 16 KB per tile, ~1 m at the default delta
 TILE_MASK = TILE - 1  # cell >> TILE_BITS and cell & TILE_MASK: floor division and modulo, negatives too
 _GROW_MARGIN = 8  # tiles added on each side when the table grows
-_CELL_BYTES = 4 + 4 + 8  # hits, visits, endpoint sum (2 x float32)
+_CELL_BYTES = 4 + 4 + 8 + 1  # hits, visits, mean endpoint (2 x float32), state
+FULLNESS = 0.1  # a cell hit on more than this share of the rays reaching it is a wall
+UNKNOWN, SEEN, WALL = 0, 1, 2  # a cell's state
 
 
 class TiledMaps:
@@ -37,7 +43,8 @@ class TiledMaps:
         self.resolution = float(resolution)
         self.hits = np.zeros((capacity, TILE, TILE), np.int32)
         self.visits = np.zeros((capacity, TILE, TILE), np.int32)
-        self.acc = np.zeros((capacity, TILE, TILE, 2), np.float32)
+        self.mean = np.zeros((capacity, TILE, TILE, 2), np.float32)
+        self.state = np.zeros((capacity, TILE, TILE), np.uint8)
         self.refs = np.zeros(capacity, np.int32)
         self.table = np.full((particles, 0, 0), -1, np.int32)  # covers nothing until the first insert
         self.marks = np.zeros((particles, 0, 0), np.uint8)
@@ -116,9 +123,9 @@ class TiledMaps:
         needed = _count_needed(self.table, self.marks, self.refs)
         if needed > self._nfree:
             self._grow_pool(needed - self._nfree)
-        self._nfree = _claim_tiles(self.table, self.marks, self.refs, self.hits, self.visits, self.acc,
-                                   self._free, self._nfree)
-        _update_cells(self.table, self.marks, self.hits, self.visits, self.acc, poses, float(origin[0]),
+        self._nfree = _claim_tiles(self.table, self.marks, self.refs, self.hits, self.visits, self.mean,
+                                   self.state, self._free, self._nfree)
+        _update_cells(self.table, self.marks, self.hits, self.visits, self.mean, self.state, poses, float(origin[0]),
                       float(origin[1]), ends, np.ascontiguousarray(hit, dtype=np.bool_), self.resolution, ox, oy)
         self.peak_tiles = max(self.peak_tiles, self.tiles_in_use)
 
@@ -127,7 +134,8 @@ class TiledMaps:
         new = max(old * 2, old + at_least)
         self.hits = _grown(self.hits, new)
         self.visits = _grown(self.visits, new)
-        self.acc = _grown(self.acc, new)
+        self.mean = _grown(self.mean, new)
+        self.state = _grown(self.state, new)
         self.refs = _grown(self.refs, new)
         free = np.concatenate([np.arange(new - 1, old - 1, -1, dtype=np.int32), self._free[:self._nfree]])
         self._free = np.ascontiguousarray(free)
@@ -256,7 +264,7 @@ def _count_needed(table, marks, refs):
 
 
 @njit(cache=True)
-def _claim_tiles(table, marks, refs, hits, visits, acc, free, nfree):
+def _claim_tiles(table, marks, refs, hits, visits, mean, state, free, nfree):
     """Give each particle its own copy of every tile it is about to write (a fresh one where it has none)."""
     for p in range(table.shape[0]):
         for ty in range(table.shape[1]):
@@ -271,11 +279,13 @@ def _claim_tiles(table, marks, refs, hits, visits, acc, free, nfree):
                 if t < 0:
                     hits[fresh] = 0
                     visits[fresh] = 0
-                    acc[fresh] = 0.0
+                    mean[fresh] = 0.0
+                    state[fresh] = UNKNOWN
                 else:
                     hits[fresh] = hits[t]
                     visits[fresh] = visits[t]
-                    acc[fresh] = acc[t]
+                    mean[fresh] = mean[t]
+                    state[fresh] = state[t]
                     refs[t] -= 1
                 refs[fresh] = 1
                 table[p, ty, tx] = fresh
@@ -283,7 +293,7 @@ def _claim_tiles(table, marks, refs, hits, visits, acc, free, nfree):
 
 
 @njit(cache=True, parallel=True)
-def _update_cells(table, marks, hits, visits, acc, poses, lx, ly, ends, hit, res, ox, oy):
+def _update_cells(table, marks, hits, visits, mean, state, poses, lx, ly, ends, hit, res, ox, oy):
     n_particles = poses.shape[0]
     h, w = table.shape[1], table.shape[2]
     for p in prange(n_particles):
@@ -309,9 +319,11 @@ def _update_cells(table, marks, hits, visits, acc, poses, lx, ly, ends, hit, res
                 v = (cy & TILE_MASK)
                 visits[t, v, u] += 1
                 if j == k - 1 and hit[i]:
-                    hits[t, v, u] += 1
-                    acc[t, v, u, 0] += ex
-                    acc[t, v, u, 1] += ey
+                    m = hits[t, v, u] + 1
+                    hits[t, v, u] = m
+                    mean[t, v, u, 0] += (ex - mean[t, v, u, 0]) / m
+                    mean[t, v, u, 1] += (ey - mean[t, v, u, 1]) / m
+                state[t, v, u] = WALL if hits[t, v, u] > FULLNESS * visits[t, v, u] else SEEN
         marks[p, :, :] = 0
 
 

@@ -1,7 +1,7 @@
 """GMapping's scan matcher and improved proposal, every particle against its own map in parallel.
 
 An endpoint is compared with the walls its particle's map holds around it: within ``kernel`` cells, the
-nearest cell that is occupied (hits / visits above ``FULLNESS``) and seen from the side the beam came from
+nearest cell that is a wall (hits / visits above ``maps.FULLNESS``) and seen from the side the beam came from
 (the cell sqrt(2) cells back along the beam is not occupied), measured to that cell's mean endpoint. Matching
 climbs the sum of exp(-d^2 / 2 sigma^2) over the beams from the motion model's pose (six moves, halving the
 steps ``iterations`` times), after trying headings around it: the score is flat beyond a cell of each wall, so
@@ -18,45 +18,29 @@ import numpy as np
 from numba import njit, prange
 
 from carto_cli.core.transform import wrap_angle_kernel
-from carto_cli.gmapping.maps import TILE, TILE_BITS, TILE_MASK
+from carto_cli.gmapping.maps import TILE, TILE_BITS, TILE_MASK, UNKNOWN, WALL
 
-FULLNESS = 0.1  # a cell hit on more than this share of the rays reaching it is a wall
 FREE_STEP = math.sqrt(2.0)  # cells back along the beam to the cell that must not be a wall
 NULL_LIKELIHOOD = -0.5  # an endpoint with no wall near it, before dividing by lsigma
 MAX_CLIMBS_PER_LEVEL = 10  # bounds a slow drift at one step size; a level normally stops after a few
 
 
 @njit(cache=True, inline="always")
-def _occupied(table, p, h, w, hits, visits, cx, cy, ox, oy):
-    """Tile id of cell (cx, cy) in particle p's map when the cell is a wall, else -1."""
+def _state(table, p, h, w, state, cx, cy, ox, oy):
+    """Cell (cx, cy)'s state in particle p's map, and its tile id (-1: no tile, UNKNOWN)."""
     tx = (cx >> TILE_BITS) - ox
     ty = (cy >> TILE_BITS) - oy
     if tx < 0 or ty < 0 or tx >= w or ty >= h:
-        return -1
+        return UNKNOWN, -1
     t = table[p, ty, tx]
     if t < 0:
-        return -1
-    u = (cx & TILE_MASK)
-    v = (cy & TILE_MASK)
-    n = visits[t, v, u]
-    if n > 0 and hits[t, v, u] > FULLNESS * n:
-        return t
-    return -1
-
-
-@njit(cache=True, inline="always")
-def _visited(table, p, h, w, visits, cx, cy, ox, oy):
-    tx = (cx >> TILE_BITS) - ox
-    ty = (cy >> TILE_BITS) - oy
-    if tx < 0 or ty < 0 or tx >= w or ty >= h:
-        return False
-    t = table[p, ty, tx]
-    return t >= 0 and visits[t, cy & TILE_MASK, cx & TILE_MASK] > 0
+        return UNKNOWN, -1
+    return state[t, cy & TILE_MASK, cx & TILE_MASK], t
 
 
 @njit(cache=True)
-def _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma, lsigma,
-              stride, unknown_ll):
+def _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma, lsigma, stride,
+              unknown_ll):
     """(score, log-likelihood) of ``points`` (tracking frame) seen from pose (x, y, th) in particle p's map;
     the likelihood uses every ``stride``-th point, and ``unknown_ll`` for one with no wall near it that fell
     in a cell never observed (GMapping: the same as one in free space)."""
@@ -96,42 +80,33 @@ def _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th
             if 0 <= tx < w and 0 <= ty < h:
                 t = table[p, ty, tx]
             if t >= 0:
-                th_ = hits[t]
-                tv = visits[t]
-                ta = acc[t]
-                known = tv[v0, u0] > 0
+                ts = state[t]
+                tm = mean[t]
+                known = ts[v0, u0] != UNKNOWN
                 for ky in range(-kernel, kernel + 1):
                     for kx in range(-kernel, kernel + 1):
                         u = u0 + kx
                         v = v0 + ky
-                        n = tv[v, u]
-                        if n == 0 or th_[v, u] <= FULLNESS * n:
+                        if ts[v, u] != WALL or ts[v + by, u + bx] == WALL:
                             continue
-                        nb = tv[v + by, u + bx]
-                        if nb > 0 and th_[v + by, u + bx] > FULLNESS * nb:
-                            continue
-                        m = th_[v, u]
-                        mx = ta[v, u, 0] / m
-                        my = ta[v, u, 1] / m
+                        mx = tm[v, u, 0]
+                        my = tm[v, u, 1]
                         d2 = (px - mx) * (px - mx) + (py - my) * (py - my)
                         if d2 < best:
                             best = d2
         else:
-            known = _visited(table, p, h, w, visits, ix, iy, ox, oy)
+            known = _state(table, p, h, w, state, ix, iy, ox, oy)[0] != UNKNOWN
             for ky in range(-kernel, kernel + 1):
                 for kx in range(-kernel, kernel + 1):
                     cx = ix + kx
                     cy = iy + ky
-                    t = _occupied(table, p, h, w, hits, visits, cx, cy, ox, oy)
-                    if t < 0:
-                        continue
-                    if _occupied(table, p, h, w, hits, visits, cx + bx, cy + by, ox, oy) >= 0:
+                    sc, t = _state(table, p, h, w, state, cx, cy, ox, oy)
+                    if sc != WALL or _state(table, p, h, w, state, cx + bx, cy + by, ox, oy)[0] == WALL:
                         continue
                     u = (cx & TILE_MASK)
                     v = (cy & TILE_MASK)
-                    n = hits[t, v, u]
-                    mx = acc[t, v, u, 0] / n
-                    my = acc[t, v, u, 1] / n
+                    mx = mean[t, v, u, 0]
+                    my = mean[t, v, u, 1]
                     d2 = (px - mx) * (px - mx) + (py - my) * (py - my)
                     if d2 < best:
                         best = d2
@@ -148,7 +123,7 @@ def _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th
 
 
 @njit(cache=True, parallel=True)
-def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, sigma, lstep, astep, iterations,
+def climb(table, state, mean, ox, oy, res, points, lx, ly, poses, kernel, sigma, lstep, astep, iterations,
           sweeps):
     """Hill-climb every particle's pose on its own map, first trying headings every astep / 2 within
     +-``sweeps[p]`` of its own (0: none). Returns (poses, scores)."""
@@ -157,7 +132,7 @@ def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, 
     scores = np.zeros(n_particles)
     for p in prange(n_particles):
         x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
-        best, _ = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma,
+        best, _ = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma,
                             1.0, 1, 0.0)
         step = 0.5 * astep
         n_sweep = int(sweeps[p] / step)
@@ -165,7 +140,7 @@ def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, 
         for k in range(-n_sweep, n_sweep + 1):
             if k == 0:
                 continue
-            sc, _ = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th0 + k * step,
+            sc, _ = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th0 + k * step,
                               kernel, sigma, 1.0, 1, 0.0)
             if sc > best:
                 best = sc
@@ -196,7 +171,7 @@ def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, 
                     ct += a
                 else:
                     ct -= a
-                sc, _ = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, cx, cy, ct, kernel,
+                sc, _ = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, cx, cy, ct, kernel,
                                   sigma, 1.0, 1, 0.0)
                 if sc > best:
                     best = sc
@@ -220,7 +195,7 @@ def climb(table, hits, visits, acc, ox, oy, res, points, lx, ly, poses, kernel, 
 
 
 @njit(cache=True, parallel=True)
-def propose(table, hits, visits, acc, ox, oy, res, points, lx, ly, modes, means, sigmas, normals, kernel, sigma,
+def propose(table, state, mean, ox, oy, res, points, lx, ly, modes, means, sigmas, normals, kernel, sigma,
             lsigma, stride, unknown_ll, lin_range, lin_step, ang_range, ang_step):
     """The improved proposal around each particle's match.
 
@@ -245,7 +220,7 @@ def propose(table, hits, visits, acc, ox, oy, res, points, lx, ly, modes, means,
                     x = modes[p, 0] + i * lin_step
                     y = modes[p, 1] + j * lin_step
                     th = modes[p, 2] + a * ang_step
-                    _, ll = _evaluate(table, p, hits, visits, acc, ox, oy, res, points, lx, ly, x, y, th, kernel,
+                    _, ll = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th, kernel,
                                       sigma, lsigma, stride, unknown_ll)
                     if i == 0 and j == 0 and a == 0:
                         at_mode[p] = ll

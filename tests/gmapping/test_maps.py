@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from reference.gmapping import crossed_cells, map_counts, ray_counts
 
-from carto_cli.gmapping.maps import TILE, TiledMaps, traverse
+from carto_cli.gmapping.maps import FULLNESS, SEEN, TILE, UNKNOWN, WALL, TiledMaps, traverse
 
 RES = 0.05
 
@@ -21,7 +21,7 @@ def _assert_same_counts(got, want):
     for cell, (h, v, sx, sy) in want.items():
         g = got[cell]
         assert (g[0], g[1]) == (h, v), (cell, g, (h, v))
-        # endpoint sums are float32 in the map
+        # the map keeps float32 endpoint means
         assert g[2] == pytest.approx(sx, rel=1e-5, abs=1e-4) and g[3] == pytest.approx(sy, rel=1e-5, abs=1e-4)
 
 
@@ -108,6 +108,24 @@ def test_insert_matches_the_reference_counts():
             history[p].append((poses[p], origin, ends, hit))
     for p in range(3):
         _assert_same_counts(map_counts(maps, p), ray_counts(history[p], RES))
+
+
+def test_each_cell_state_follows_its_counts():
+    """The byte the matcher reads: never seen, seen, or a wall (hits above FULLNESS of visits), for every cell of
+    every tile in use after rays from several particles, a resampling and more rays."""
+    rng = np.random.default_rng(4)
+    maps = TiledMaps(3, RES, capacity=4)
+    for k in range(4):
+        poses = np.column_stack([rng.uniform(-2, 2, 3), rng.uniform(-2, 2, 3), rng.uniform(-math.pi, math.pi, 3)])
+        ends, hit = _bundle(rng, 200)
+        maps.insert(poses, np.array([0.1, 0.0]), ends, hit)
+        if k == 1:
+            maps.reindex(np.array([2, 2, 0]))
+    used = np.unique(maps.table[maps.table >= 0])
+    hits, visits = maps.hits[used], maps.visits[used]
+    want = np.where(visits == 0, UNKNOWN, np.where(hits > FULLNESS * visits, WALL, SEEN))
+    np.testing.assert_array_equal(maps.state[used], want)
+    assert (want == WALL).any() and (want == SEEN).any() and (want == UNKNOWN).any()
 
 
 def test_rays_ending_on_tile_corners_keep_every_hit():

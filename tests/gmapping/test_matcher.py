@@ -45,7 +45,7 @@ def _map(particles, pose, points):
 def _climb(maps, points, starts, sweep=0.0):
     ox, oy = maps.tile_origin
     starts = np.ascontiguousarray(starts, dtype=np.float64)
-    return matcher.climb(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, RES, points, MOUNT[0], MOUNT[1],
+    return matcher.climb(maps.table, maps.state, maps.mean, ox, oy, RES, points, MOUNT[0], MOUNT[1],
                          starts, KERNEL, SIGMA, LSTEP, ASTEP, ITERATIONS, np.full(len(starts), sweep))
 
 
@@ -55,7 +55,7 @@ def _propose(maps, points, modes, means, sigmas, normals, lin=(0.01, 0.01), ang=
     never-observed space costs ``unknown_ll`` (by default what one in free space does, as in GMapping)."""
     ox, oy = maps.tile_origin
     f = np.ascontiguousarray
-    return matcher.propose(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, RES, points, MOUNT[0], MOUNT[1],
+    return matcher.propose(maps.table, maps.state, maps.mean, ox, oy, RES, points, MOUNT[0], MOUNT[1],
                            f(modes, dtype=np.float64), f(means, dtype=np.float64), f(sigmas, dtype=np.float64),
                            f(normals, dtype=np.float64), kernel=KERNEL, sigma=SIGMA, lsigma=LSIGMA, stride=1,
                            unknown_ll=unknown_ll, lin_range=lin[0], lin_step=lin[1], ang_range=ang[0],
@@ -189,7 +189,7 @@ def _beams_finding_a_wall(maps, points, pose):
     """How many of ``points`` seen from ``pose`` find a wall: with sigma 100 km each such beam scores
     exp(-d^2 / 2 sigma^2) = 1 to within 1e-12 and the others 0, and steps of 1e-12 leave the pose where it is."""
     ox, oy = maps.tile_origin
-    _, score = matcher.climb(maps.table, maps.hits, maps.visits, maps.acc, ox, oy, RES, points, MOUNT[0], MOUNT[1],
+    _, score = matcher.climb(maps.table, maps.state, maps.mean, ox, oy, RES, points, MOUNT[0], MOUNT[1],
                              np.ascontiguousarray(pose[None, :]), KERNEL, 1e5, 1e-12, 1e-12, 0, np.zeros(1))
     return float(score[0])
 

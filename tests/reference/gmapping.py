@@ -67,13 +67,15 @@ def ray_counts(bundles, resolution):
 
 
 def map_counts(maps, particle):
-    """The same dictionary read out of a ``TiledMaps``: every cell of ``particle``'s map with a visit."""
+    """The same dictionary read out of a ``TiledMaps`` (endpoint sum: mean x hits): every cell of ``particle``'s map
+    with a visit."""
     ox, oy = maps.tile_origin
     out = {}
     for ty, tx in np.argwhere(maps.table[particle] >= 0):
         t = maps.table[particle, ty, tx]
         for v, u in np.argwhere(maps.visits[t] > 0):
             cell = (int((ox + tx) * TILE + u), int((oy + ty) * TILE + v))
-            out[cell] = [int(maps.hits[t, v, u]), int(maps.visits[t, v, u]), float(maps.acc[t, v, u, 0]),
-                         float(maps.acc[t, v, u, 1])]
+            n = int(maps.hits[t, v, u])
+            out[cell] = [n, int(maps.visits[t, v, u]), n * float(maps.mean[t, v, u, 0]),
+                         n * float(maps.mean[t, v, u, 1])]
     return out
