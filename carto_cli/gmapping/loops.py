@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from carto_cli.core import transform
+from carto_cli.core.parallel import map_ordered
 from carto_cli.gmapping.refine import map_of
 from carto_cli.mapping.constraints import ConstraintSet
 from carto_cli.mapping.optimization import NodePairs, optimize
@@ -65,8 +66,10 @@ class LoopRefinement:
     accepted: int  # loop closures in the graph
 
 
-def close_loops(poses: np.ndarray, scans: list[RangeData], *, resolution: float) -> LoopRefinement:
-    """``poses`` (n, 3) of ``scans`` optimized with the loop closures found between passes (module doc)."""
+def close_loops(poses: np.ndarray, scans: list[RangeData], *, resolution: float,
+                jobs: int | None = None) -> LoopRefinement:
+    """``poses`` (n, 3) of ``scans`` optimized with the loop closures found between passes (module doc); a
+    chunk's candidates are matched on ``jobs`` threads (None: every core), applied in scan order."""
     poses = np.array(poses, dtype=np.float64, copy=True).reshape(-1, 3)
     n = len(poses)
     chunk_of = np.arange(n) // CHUNK
@@ -94,17 +97,11 @@ def close_loops(poses: np.ndarray, scans: list[RangeData], *, resolution: float)
         first, last = j * CHUNK, (j + 1) * CHUNK
         grid = map_of(poses[first:last], scans[first:last], resolution, hit_probability=HIT_PROBABILITY,
                       miss_probability=MISS_PROBABILITY)
-        for i in np.flatnonzero(near):
-            points = scans[i].returns
-            if known_score(grid, points, poses[i])[0] < PREFILTER_KNOWN:
-                continue
-            candidates += 1
-            start = correlative.match(grid, points, poses[i], linear_search_window=WINDOW_M,
-                                      angular_search_window=WINDOW_RAD).pose
-            pose = least_squares.match(grid, points, start).pose
-            share, probability = known_score(grid, points, pose)
-            if (share < MIN_KNOWN or probability < MIN_PROBABILITY
-                    or np.hypot(*(pose[:2] - poses[i, :2])) > MAX_MOVE_M):
+        idx = np.flatnonzero(near)
+        found = map_ordered(lambda i, grid=grid: _match(grid, scans[i].returns, poses[i]), idx, jobs)
+        for i, (searched, pose) in zip(idx, found):
+            candidates += searched
+            if pose is None:
                 continue
             matched[(int(i), j)] = pose
             corrections[(int(i), j)] = transform.compose(pose[None], transform.inverse(poses[i][None]))[0]
@@ -122,6 +119,19 @@ def close_loops(poses: np.ndarray, scans: list[RangeData], *, resolution: float)
     steps = NodePairs.consecutive(poses, translation_weight=WEIGHT[0], rotation_weight=WEIGHT[1])
     result = optimize(poses, anchors, constraints, local_slam=steps, huber_scale=HUBER)
     return LoopRefinement(result.node_poses, candidates, accepted)
+
+
+def _match(grid, points: np.ndarray, pose: np.ndarray) -> tuple[bool, np.ndarray | None]:
+    """(searched, the scan's pose in the chunk's grid or None when the match is not a revisit)."""
+    if known_score(grid, points, pose)[0] < PREFILTER_KNOWN:
+        return False, None
+    start = correlative.match(grid, points, pose, linear_search_window=WINDOW_M,
+                              angular_search_window=WINDOW_RAD).pose
+    found = least_squares.match(grid, points, start).pose
+    share, probability = known_score(grid, points, found)
+    if share < MIN_KNOWN or probability < MIN_PROBABILITY or np.hypot(*(found[:2] - pose[:2])) > MAX_MOVE_M:
+        return True, None
+    return True, found
 
 
 def _confirmed(corrections: dict[tuple[int, int], np.ndarray], i: int, j: int) -> bool:

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from carto_cli.core.parallel import map_ordered
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
 from carto_cli.matching import correlative, least_squares
@@ -44,18 +45,23 @@ def map_of(poses: np.ndarray, scans: list[RangeData], resolution: float, *, hit_
     return grid
 
 
-def refine_poses(poses: np.ndarray, scans: list[RangeData], *, resolution: float, iterations: int) -> np.ndarray:
+def refine_poses(poses: np.ndarray, scans: list[RangeData], *, resolution: float, iterations: int,
+                 jobs: int | None = None) -> np.ndarray:
     """``poses`` (n, 3) moved so each scan matches the map of all of them; ``iterations`` rounds of
     (build the map, re-match every scan: a correlative search around its pose, then least squares from the
-    best candidate). 0 returns a copy."""
+    best candidate) with the scans on ``jobs`` threads (None: every core). 0 returns a copy."""
     out = np.array(poses, dtype=np.float64, copy=True)
     for _ in range(iterations):
         grid = map_of(out, scans, resolution)
-        for k, scan in enumerate(scans):
-            if scan.returns.shape[0] == 0:
-                continue
-            start = correlative.match(grid, scan.returns, out[k], linear_search_window=SEARCH_WINDOW_M,
-                                      angular_search_window=SEARCH_WINDOW_RAD).pose
-            out[k] = least_squares.match(grid, scan.returns, start, target_translation=out[k, :2],
-                                         translation_weight=TRANSLATION_WEIGHT, rotation_weight=ROTATION_WEIGHT).pose
+        out = np.array(map_ordered(lambda k, grid=grid, at=out: _rematch(grid, scans[k].returns, at[k]),
+                                   range(len(scans)), jobs)).reshape(-1, 3)
     return out
+
+
+def _rematch(grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    if points.shape[0] == 0:
+        return pose
+    start = correlative.match(grid, points, pose, linear_search_window=SEARCH_WINDOW_M,
+                              angular_search_window=SEARCH_WINDOW_RAD).pose
+    return least_squares.match(grid, points, start, target_translation=pose[:2],
+                               translation_weight=TRANSLATION_WEIGHT, rotation_weight=ROTATION_WEIGHT).pose

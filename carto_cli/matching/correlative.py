@@ -65,7 +65,7 @@ def _score_table(unknown_probability: float) -> np.ndarray:
     return table
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _search(grid_cells, table, discrete, num_linear, num_angular, angular_step, resolution,
             translation_weight, rotation_weight):
     ny, nx = grid_cells.shape

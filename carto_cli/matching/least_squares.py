@@ -96,7 +96,7 @@ def _solve3(a, b):
     return x
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _levenberg_marquardt(cells, table, ox, oy, inv_res, points, x0, y0, th_init, tx, ty, s_occ, w_t, w_r,
                          max_iterations, function_tolerance, gradient_tolerance, parameter_tolerance):
     pose = np.array([x0, y0, th_init])

@@ -25,10 +25,14 @@ def test_a_drifted_second_lap_is_pulled_onto_the_first():
     drift[n:] = np.column_stack([0.25 * ramp, -0.15 * ramp, math.radians(1.5) * ramp])
     drifted = truth + drift
 
-    out = close_loops(drifted, scans, resolution=0.05)
+    out = close_loops(drifted, scans, resolution=0.05, jobs=2)
 
     assert out.accepted > 0
     assert _error(out.poses, truth) < 0.5 * _error(drifted, truth)
+    # The matches ran on two threads; one thread gives the very same graph and poses.
+    alone = close_loops(drifted, scans, resolution=0.05, jobs=1)
+    assert (alone.accepted, alone.candidates) == (out.accepted, out.candidates)
+    assert np.array_equal(alone.poses, out.poses)
 
 
 def test_without_a_revisit_nothing_moves():

@@ -47,9 +47,10 @@ def test_jittered_poses_move_back_towards_the_truth():
     scans = _scans(world, truth)
     # What the filter leaves: every pose a few centimetres and about a degree off, independently.
     noisy = truth + np.column_stack([rng.normal(0, 0.03, n), rng.normal(0, 0.03, n), rng.normal(0, 0.015, n)])
-    refined = refine_poses(noisy, scans, resolution=0.05, iterations=2)
+    refined = refine_poses(noisy, scans, resolution=0.05, iterations=2, jobs=2)
 
     assert _error(refined, truth) < 0.5 * _error(noisy, truth)
+    assert np.array_equal(refine_poses(noisy, scans, resolution=0.05, iterations=2, jobs=1), refined)
     assert np.array_equal(refine_poses(noisy, scans, resolution=0.05, iterations=0), noisy)
 
 
