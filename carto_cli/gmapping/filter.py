@@ -28,7 +28,7 @@ from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
 from carto_cli.gmapping import loops, matcher, motion, refine, resampling
-from carto_cli.gmapping.maps import TILE, TiledMaps
+from carto_cli.gmapping.maps import CELL_BYTES, TILE, TiledMaps
 from carto_cli.grid.occupancy_image import OccupancyImage
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.slam import SlamResult
@@ -336,7 +336,7 @@ class GMappingSlam:
             "resamplings": self.resamplings,
             "mean_neff": float(np.mean(self.neff_history)) if self.neff_history else None,
             "map_tiles_peak": int(self.maps.peak_tiles),
-            "map_memory_peak_bytes": int(self.maps.peak_tiles * TILE * TILE * 16),
+            "map_memory_peak_bytes": int(self.maps.peak_tiles * TILE * TILE * CELL_BYTES),
             "wall_time_s": wall,
             "scans_per_s": self.num_scans / wall if wall > 0 else float("nan"),
             "empty_scans": self.empty_scans,

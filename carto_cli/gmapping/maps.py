@@ -27,10 +27,10 @@ import numpy as np
 from numba import njit, prange
 
 TILE_BITS = 5
-TILE = 1 << TILE_BITS  # cells per tile side: 16 KB per tile, ~1 m at the default delta
+TILE = 1 << TILE_BITS  # cells per tile side: 17 KB per tile, ~1.6 m at the default delta
 TILE_MASK = TILE - 1  # cell >> TILE_BITS and cell & TILE_MASK: floor division and modulo, negatives too
 _GROW_MARGIN = 8  # tiles added on each side when the table grows
-_CELL_BYTES = 4 + 4 + 8 + 1  # hits, visits, mean endpoint (2 x float32), state
+CELL_BYTES = 4 + 4 + 8 + 1  # hits, visits, mean endpoint (2 x float32), state
 FULLNESS = 0.1  # a cell hit on more than this share of the rays reaching it is a wall
 UNKNOWN, SEEN, WALL = 0, 1, 2  # a cell's state
 
@@ -70,7 +70,7 @@ class TiledMaps:
     @property
     def memory_bytes(self) -> int:
         """Bytes held by the pool (used and free tiles) and the tables."""
-        return (self.capacity * TILE * TILE * _CELL_BYTES + self.refs.nbytes + self.table.nbytes
+        return (self.capacity * TILE * TILE * CELL_BYTES + self.refs.nbytes + self.table.nbytes
                 + self.marks.nbytes + self._free.nbytes)
 
     def ensure_covers(self, xmin: float, ymin: float, xmax: float, ymax: float) -> None:
@@ -123,8 +123,8 @@ class TiledMaps:
         needed = _count_needed(self.table, self.marks, self.refs)
         if needed > self._nfree:
             self._grow_pool(needed - self._nfree)
-        self._nfree = _claim_tiles(self.table, self.marks, self.refs, self.hits, self.visits, self.mean,
-                                   self.state, self._free, self._nfree)
+        self._nfree, sources, targets = _claim_tiles(self.table, self.marks, self.refs, self._free, self._nfree)
+        _fill_tiles(sources, targets, self.hits, self.visits, self.mean, self.state)
         _update_cells(self.table, self.marks, self.hits, self.visits, self.mean, self.state, poses, float(origin[0]),
                       float(origin[1]), ends, np.ascontiguousarray(hit, dtype=np.bool_), self.resolution, ox, oy)
         self.peak_tiles = max(self.peak_tiles, self.tiles_in_use)
@@ -264,8 +264,21 @@ def _count_needed(table, marks, refs):
 
 
 @njit(cache=True)
-def _claim_tiles(table, marks, refs, hits, visits, mean, state, free, nfree):
-    """Give each particle its own copy of every tile it is about to write (a fresh one where it has none)."""
+def _claim_tiles(table, marks, refs, free, nfree):
+    """Give each particle its own tile id for every tile it is about to write (a fresh one where it has none);
+    returns the free count left and the (source, target) pairs to copy (source -1: an empty tile). The ids are
+    handed out in order here, sequentially; ``_fill_tiles`` copies the cells in parallel."""
+    n = 0
+    for p in range(table.shape[0]):
+        for ty in range(table.shape[1]):
+            for tx in range(table.shape[2]):
+                if marks[p, ty, tx]:
+                    t = table[p, ty, tx]
+                    if t < 0 or refs[t] > 1:
+                        n += 1
+    sources = np.empty(n, np.int32)
+    targets = np.empty(n, np.int32)
+    k = 0
     for p in range(table.shape[0]):
         for ty in range(table.shape[1]):
             for tx in range(table.shape[2]):
@@ -276,20 +289,33 @@ def _claim_tiles(table, marks, refs, hits, visits, mean, state, free, nfree):
                     continue
                 nfree -= 1
                 fresh = free[nfree]
-                if t < 0:
-                    hits[fresh] = 0
-                    visits[fresh] = 0
-                    mean[fresh] = 0.0
-                    state[fresh] = UNKNOWN
-                else:
-                    hits[fresh] = hits[t]
-                    visits[fresh] = visits[t]
-                    mean[fresh] = mean[t]
-                    state[fresh] = state[t]
+                if t >= 0:
                     refs[t] -= 1
                 refs[fresh] = 1
                 table[p, ty, tx] = fresh
-    return nfree
+                sources[k] = t
+                targets[k] = fresh
+                k += 1
+    # Fewer than counted when particles shared a tile: the last one to claim it keeps the original.
+    return nfree, sources[:k], targets[:k]
+
+
+@njit(cache=True, parallel=True)
+def _fill_tiles(sources, targets, hits, visits, mean, state):
+    """Tile targets[i] becomes a copy of sources[i] (an empty tile where the source is -1). No target is
+    anyone's source: a target was free, a source is still held."""
+    for i in prange(targets.shape[0]):
+        t, fresh = sources[i], targets[i]
+        if t < 0:
+            hits[fresh] = 0
+            visits[fresh] = 0
+            mean[fresh] = 0.0
+            state[fresh] = UNKNOWN
+        else:
+            hits[fresh] = hits[t]
+            visits[fresh] = visits[t]
+            mean[fresh] = mean[t]
+            state[fresh] = state[t]
 
 
 @njit(cache=True, parallel=True)
@@ -323,7 +349,11 @@ def _update_cells(table, marks, hits, visits, mean, state, poses, lx, ly, ends, 
                     hits[t, v, u] = m
                     mean[t, v, u, 0] += (ex - mean[t, v, u, 0]) / m
                     mean[t, v, u, 1] += (ey - mean[t, v, u, 1]) / m
-                state[t, v, u] = WALL if hits[t, v, u] > FULLNESS * visits[t, v, u] else SEEN
+                    state[t, v, u] = WALL if m > FULLNESS * visits[t, v, u] else SEEN
+                elif state[t, v, u] == WALL:
+                    state[t, v, u] = WALL if hits[t, v, u] > FULLNESS * visits[t, v, u] else SEEN
+                else:
+                    state[t, v, u] = SEEN  # a ray through a cell that was no wall leaves it none
         marks[p, :, :] = 0
 
 
