@@ -44,7 +44,25 @@ def _state(table, p, h, w, state, cx, cy, ox, oy):
 
 
 @njit(cache=True)
-def _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma, lsigma, stride,
+def _back_steps(points, lx, ly, res):
+    """For each point (tracking frame), the step from it back towards the sensor at (lx, ly) that reaches the
+    cell the beam must have crossed free: ``FREE_STEP`` cells (GMapping's freeCellRatio; one cell often stays
+    inside the endpoint's own cell, which then rejected the wall itself: a fifth of the beams of a scan against
+    its own map). (0, 0) for a point within a cell of the sensor, which is not matched. A turn of the pose turns
+    these steps, so they are made once per scan rather than per pose."""
+    out = np.zeros_like(points)
+    for i in range(points.shape[0]):
+        dx = points[i, 0] - lx
+        dy = points[i, 1] - ly
+        norm = math.sqrt(dx * dx + dy * dy)
+        if norm > res:
+            out[i, 0] = FREE_STEP * res * dx / norm
+            out[i, 1] = FREE_STEP * res * dy / norm
+    return out
+
+
+@njit(cache=True)
+def _evaluate(table, p, state, mean, ox, oy, res, points, back, x, y, th, kernel, sigma, lsigma, stride,
               unknown_ll, every=1):
     """(score, log-likelihood) of ``points`` (tracking frame) seen from pose (x, y, th) in particle p's map;
     the likelihood uses every ``stride``-th point, and ``unknown_ll`` for one with no wall near it that fell
@@ -52,8 +70,6 @@ def _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th, kern
     ``every``-th point (both values)."""
     h, w = table.shape[1], table.shape[2]
     c, s = math.cos(th), math.sin(th)
-    sx = x + c * lx - s * ly
-    sy = y + s * lx + c * ly
     inv_two_sigma2 = 0.5 / (sigma * sigma)
     inv_res = 1.0 / res
     score = 0.0
@@ -61,18 +77,14 @@ def _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th, kern
     for i in range(0, points.shape[0], every):
         px = x + c * points[i, 0] - s * points[i, 1]
         py = y + s * points[i, 0] + c * points[i, 1]
-        dx = px - sx
-        dy = py - sy
-        norm = math.sqrt(dx * dx + dy * dy)
-        if norm <= res:
+        # The cell one step back towards the sensor: a wall only counts if the beam came from free space.
+        bxr, byr = back[i, 0], back[i, 1]
+        if bxr == 0.0 and byr == 0.0:
             continue
         ix = int(math.floor(px * inv_res))
         iy = int(math.floor(py * inv_res))
-        # The cell one step back towards the sensor: a wall only counts if the beam came from free space. The
-        # step is sqrt(2) cells (GMapping's freeCellRatio): one cell often stays inside the endpoint's own cell,
-        # which then rejected the wall itself (a fifth of the beams of a scan against its own map).
-        bx = int(math.floor((px - FREE_STEP * res * dx / norm) * inv_res)) - ix
-        by = int(math.floor((py - FREE_STEP * res * dy / norm) * inv_res)) - iy
+        bx = int(math.floor((px - (c * bxr - s * byr)) * inv_res)) - ix
+        by = int(math.floor((py - (s * bxr + c * byr)) * inv_res)) - iy
         best = 1e300
         known = False
         u0 = ix & TILE_MASK
@@ -136,9 +148,10 @@ def climb(table, state, mean, ox, oy, res, points, lx, ly, poses, kernel, sigma,
     n_particles = poses.shape[0]
     out = poses.copy()
     scores = np.zeros(n_particles)
+    back = _back_steps(points, lx, ly, res)
     for p in prange(n_particles):
         x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
-        best, _ = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th, kernel, sigma,
+        best, _ = _evaluate(table, p, state, mean, ox, oy, res, points, back, x, y, th, kernel, sigma,
                             1.0, 1, 0.0)
         step = 0.5 * astep
         n_sweep = int(sweeps[p] / step)
@@ -147,14 +160,14 @@ def climb(table, state, mean, ox, oy, res, points, lx, ly, poses, kernel, sigma,
             # Every heading on a quarter of the points, then the few best on all of them
             coarse = np.empty(2 * n_sweep + 1)
             for k in range(-n_sweep, n_sweep + 1):
-                coarse[k + n_sweep], _ = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y,
+                coarse[k + n_sweep], _ = _evaluate(table, p, state, mean, ox, oy, res, points, back, x, y,
                                                    th0 + k * step, kernel, sigma, 1.0, 1, 0.0, SWEEP_EVERY)
             order = np.argsort(-coarse)
             for r in range(min(SWEEP_FINALISTS, order.shape[0])):
                 k = order[r] - n_sweep
                 if k == 0:
                     continue
-                sc, _ = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th0 + k * step,
+                sc, _ = _evaluate(table, p, state, mean, ox, oy, res, points, back, x, y, th0 + k * step,
                                   kernel, sigma, 1.0, 1, 0.0)
                 if sc > best:
                     best = sc
@@ -185,7 +198,7 @@ def climb(table, state, mean, ox, oy, res, points, lx, ly, poses, kernel, sigma,
                     ct += a
                 else:
                     ct -= a
-                sc, _ = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, cx, cy, ct, kernel,
+                sc, _ = _evaluate(table, p, state, mean, ox, oy, res, points, back, cx, cy, ct, kernel,
                                   sigma, 1.0, 1, 0.0)
                 if sc > best:
                     best = sc
@@ -223,6 +236,7 @@ def propose(table, state, mean, ox, oy, res, points, lx, ly, modes, means, sigma
     m = (2 * nl + 1) * (2 * nl + 1) * (2 * na + 1)
     out = modes.copy()
     log_eta = np.zeros(n_particles)
+    back = _back_steps(points, lx, ly, res)
     at_mode = np.zeros(n_particles)
     for p in prange(n_particles):
         xs = np.empty((m, 3))
@@ -234,7 +248,7 @@ def propose(table, state, mean, ox, oy, res, points, lx, ly, modes, means, sigma
                     x = modes[p, 0] + i * lin_step
                     y = modes[p, 1] + j * lin_step
                     th = modes[p, 2] + a * ang_step
-                    _, ll = _evaluate(table, p, state, mean, ox, oy, res, points, lx, ly, x, y, th, kernel,
+                    _, ll = _evaluate(table, p, state, mean, ox, oy, res, points, back, x, y, th, kernel,
                                       sigma, lsigma, stride, unknown_ll)
                     if i == 0 and j == 0 and a == 0:
                         at_mode[p] = ll
