@@ -12,12 +12,12 @@ endpoint, which is what the scan matcher measures distances to (sub-cell precisi
 the matcher asks of a cell (never seen, seen, or a wall) is also kept as one byte, updated with the
 counts: the matcher reads a 3 x 3 neighbourhood per endpoint some hundred times per particle and scan,
 and one byte per cell and the means of the walls touch a fraction of the memory the counts would
-(1.6x faster matching on intel, docs/gmapping.md).
+(the climb about twice as fast on intel, docs/gmapping.md).
 
 Writing happens in three steps so that particles update in parallel without locks: the tiles each
 particle's rays cross are marked (in parallel), marked tiles that are missing or shared get a fresh
-tile from the pool (sequential, cheap), then the cells are updated (in parallel; each particle writes
-only tiles it now owns).
+tile id from the pool (sequential, cheap) and their cells copied (in parallel), then the cells are updated
+(in parallel; each particle writes only tiles it now owns).
 """
 from __future__ import annotations
 
