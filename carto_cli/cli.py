@@ -198,8 +198,12 @@ def map_(
     ),
     strict: bool = typer.Option(False, "--strict", help="Exit 3 on a 'suspect' map too (for CI), not only 'failed'."),
     algorithm: str | None = ALGORITHM,
+    force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
+
+    The outputs are written as one set (all replaced together or none); an earlier map in the output
+    directory is kept unless --force.
 
     carto judges its own map and prints 'map quality: ok | suspect | failed' with the reasons (also in
     summary.json). Exit status: 0 success; 3 the map is 'failed' (or 'suspect' with --strict), its outputs
@@ -218,7 +222,7 @@ def map_(
             laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
             on_total=bar.set_total, loop_closure=not no_loop_closure, state=not no_state,
             load_state=load_state, on_configured=_say_configured,
-            algorithm=algorithm,
+            algorithm=algorithm, force=force,
         )
     if timings:
         typer.echo(report_tree_text(timer))

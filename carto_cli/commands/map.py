@@ -10,13 +10,18 @@ from pathlib import Path
 from carto_cli.commands.common import check_algorithm
 from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
-from carto_cli.io.atomic import write_text_atomic
+from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
 from carto_cli.pipeline import Auto, Configured, MapResult, build_configured, configure, opened, read_options
 
-__all__ = ["MapOutputs", "compile_note", "default_outdir", "run_map", "summary_line", "write_outputs"]
+__all__ = ["OUTPUT_NAMES", "MapOutputs", "check_outdir", "compile_note", "default_outdir", "run_map", "summary_line",
+           "write_outputs"]
+
+OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto", "summary.json")
+# What a recording's name ends with: cut off for the default output directory, the rest of the name kept
+RECORDING_SUFFIXES = (".gz", ".bag", ".mcap", ".db3", ".clf", ".log", ".gfs")
 
 COMPILE_NOTE_MIN_S = 1.0  # below this, compiling kernels is not worth a mention
 
@@ -33,24 +38,51 @@ class MapOutputs:
 
 def write_outputs(result: MapResult, outdir: Path, options: Options | None = None, *, state: bool = True,
                   recordings=()) -> MapOutputs:
+    """Every output of ``result`` in ``outdir``, as one set: written to a staging directory first and moved into
+    place together, so an interrupted or failed write leaves the earlier set (or nothing) as it was. Whether
+    an existing set may be replaced is :func:`check_outdir`'s question, asked before mapping."""
     outdir = Path(outdir)
-    pgm, yml = write_map(outdir, result.image)
-    png = write_png(outdir / "map.png", render_png(result.image, result.poses, result.loop_closures))
-    traj = write_trajectory(outdir / "trajectory.tum", Trajectory.from_poses(result.times, result.poses), fmt="tum")
-    state_path = None
-    if state and options is not None and result.graph is not None:
-        from carto_cli.io.map_file import save_map
+    if result.image.probability.size == 0:
+        raise CartoError("the map is empty: no scan was inserted", outdir)
+    with output_set(outdir, OUTPUT_NAMES) as staging:
+        write_map(staging, result.image)
+        write_png(staging / "map.png", render_png(result.image, result.poses, result.loop_closures))
+        write_trajectory(staging / "trajectory.tum", Trajectory.from_poses(result.times, result.poses), fmt="tum")
+        wrote_state = False
+        if state and options is not None and result.graph is not None:
+            from carto_cli.io.map_file import save_map
 
-        state_path = save_map(outdir / "map.carto", result, options, recordings=recordings)
-    summary = outdir / "summary.json"
-    write_text_atomic(summary, json.dumps(result.summary(), indent=1, default=float) + "\n")
-    return MapOutputs(pgm, yml, png, traj, state_path, summary)
+            save_map(staging / "map.carto", result, options, recordings=recordings)
+            wrote_state = True
+        write_text_atomic(staging / "summary.json", json.dumps(result.summary(), indent=1, default=float) + "\n")
+    return MapOutputs(outdir / "map.pgm", outdir / "map.yaml", outdir / "map.png", outdir / "trajectory.tum",
+                      outdir / "map.carto" if wrote_state else None, outdir / "summary.json")
 
 
 def default_outdir(recording_path: Path) -> Path:
-    """``RECORDING_map`` next to the recording (its name up to the first dot)."""
+    """``NAME_map`` next to the recording, NAME its whole name without the recording's suffixes
+    (robot.2024.05.01.bag -> robot.2024.05.01_map, scans.clf.gz -> scans_map)."""
     recording_path = Path(recording_path)
-    return recording_path.parent / f"{recording_path.name.split('.')[0]}_map"
+    name = recording_path.name.rstrip("/")
+    while True:
+        cut = next((s for s in RECORDING_SUFFIXES if name.lower().endswith(s) and len(name) > len(s)), None)
+        if cut is None:
+            break
+        name = name[:-len(cut)]
+    return recording_path.parent / f"{name}_map"
+
+
+def check_outdir(outdir: Path, *, force: bool = False) -> None:
+    """Refuse, before any work, an output directory that is a file, or that holds an earlier map unless
+    ``force``."""
+    outdir = Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise CartoError("exists and is not a directory; the outputs go into a directory (give another -o)",
+                         outdir)
+    taken = existing_outputs(outdir, OUTPUT_NAMES)
+    if taken and not force:
+        raise CartoError(f"already holds a map ({', '.join(taken)}); --force replaces it, or give another -o",
+                         outdir)
 
 
 def run_map(
@@ -71,12 +103,13 @@ def run_map(
     load_state: Path | None = None,
     on_configured: Callable[[Configured], None] | None = None,
     algorithm: str | None = None,
+    force: bool = False,
 ) -> tuple[MapResult, MapOutputs]:
     """Map a recording and write every output (to ``default_outdir`` when ``outdir`` is None); with
     ``load_state`` continue an existing map.carto; with :class:`~carto_cli.pipeline.Auto` options chosen
     from the recording; ``algorithm`` "gmapping" maps with the particle filter (``options.gmapping``), None
     leaves the choice to auto (Cartographer for a named profile). ``timer`` is stopped once the outputs are
-    written."""
+    written. An earlier map in the output directory is replaced only with ``force`` (checked before mapping)."""
     if algorithm is not None:
         check_algorithm(algorithm)
     elif load_state is not None:
@@ -87,10 +120,7 @@ def run_map(
                          "(drop --load-state or use --algorithm cartographer)", load_state)
     if outdir is None:
         outdir = default_outdir(recording_path)
-    if Path(outdir).exists() and not Path(outdir).is_dir():
-        # Before mapping: writing the outputs would fail only after the whole recording was mapped.
-        raise CartoError("exists and is not a directory; the outputs go into a directory (give another -o)",
-                         outdir)
+    check_outdir(outdir, force=force)  # before mapping: not after the whole recording was mapped
     graph = None
     trajectory_id = 0
     recordings = [Path(recording_path).name]

@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -45,3 +45,62 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 def write_bytes_atomic(path: str | Path, data: bytes) -> None:
     with atomic_output(path) as tmp:
         tmp.write_bytes(data)
+
+
+STAGING_PREFIX = ".carto-partial-"
+
+
+def existing_outputs(outdir: str | Path, names: Iterable[str]) -> list[str]:
+    """Which of ``names`` already exist in ``outdir``."""
+    outdir = Path(outdir)
+    return [n for n in names if (outdir / n).exists()] if outdir.is_dir() else []
+
+
+@contextmanager
+def output_set(outdir: str | Path, names: Iterable[str]) -> Iterator[Path]:
+    """Stage a command's outputs (``names`` in ``outdir``) in a hidden directory inside ``outdir`` and move
+    them into place together once every one is written; on failure or interruption none of them moves and the
+    earlier set stays as it was. An output of the set that this run did not write (map.carto after
+    ``--no-state``) is removed, so the set never mixes two runs. The caller decides beforehand whether an
+    existing set may be replaced (``existing_outputs``).
+
+    A staging directory left by a killed process (its pid no longer running) is removed on the next run."""
+    outdir = Path(outdir)
+    names = list(names)
+    created = not outdir.exists()
+    outdir.mkdir(parents=True, exist_ok=True)
+    _remove_stale_staging(outdir)
+    staging = Path(tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{os.getpid()}-", dir=outdir))
+    done = False
+    try:
+        yield staging
+        written = {p.name for p in staging.iterdir()}
+        for name in names:
+            if name in written:
+                os.replace(staging / name, outdir / name)
+            elif (outdir / name).exists():
+                (outdir / name).unlink()
+        done = True
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+        if created and not done and not any(outdir.iterdir()):
+            outdir.rmdir()
+
+
+def _remove_stale_staging(outdir: Path) -> None:
+    for d in outdir.glob(f"{STAGING_PREFIX}*"):
+        pid = d.name[len(STAGING_PREFIX):].split("-", 1)[0]
+        if pid.isdigit() and not _running(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
+def _running(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True

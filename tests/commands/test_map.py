@@ -106,11 +106,11 @@ def test_run_map_as_a_library_call(sim_bag, tmp_path):
     bag, sim = sim_bag
     copy = tmp_path / "drive.2024.bag"
     copy.write_bytes(bag.read_bytes())
-    assert default_outdir(copy) == tmp_path / "drive_map"
+    assert default_outdir(copy) == tmp_path / "drive.2024_map"
     timer, totals = StageTimer(), []
     options = load_options(None, FAST[1:])
     result, outputs = run_map(copy, None, options, timer=timer, on_total=totals.append, state=False)
-    assert outputs.yaml == tmp_path / "drive_map" / "map.yaml" and outputs.state is None
+    assert outputs.yaml == tmp_path / "drive.2024_map" / "map.yaml" and outputs.state is None
     assert totals == [sim.counts()["/scan"]]
     assert timer.snapshot().scans == result.stats["scans"]
     before = timer.snapshot().wall_ns
@@ -210,3 +210,80 @@ def test_an_output_path_that_is_a_file_is_refused_before_mapping(tmp_path, sim_b
     assert f"{taken}: exists and is not a directory" in r.output and "Traceback" not in r.output
     assert taken.read_text() == "keep me\n"
     assert "scans" not in r.output  # refused before the recording was mapped
+
+
+def _snapshot(out):
+    return {p.name: p.read_bytes() for p in sorted(out.iterdir())}
+
+
+def test_an_earlier_map_is_kept_unless_force(tmp_path, sim_bag):
+    bag, _ = sim_bag
+    out = tmp_path / "o"
+    assert runner.invoke(app, ["map", str(bag), "-o", str(out), *FAST]).exit_code == 0
+    before = _snapshot(out)
+    assert set(before) == {"map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto", "summary.json"}
+
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), *FAST])
+    assert r.exit_code == 2 and "Traceback" not in r.output
+    assert f"{out}: already holds a map (map.pgm, " in r.output and "--force" in r.output
+    assert "scans" not in r.stdout  # refused before mapping
+    assert _snapshot(out) == before
+
+    # --force replaces the whole set: an output this run does not write does not survive from the last one.
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--no-state", "--force", *FAST])
+    assert r.exit_code == 0, r.output
+    assert not (out / "map.carto").exists() and (out / "map.pgm").exists()
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == []
+
+
+def test_an_interrupted_write_leaves_the_earlier_set(tmp_path, sim_bag, monkeypatch):
+    from carto_cli.io import map_file
+
+    bag, _ = sim_bag
+    out = tmp_path / "o"
+    assert runner.invoke(app, ["map", str(bag), "-o", str(out), *FAST]).exit_code == 0
+    before = _snapshot(out)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt  # Ctrl-C after the map, the image and the trajectory were staged
+
+    monkeypatch.setattr(map_file, "save_map", interrupted)
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--force", *FAST])
+    assert r.exit_code == 130
+    assert _snapshot(out) == before  # nothing of the half-written set moved in, nothing left behind
+
+
+def test_a_staging_directory_of_a_killed_run_is_cleared(tmp_path):
+    from carto_cli.io.atomic import STAGING_PREFIX, output_set
+
+    out = tmp_path / "o"
+    dead = out / f"{STAGING_PREFIX}999999999-abc"  # no such pid
+    dead.mkdir(parents=True)
+    (dead / "map.pgm").write_bytes(b"half")
+    with output_set(out, ["a.txt"]) as staging:
+        (staging / "a.txt").write_text("x")
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]
+
+
+def test_a_failed_first_write_leaves_no_directory(tmp_path):
+    from carto_cli.io.atomic import output_set
+
+    out = tmp_path / "new"
+    with pytest.raises(RuntimeError), output_set(out, ["a.txt"]) as staging:
+        (staging / "a.txt").write_text("x")
+        raise RuntimeError("disk full")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("name, want", [
+    ("robot.2024.05.01.bag", "robot.2024.05.01_map"),
+    ("scans.clf.gz", "scans_map"),
+    ("run.MCAP", "run_map"),
+    ("rosbag2_2024_05_01-10_00_00", "rosbag2_2024_05_01-10_00_00_map"),
+    ("intel.log", "intel_map"),
+    (".bag", ".bag_map"),
+])
+def test_default_output_names_keep_the_whole_name(tmp_path, name, want):
+    from carto_cli.commands.map import default_outdir
+
+    assert default_outdir(tmp_path / name) == tmp_path / want
