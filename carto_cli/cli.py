@@ -294,6 +294,7 @@ def profile_(
     relocalize_map: Path | None = typer.Option(
         None, "--relocalize", help="Also profile relocalizing every 10th scan of RECORDING in this map.carto."),
     algorithm: str | None = ALGORITHM,
+    force: bool = typer.Option(False, "--force", "-f", help="Replace the --output file if it exists."),
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates."""
     from carto_cli.commands.profile import run_profile
@@ -305,7 +306,7 @@ def profile_(
         run = run_profile(recording, options, scan_topic=scan_topic, odom_topic=odom_topic, output=output,
                           baseline=baseline, calibrate_first=calibrate, max_scans=max_scans,
                           relocalize_map=relocalize_map, on_total=bar.set_total, on_scan=bar.advance,
-                          algorithm=algorithm)
+                          algorithm=algorithm, force=force)
     report = run.report
     typer.echo(json.dumps(report, indent=2) if as_json else format_report(report))
     if not as_json and "relocalization" in report:

@@ -52,12 +52,16 @@ def run_profile(
     on_total: Callable[[int], None] | None = None,
     on_scan: Callable[[int], None] | None = None,
     algorithm: str | None = None,
+    force: bool = False,
 ) -> ProfileRun:
     """Map ``recording`` (its first ``max_scans`` scans) with ``algorithm`` under a StageTimer and build the
     report; with ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with
-    ``output`` write the report there. ``on_total`` hears how many scans will be mapped."""
+    ``output`` write the report there (an existing file only with ``force``, refused before any work).
+    ``on_total`` hears how many scans will be mapped."""
     if algorithm is not None:
         check_algorithm(algorithm)
+    if output is not None and Path(output).exists() and not force:
+        raise CartoError("exists; --force replaces it, or give another --output", output)
     base = read_baseline(baseline) if baseline is not None else None
 
     def check_baseline(runs: str) -> None:

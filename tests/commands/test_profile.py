@@ -55,6 +55,19 @@ def test_bad_baseline_fails_before_mapping(tmp_path):
         read_baseline(bad)
 
 
+def test_an_existing_output_is_kept_unless_force(first, tmp_path):
+    _, out, _, _ = first
+    before = out.read_bytes()
+    # Refused before the recording is even opened (it does not exist).
+    with pytest.raises(CartoError, match="--force") as e:
+        run_profile(tmp_path / "no-such-recording.bag", load_options(), output=out)
+    assert e.value.path == str(out) and out.read_bytes() == before
+    replaced = tmp_path / "again.json"
+    replaced.write_text("old")
+    run_profile(SAMPLE_BAG, load_options(), output=replaced, max_scans=5, force=True)
+    assert json.loads(replaced.read_text())["counts"]["scans"] == 5
+
+
 @pytest.fixture(scope="module")
 def gmapping_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("profile") / "gmapping.json"
