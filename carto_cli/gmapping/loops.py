@@ -22,6 +22,7 @@ decides the topology; this moves whole passes by centimetres to decimetres.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -98,7 +99,7 @@ def close_loops(poses: np.ndarray, scans: list[RangeData], *, resolution: float,
         grid = map_of(poses[first:last], scans[first:last], resolution, hit_probability=HIT_PROBABILITY,
                       miss_probability=MISS_PROBABILITY)
         idx = np.flatnonzero(near)
-        found = map_ordered(lambda i, grid=grid: _match(grid, scans[i].returns, poses[i]), idx, jobs)
+        found = map_ordered(functools.partial(_match_scan, grid, scans, poses), idx, jobs)
         for i, (searched, pose) in zip(idx, found):
             candidates += searched
             if pose is None:
@@ -119,6 +120,10 @@ def close_loops(poses: np.ndarray, scans: list[RangeData], *, resolution: float,
     steps = NodePairs.consecutive(poses, translation_weight=WEIGHT[0], rotation_weight=WEIGHT[1])
     result = optimize(poses, anchors, constraints, local_slam=steps, huber_scale=HUBER)
     return LoopRefinement(result.node_poses, candidates, accepted)
+
+
+def _match_scan(grid, scans: list[RangeData], poses: np.ndarray, i: int) -> tuple[bool, np.ndarray | None]:
+    return _match(grid, scans[i].returns, poses[i])
 
 
 def _match(grid, points: np.ndarray, pose: np.ndarray) -> tuple[bool, np.ndarray | None]:

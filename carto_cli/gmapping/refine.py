@@ -11,6 +11,7 @@ relation error on each of the four key-scan buildings GMapping maps under auto).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -53,9 +54,13 @@ def refine_poses(poses: np.ndarray, scans: list[RangeData], *, resolution: float
     out = np.array(poses, dtype=np.float64, copy=True)
     for _ in range(iterations):
         grid = map_of(out, scans, resolution)
-        out = np.array(map_ordered(lambda k, grid=grid, at=out: _rematch(grid, scans[k].returns, at[k]),
-                                   range(len(scans)), jobs)).reshape(-1, 3)
+        moved = map_ordered(functools.partial(_rematch_scan, grid, scans, out), range(len(scans)), jobs)
+        out = np.array(moved, dtype=np.float64).reshape(-1, 3)
     return out
+
+
+def _rematch_scan(grid: ProbabilityGrid, scans: list[RangeData], poses: np.ndarray, k: int) -> np.ndarray:
+    return _rematch(grid, scans[k].returns, poses[k])
 
 
 def _rematch(grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
