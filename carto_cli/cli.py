@@ -10,10 +10,15 @@ import typer
 from carto_cli import __version__
 from carto_cli.core.errors import CartoError
 
+EXIT_STATUS = ("Exit status, every command: 0 success; 1 internal error; 2 bad input or usage; 3 a check you "
+               "asked for failed (a gate of eval or profile, a 'failed' map or a 'suspect' one with map --strict, "
+               "an unreliable relocalization); 130 interrupted (Ctrl-C or SIGTERM).")
+
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     help="2D LiDAR SLAM from recorded data: maps, relocalization, tuning and profiling.",
+    epilog=EXIT_STATUS,
     context_settings={"help_option_names": ["-h", "--help"]},
     pretty_exceptions_enable=False,
 )
@@ -32,11 +37,15 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
-EXIT_CHECK_FAILED = 3  # a check the user relies on failed: a 'failed' map (or 'suspect' with --strict)
+EXIT_INTERNAL = 1
+EXIT_USAGE = 2  # bad input: the file and the problem in one line
+EXIT_CHECK_FAILED = 3  # a check the user relies on failed: a gate, a 'failed' map, an unreliable relocalization
+EXIT_INTERRUPTED = 130  # Ctrl-C or SIGTERM
 
 
 def handle_errors(fn):
-    """User errors: one line, exit 2. Internal errors: one line, exit 1. Tracebacks only with --debug."""
+    """User errors: one line, exit 2. Internal errors: one line, exit 1. Interrupted: exit 130. Tracebacks only
+    with --debug."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -47,13 +56,13 @@ def handle_errors(fn):
         except CartoError as e:
             if state.debug:
                 raise
-            _fail(f"error: {e}", 2)
+            _fail(f"error: {e}", EXIT_USAGE)
         except KeyboardInterrupt:
-            _fail("interrupted", 130)
+            _fail("interrupted", EXIT_INTERRUPTED)
         except Exception as e:
             if state.debug:
                 raise
-            _fail(f"internal error: {type(e).__name__}: {e} (rerun with --debug for a traceback)", 1)
+            _fail(f"internal error: {type(e).__name__}: {e} (rerun with --debug for a traceback)", EXIT_INTERNAL)
 
     return wrapper
 
@@ -234,14 +243,14 @@ def map_(
 
 
 def _finish_gates(gates, junit: Path | None, suite: str, label: str) -> None:
-    """JUnit output if asked, one stderr line per failed gate, exit 1 if any failed."""
+    """JUnit output if asked, one stderr line per failed gate, exit 3 if any failed."""
     from carto_cli.commands.common import record_gates
 
     failed = record_gates(gates, junit, suite)
     for g in failed:
         typer.echo(f"carto: {label}: {g.message}", err=True)
     if failed:
-        raise typer.Exit(1)
+        raise typer.Exit(EXIT_CHECK_FAILED)
 
 
 @app.command("eval")
@@ -255,9 +264,9 @@ def eval_(
     rpe_delta: float = typer.Option(1.0, "--rpe-delta", help="RPE step in seconds (with --ground-truth)."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
     max_trans_error: float | None = typer.Option(
-        None, "--max-trans-error", help="Gate: exit 1 if the mean relation error (else ATE RMSE) exceeds M metres."),
+        None, "--max-trans-error", help="Gate: exit 3 if the mean relation error (else ATE RMSE) exceeds M metres."),
     max_rot_error: float | None = typer.Option(
-        None, "--max-rot-error", help="Gate: exit 1 if the mean rotational error exceeds DEG degrees."),
+        None, "--max-rot-error", help="Gate: exit 3 if the mean rotational error exceeds DEG degrees."),
     junit: Path | None = typer.Option(None, "--junit", help="Write the gates' outcome as JUnit XML."),
 ):
     """Score a trajectory: relation error (Kuemmerle et al.) and/or ATE + RPE against a ground truth."""
@@ -367,7 +376,7 @@ def relocalize_(
     if result.reason:
         typer.echo(f"{'why' if not result.success else 'notes'}: {result.reason}")
     if not result.success:
-        raise typer.Exit(1)
+        raise typer.Exit(EXIT_CHECK_FAILED)
 
 
 profiles_app = typer.Typer(help="Environment profiles: list them, show the effective options.", no_args_is_help=True)
@@ -456,5 +465,18 @@ def options_(
         typer.echo(format_option(i))
 
 
+def _terminate_as_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM (a CI job cancelled, `timeout`, `docker stop`) stops a command as Ctrl-C does: exit 130, the
+    output set left as it was."""
+    import signal
+
+    signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+
+
 def main() -> None:
+    stop_on_sigterm()
     app(prog_name="carto")

@@ -171,3 +171,54 @@ def test_algorithm_help_names_the_gmapping_options():
     result = run("map", "--help")
     assert result.exit_code == 0
     assert "--algorithm" in result.stdout and "gmapping.particles=30" in result.stdout
+
+
+def test_help_states_the_exit_status_contract():
+    r = run("--help")
+    assert r.exit_code == 0
+    text = " ".join(r.output.split())
+    for part in ("0 success", "1 internal error", "2 bad input or usage", "3 a check you asked for failed",
+                 "130 interrupted (Ctrl-C or SIGTERM)"):
+        assert part in text, part
+
+
+SIGNALLED = """
+import os, signal, sys, time
+from carto_cli import cli
+cli.stop_on_sigterm()
+
+@cli.handle_errors
+def long_work():
+    os.kill(os.getpid(), signal.{sig})
+    time.sleep(30)  # the signal arrives long before this ends
+    print("not interrupted")
+
+try:
+    long_work()
+except cli.typer.Exit as e:  # what the app would turn into the process's status
+    sys.exit(e.exit_code)
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_sigterm_stops_a_command_as_ctrl_c_does(sig):
+    r = subprocess.run([sys.executable, "-c", SIGNALLED.format(sig=sig)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 130, (r.returncode, r.stderr)
+    assert r.stderr.strip() == "carto: interrupted" and "not interrupted" not in r.stdout
+
+
+def test_an_internal_error_is_one_line_and_exit_1(capsys):
+    import typer
+
+    from carto_cli import cli
+
+    @cli.handle_errors
+    def broken():
+        raise RuntimeError("boom")
+
+    with pytest.raises(typer.Exit) as e:
+        broken()
+    assert e.value.exit_code == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "internal error: RuntimeError: boom" in err

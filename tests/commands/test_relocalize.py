@@ -117,10 +117,10 @@ def test_cli_says_why_a_scan_was_not_relocalized(cli_files):
     map_path, bag, qs = cli_files
     scan, truth = qs[5]
     pose = f"{truth[0]},{truth[1]},{truth[2]}"
-    # A threshold no scan reaches: not found, the reason printed, exit 1.
+    # A threshold no scan reaches: not found, the reason printed, exit 3 (a check failed).
     r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time,
              "--set", "relocalization.min_score=0.95", "--set", "relocalization.global_min_score=0.95")
-    assert r.exit_code == 1, r.output
+    assert r.exit_code == 3, r.output
     assert "UNRELIABLE" in r.output and "why: " in r.output and "below 0.95" in r.output
 
 

@@ -126,7 +126,7 @@ def test_cli_profile_gate_exit_codes(tmp_path):
     base.write_text(json.dumps(data))
     junit = tmp_path / "j.xml"
     r = runner.invoke(app, args + ["--baseline", str(base), "--junit", str(junit)])
-    assert r.exit_code == 1
+    assert r.exit_code == 3
     assert "slower than baseline" in r.stderr
     ET.parse(junit)
 
@@ -141,7 +141,7 @@ def test_cli_eval_gates(tmp_path):
     assert ok.exit_code == 0, ok.output
     bad = runner.invoke(app, ["eval", str(traj), "--relations", str(rel), "--max-trans-error", "0.1",
                               "--junit", str(tmp_path / "e.xml")])
-    assert bad.exit_code == 1 and "gate failed" in bad.stderr
+    assert bad.exit_code == 3 and "gate failed" in bad.stderr
     ET.parse(tmp_path / "e.xml")
 
 
