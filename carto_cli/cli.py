@@ -83,8 +83,24 @@ def _root(
     state.quiet = quiet
 
 
-MIN_Z = typer.Option(-0.1, "--min-z", help="PointCloud2: lowest z kept when slicing to 2D (m).")
-MAX_Z = typer.Option(0.1, "--max-z", help="PointCloud2: highest z kept when slicing to 2D (m).")
+# One default everywhere: the options' trajectory_builder_2d.min_z / max_z (io.recording.ReadOptions keeps them)
+MIN_Z = typer.Option(-0.8, "--min-z", help="PointCloud2: lowest z kept when slicing to 2D (m).")
+MAX_Z = typer.Option(2.0, "--max-z", help="PointCloud2: highest z kept when slicing to 2D (m).")
+# Commands that map take the slice as options (trajectory_builder_2d.min_z / max_z): unset keeps the profile's
+MAP_MIN_Z = typer.Option(None, "--min-z", help="PointCloud2: lowest z kept when slicing to 2D (m; default: "
+                         "the profile's trajectory_builder_2d.min_z, -0.8).")
+MAP_MAX_Z = typer.Option(None, "--max-z", help="PointCloud2: highest z kept when slicing to 2D (m; default: "
+                         "the profile's trajectory_builder_2d.max_z, 2.0).")
+
+
+def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | None) -> list[str]:
+    """--min-z / --max-z as option overrides, after --set so that they win."""
+    out = list(overrides or [])
+    if min_z is not None:
+        out.append(f"trajectory_builder_2d.min_z={min_z!r}")
+    if max_z is not None:
+        out.append(f"trajectory_builder_2d.max_z={max_z!r}")
+    return out
 
 
 @app.command()
@@ -208,6 +224,8 @@ def map_(
     strict: bool = typer.Option(False, "--strict", help="Exit 3 on a 'suspect' map too (for CI), not only 'failed'."),
     algorithm: str | None = ALGORITHM,
     force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
+    min_z: float | None = MAP_MIN_Z,
+    max_z: float | None = MAP_MAX_Z,
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
 
@@ -222,7 +240,7 @@ def map_(
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
 
-    options = _map_options(profile, overrides)
+    options = _map_options(profile, _with_z(overrides, min_z, max_z))
     mount = parse.pose(laser_pose, "--laser-pose") if laser_pose else None
     timer = StageTimer()
     with progress(f"mapping {recording.name}", None, state.quiet) as bar:
@@ -304,13 +322,15 @@ def profile_(
         None, "--relocalize", help="Also profile relocalizing every 10th scan of RECORDING in this map.carto."),
     algorithm: str | None = ALGORITHM,
     force: bool = typer.Option(False, "--force", "-f", help="Replace the --output file if it exists."),
+    min_z: float | None = MAP_MIN_Z,
+    max_z: float | None = MAP_MAX_Z,
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates."""
     from carto_cli.commands.profile import run_profile
     from carto_cli.core.progress import progress
     from carto_cli.evaluation.profiling import format_relocalization, format_report
 
-    options = _map_options(profile, overrides)
+    options = _map_options(profile, _with_z(overrides, min_z, max_z))
     with progress(f"profiling {recording.name}", None, state.quiet) as bar:
         run = run_profile(recording, options, scan_topic=scan_topic, odom_topic=odom_topic, output=output,
                           baseline=baseline, calibrate_first=calibrate, max_scans=max_scans,
@@ -477,6 +497,23 @@ def stop_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, _terminate_as_interrupt)
 
 
+GLOBAL_FLAGS = ("--debug", "--quiet", "-q")
+
+
+def hoist_global_flags(argv: list[str]) -> list[str]:
+    """``carto map rec.bag --debug`` as ``carto --debug map rec.bag``: the global flags are accepted after the
+    subcommand too (the error hint says "rerun with --debug", and users add it at the end). Nothing after a
+    ``--`` moves."""
+    if "--" in argv:
+        head, tail = argv[:argv.index("--")], argv[argv.index("--"):]
+    else:
+        head, tail = argv, []
+    flags = [a for a in head if a in GLOBAL_FLAGS]
+    return flags + [a for a in head if a not in GLOBAL_FLAGS] + tail
+
+
 def main() -> None:
+    import sys
+
     stop_on_sigterm()
-    app(prog_name="carto")
+    app(prog_name="carto", args=hoist_global_flags(sys.argv[1:]))

@@ -222,3 +222,45 @@ def test_an_internal_error_is_one_line_and_exit_1(capsys):
     assert e.value.exit_code == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "internal error: RuntimeError: boom" in err
+
+
+def test_global_flags_work_after_the_subcommand(tmp_path):
+    from carto_cli.cli import hoist_global_flags
+
+    assert hoist_global_flags(["map", "r.bag", "--debug", "-o", "x"]) == ["--debug", "map", "r.bag", "-o", "x"]
+    assert hoist_global_flags(["-q", "info", "r.bag"]) == ["-q", "info", "r.bag"]
+    assert hoist_global_flags(["info", "--", "--quiet"]) == ["info", "--", "--quiet"]
+    missing = str(tmp_path / "nope.mcap")
+    quiet = subprocess.run([sys.executable, "-m", "carto_cli", "info", missing, "--quiet"], capture_output=True,
+                           text=True, timeout=120)
+    assert quiet.returncode == 2 and "No such option" not in quiet.stderr and "nope.mcap" in quiet.stderr
+    debug = subprocess.run([sys.executable, "-m", "carto_cli", "info", missing, "--debug"], capture_output=True,
+                           text=True, timeout=120)
+    assert "Traceback" in debug.stderr and "nope.mcap" in debug.stderr
+
+
+def test_map_slices_clouds_as_info_and_convert_do_by_default():
+    from carto_cli.io.recording import ReadOptions
+    from carto_cli.options import load_options
+
+    tb = load_options().trajectory_builder_2d
+    assert (ReadOptions().min_z, ReadOptions().max_z) == (tb.min_z, tb.max_z)
+
+
+def test_min_z_and_max_z_on_map_become_the_options(tmp_path, monkeypatch):
+    import carto_cli.commands.map as map_command
+
+    seen = {}
+
+    def fake_run_map(recording, outdir, options, **kwargs):
+        seen["options"] = options
+        raise KeyboardInterrupt  # stop before mapping
+
+    monkeypatch.setattr(map_command, "run_map", fake_run_map)
+    r = run("map", SAMPLE_BAG, "-o", tmp_path / "m", "--profile", "office", "--min-z", "-0.25", "--max-z", "0.5",
+            "--set", "trajectory_builder_2d.min_z=-3")
+    assert r.exit_code == 130
+    tb = seen["options"].trajectory_builder_2d
+    assert (tb.min_z, tb.max_z) == (-0.25, 0.5)  # --min-z wins over --set
+    r = run("map", SAMPLE_BAG, "-o", tmp_path / "m", "--min-z", "1", "--max-z", "0")
+    assert r.exit_code == 2 and "min_z" in r.stderr

@@ -55,10 +55,13 @@ class TopicInfo:
 
 @dataclass(frozen=True)
 class ReadOptions:
-    """How raw messages become records. PointCloud2 points outside [min_z, max_z] are dropped."""
+    """How raw messages become records. PointCloud2 points outside [min_z, max_z] are dropped.
 
-    min_z: float = -0.1
-    max_z: float = 0.1
+    The defaults are trajectory_builder_2d.min_z / max_z's (Cartographer's), so `info`, `convert` and `map`
+    slice a cloud alike unless told otherwise (a test keeps them equal)."""
+
+    min_z: float = -0.8
+    max_z: float = 2.0
 
 
 class Recording(ABC):

@@ -290,9 +290,9 @@ def cloud_msg(ns, zs):
 
 def test_pointcloud_bag_uses_read_options(tmp_path):
     write_ros2(tmp_path / "pc", "/points", "sensor_msgs/msg/PointCloud2",
-               [(5 * 10**9, cloud_msg(5 * 10**9, [0.0, 0.3, -0.3, 0.05, 1.0]))])
-    with RosbagRecording(tmp_path / "pc") as rec:
-        assert len(next(iter(rec.records())).ranges) == 2
+               [(5 * 10**9, cloud_msg(5 * 10**9, [0.0, 0.3, -0.3, 0.05, 1.0, -1.0, 2.5]))])
+    with RosbagRecording(tmp_path / "pc") as rec:  # the default slice: -0.8 .. 2.0 m
+        assert len(next(iter(rec.records())).ranges) == 5
     with RosbagRecording(tmp_path / "pc", ReadOptions(min_z=-0.5, max_z=0.5)) as rec:
         s = next(iter(rec.records()))
     assert s.num_beams == 4 and s.angle_increment is None and s.frame == "lidar"
