@@ -466,6 +466,9 @@ def tune_(
                           time_weight=time_weight, storage=storage, study=study, n_jobs=n_jobs, seed=seed,
                           max_scans=max_scans, on_trial=on_trial, algorithm=algorithm)
     typer.echo(summary_line(result))
+    if result.interrupted:
+        typer.echo("carto: tune: interrupted; the profile holds the best trial so far", err=True)
+        raise typer.Exit(EXIT_INTERRUPTED)
 
 
 @app.command("options")

@@ -8,13 +8,16 @@ Engine: TPE sampler (seeded), median pruner fed the running mean after each reco
 prune on), SQLite storage next to the output by default so that rerunning the same
 command resumes the study. ``n_jobs`` > 1 starts ``n_jobs − 1`` worker processes that
 share the storage with this one (numba-heavy Python does not parallelise in threads).
-A trial whose pipeline raises is recorded as failed and the study goes on. Ctrl-C stops
-after the running trial; the outputs are still written.
+A trial whose pipeline raises is recorded as failed and the study goes on. Ctrl-C (or SIGTERM)
+stops after the running trial and the outputs are written from the trials so far
+(``TuneResult.interrupted``); a second one stops the running trial at once, recorded as pruned,
+never as failed.
 """
 from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import signal
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -49,14 +52,23 @@ class TuneResult:
     n_pruned: int = 0
     n_failed: int = 0
     best_metrics: dict = field(default_factory=dict)
+    interrupted: bool = False  # Ctrl-C or SIGTERM stopped the study early; the profile is the best so far
 
 
-_STOP = {"requested": False}
+_STOP = {"requested": False, "announce": True}
+_STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM") if hasattr(signal, n))
 
 
-def _on_sigint(signum, frame):  # first Ctrl-C: finish the running trial; second: default behaviour
+def _on_stop_signal(signum, frame):
+    """First Ctrl-C (or SIGTERM): finish the running trial, then stop and write the best profile so far. A
+    second one interrupts the running trial at once; it is recorded as pruned (user attribute ``interrupted``),
+    never as failed."""
+    if _STOP["requested"]:
+        raise KeyboardInterrupt
     _STOP["requested"] = True
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    if _STOP["announce"]:
+        os.write(2, b"carto: tune: interrupted; finishing the running trial, then writing the best profile so far "
+                    b"(Ctrl-C again to stop now)\n")
 
 
 @dataclass
@@ -110,6 +122,12 @@ def _objective(job: _Job):
                                               time_weight=job.time_weight, report=report, algorithm=job.algorithm)
         except optuna.TrialPruned:
             raise
+        except KeyboardInterrupt:
+            # Stopped from outside, not a failure of these options: pruned, so the sampler does not learn
+            # from it and the study shows no failed trial.
+            _STOP["requested"] = True
+            trial.set_user_attr("interrupted", True)
+            raise optuna.TrialPruned("interrupted") from None
         except Exception as e:  # recorded on the failed trial, the study goes on
             trial.set_user_attr("error", f"{type(e).__name__}: {e}"[:500])
             raise
@@ -145,14 +163,15 @@ def _run(job: _Job, worker: int, n_trials: int, on_trial=None) -> None:
     try:
         study.optimize(_objective(job), n_trials=n_trials, catch=(Exception,),
                        callbacks=[_stop_callback(on_trial)], gc_after_trial=False)
-    except KeyboardInterrupt:  # second Ctrl-C: the running trial is marked failed by optuna
-        pass
+    except KeyboardInterrupt:  # between trials (sampling, storage): no trial is running
+        _STOP["requested"] = True
 
 
 def _worker_main(job: _Job, worker: int, n_trials: int) -> None:  # pragma: no cover - runs in a child
     _STOP["requested"] = False
-    if hasattr(signal, "SIGINT"):
-        signal.signal(signal.SIGINT, _on_sigint)
+    _STOP["announce"] = False  # the parent says it once
+    for sig in _STOP_SIGNALS:
+        signal.signal(sig, _on_stop_signal)
     _run(job, worker, n_trials)
 
 
@@ -238,11 +257,12 @@ def tune(
     job = _Job(storage, study_name, params, base, cases, objective, time_weight, max_scans, seed,
                startup=max(3, min(10, trials // 2)), algorithm=algorithm)
 
-    previous = signal.getsignal(signal.SIGINT)
     _STOP["requested"] = False
+    _STOP["announce"] = True
     in_main = _is_main_thread()
-    if in_main:
-        signal.signal(signal.SIGINT, _on_sigint)
+    previous = {sig: signal.getsignal(sig) for sig in _STOP_SIGNALS} if in_main else {}
+    for sig in previous:
+        signal.signal(sig, _on_stop_signal)
     workers: list = []
     try:
         remaining = trials
@@ -270,9 +290,10 @@ def tune(
         for p in workers:
             if p.is_alive():
                 p.join()
-        if in_main:
-            signal.signal(signal.SIGINT, previous)
-    return _finish(study_name, storage, job, out, objective, base_profile, overrides)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    interrupted = _STOP["requested"]
+    return _finish(study_name, storage, job, out, objective, base_profile, overrides, interrupted=interrupted)
 
 
 def _is_main_thread() -> bool:
@@ -281,8 +302,8 @@ def _is_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _finish(study_name: str, storage: str, job: _Job, out: Path, objective: str, base_profile, overrides
-            ) -> TuneResult:
+def _finish(study_name: str, storage: str, job: _Job, out: Path, objective: str, base_profile, overrides, *,
+            interrupted: bool = False) -> TuneResult:
     import optuna
 
     study = optuna.load_study(study_name=study_name, storage=storage)
@@ -293,6 +314,8 @@ def _finish(study_name: str, storage: str, job: _Job, out: Path, objective: str,
     write_trials_csv(csv_path, trials)
     complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
     if not complete:
+        if interrupted:
+            raise KeyboardInterrupt  # nothing to write: stopped before any trial completed
         errors = {t.user_attrs["error"] for t in trials if t.user_attrs.get("error")}
         hint = f" (e.g. {sorted(errors)[0]})" if errors else ""
         raise CartoError(f"no trial completed out of {len(trials)}{hint}; see {csv_path}")
@@ -316,4 +339,5 @@ def _finish(study_name: str, storage: str, job: _Job, out: Path, objective: str,
         baseline_value=baseline, n_complete=len(complete),
         n_pruned=sum(t.state == state.PRUNED for t in trials), n_failed=sum(t.state == state.FAIL for t in trials),
         best_metrics={k: v for k, v in best.user_attrs.items() if k not in ("baseline",)},
+        interrupted=interrupted,
     )

@@ -44,3 +44,85 @@ def test_summary_line():
                                     "(base profile 0.05) -> out/t.yaml, t.trials.csv, t.report.png")
     result.baseline_value = None
     assert "(base profile" not in summary_line(result)
+
+
+@pytest.fixture(scope="module")
+def small_sim():
+    world = loop_building()
+    return simulate(world, loop_trajectory(world), duration=4.0, scan_rate=5.0, beams=90)
+
+
+def _interrupting(monkeypatch, signals_at: dict[int, list]):
+    """evaluate_options replaced by a quick score that sends ``signals_at[call]`` to this process."""
+    import os
+
+    import carto_cli.tuning.study as study
+
+    calls = []
+
+    def fake(options, cases, objective, **kwargs):
+        calls.append(1)
+        for sig in signals_at.get(len(calls), []):
+            os.kill(os.getpid(), sig)
+        return 0.1 + 0.01 * len(calls), {"relation_error_m": 0.1}
+
+    monkeypatch.setattr(study, "evaluate_options", fake)
+    return calls
+
+
+@pytest.mark.parametrize("sig_name", ["SIGINT", "SIGTERM"])
+def test_a_stop_signal_finishes_the_running_trial_and_writes_the_best_so_far(tmp_path, monkeypatch, small_sim,
+                                                                            capfd, sig_name):
+    import signal
+
+    sig = getattr(signal, sig_name)
+    before = signal.getsignal(sig)
+    calls = _interrupting(monkeypatch, {2: [sig]})
+    result = run_tune([small_sim.recording()], tmp_path / "t.yaml", trials=6, ground_truth=[small_sim.ground_truth],
+                      profile="sparse", seed=0)
+    assert result.interrupted and len(calls) == 2  # the trial under way finished; no third one started
+    assert (result.n_trials, result.n_complete, result.n_failed) == (2, 2, 0)
+    assert result.profile_path.is_file() and result.csv_path.is_file()
+    assert "finishing the running trial" in capfd.readouterr().err
+    assert signal.getsignal(sig) == before  # the handler is put back
+
+
+def test_a_second_ctrl_c_stops_the_trial_at_once_and_records_no_failure(tmp_path, monkeypatch, small_sim):
+    import signal
+
+    import optuna
+
+    calls = _interrupting(monkeypatch, {2: [signal.SIGINT, signal.SIGINT]})
+    result = run_tune([small_sim.recording()], tmp_path / "t.yaml", trials=6, ground_truth=[small_sim.ground_truth],
+                      profile="sparse", seed=0)
+    assert result.interrupted and len(calls) == 2
+    assert (result.n_complete, result.n_pruned, result.n_failed) == (1, 1, 0)
+    study = optuna.load_study(study_name=result.study_name, storage=result.storage)
+    stopped = study.trials[-1]
+    assert stopped.state == optuna.trial.TrialState.PRUNED and stopped.user_attrs.get("interrupted") is True
+    assert result.profile_path.is_file()
+
+
+def test_stopped_before_any_trial_completed_writes_nothing(tmp_path, monkeypatch, small_sim):
+    import signal
+
+    _interrupting(monkeypatch, {1: [signal.SIGINT, signal.SIGINT]})
+    with pytest.raises(KeyboardInterrupt):
+        run_tune([small_sim.recording()], tmp_path / "t.yaml", trials=3, ground_truth=[small_sim.ground_truth],
+                 profile="sparse", seed=0)
+    assert not (tmp_path / "t.yaml").exists()
+
+
+def test_the_cli_exits_130_when_the_study_was_interrupted(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    import carto_cli.commands.tune as command
+    from carto_cli.cli import app
+
+    result = TuneResult(best_value=0.1, best_params={}, n_trials=2, profile_path=tmp_path / "t.yaml",
+                        csv_path=tmp_path / "t.trials.csv", png_path=tmp_path / "t.report.png",
+                        objective="relations", n_complete=2, interrupted=True)
+    monkeypatch.setattr(command, "run_tune", lambda *a, **k: result)
+    r = CliRunner().invoke(app, ["tune", str(tmp_path / "r.bag"), "-o", str(tmp_path / "t.yaml")])
+    assert r.exit_code == 130, r.output
+    assert "2 trials" in r.stdout and "best trial so far" in r.stderr
