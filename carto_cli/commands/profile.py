@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,7 +11,7 @@ from carto_cli.commands.common import check_algorithm
 from carto_cli.core.errors import CartoError
 from carto_cli.core.timing import StageTimer
 from carto_cli.evaluation.gates import GateResult, compare_profiles
-from carto_cli.evaluation.profiling import build_report, calibrate
+from carto_cli.evaluation.profiling import build_report, calibrate, merge_repeats
 from carto_cli.io.atomic import write_text_atomic
 from carto_cli.options import Options
 from carto_cli.pipeline import Auto, build_configured, configure, opened, read_options
@@ -53,11 +54,16 @@ def run_profile(
     on_scan: Callable[[int], None] | None = None,
     algorithm: str | None = None,
     force: bool = False,
+    repeat: int = 1,
 ) -> ProfileRun:
     """Map ``recording`` (its first ``max_scans`` scans) with ``algorithm`` under a StageTimer and build the
     report; with ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with
     ``output`` write the report there (an existing file only with ``force``, refused before any work).
-    ``on_total`` hears how many scans will be mapped."""
+    ``on_total`` hears how many scans will be mapped. Every stage's CPU time (the whole process's) is
+    recorded beside its wall time; with ``repeat`` > 1 the recording is mapped that many times and each stage
+    keeps its lowest CPU time and the spread of the repeats (what the gates compare, and their noise floor)."""
+    if repeat < 1:
+        raise CartoError(f"--repeat must be at least 1, got {repeat}")
     if algorithm is not None:
         check_algorithm(algorithm)
     if output is not None and Path(output).exists() and not force:
@@ -75,18 +81,22 @@ def run_profile(
     if known is not None:
         check_baseline(known)
     calibration = calibrate() if calibrate_first else None
-    timer = StageTimer()
+    runs = []
     with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic) as source:
         configured = configure(options, source.recording, source.selection, algorithm)
         algorithm = configured.algorithm
         check_baseline(algorithm)
         total = source.scan_count
         if on_total is not None:
-            on_total(min(total, max_scans or total))
-        result, configured = build_configured(source.recording, configured, options, selection=source.selection,
-                                              timer=timer, on_scan=on_scan, max_scans=max_scans)
-    timer.stop()
-    report = build_report(result, timer, configured.options, recording, calibration)
+            on_total(repeat * min(total, max_scans or total))
+        chosen = configured
+        for _ in range(repeat):
+            timer = StageTimer(cpu_clock=time.process_time_ns)
+            result, configured = build_configured(source.recording, chosen, options, selection=source.selection,
+                                                  timer=timer, on_scan=on_scan, max_scans=max_scans)
+            timer.stop()
+            runs.append(build_report(result, timer, configured.options, recording, calibration))
+    report = merge_repeats(runs)
     if configured.auto is not None and configured.regime is not None:
         report["auto"] = {"detected": configured.regime.describe(), "profile": configured.auto.profile,
                           "settings": configured.auto.settings, "algorithm": configured.auto.algorithm,

@@ -51,12 +51,14 @@ SEP = "/"
 
 
 class _Node:
-    __slots__ = ("children", "count", "name", "sample_scans", "samples", "scan_mark", "scan_ns", "total_ns")
+    __slots__ = ("children", "count", "cpu_ns", "name", "sample_scans", "samples", "scan_mark", "scan_ns",
+                 "total_ns")
 
     def __init__(self, name: str):
         self.name = name
         self.children: dict[str, _Node] = {}
         self.total_ns = 0
+        self.cpu_ns = 0  # CPU time of the whole process (every thread) inside the stage, when measured
         self.count = 0
         self.scan_ns = 0          # accumulated within the current scan
         self.scan_mark = -1       # index of the scan scan_ns belongs to
@@ -82,6 +84,8 @@ class _Stage:
     def __enter__(self):
         t = self._timer
         t._stack.append(t._stack[-1].child(self._name))
+        if t._cpu_clock is not None:
+            t._cpu_starts.append(t._cpu_clock())
         t._starts.append(t._clock())
         return self
 
@@ -90,6 +94,8 @@ class _Stage:
         end = t._clock()
         node = t._stack.pop()
         dt = end - t._starts.pop()
+        if t._cpu_clock is not None:
+            node.cpu_ns += t._cpu_clock() - t._cpu_starts.pop()
         node.total_ns += dt
         node.count += 1
         if t._in_scan:
@@ -121,8 +127,14 @@ class StageTimer:
 
     enabled = True
 
-    def __init__(self, clock: Callable[[], int] = time.perf_counter_ns):
+    def __init__(self, clock: Callable[[], int] = time.perf_counter_ns,
+                 cpu_clock: Callable[[], int] | None = None):
+        """``cpu_clock`` (e.g. ``time.process_time_ns``): also record each stage's CPU time, which a neighbour
+        job on another core hardly changes (what ``carto profile``'s gates compare)."""
         self._clock = clock
+        self._cpu_clock = cpu_clock
+        self._cpu_starts: list[int] = []
+        self._scan_cpu_start = 0
         self._root = _Node("total")
         self._scan_node: _Node | None = None
         self._stack: list[_Node] = [self._root]
@@ -153,6 +165,8 @@ class StageTimer:
             self._scan_node = self._root.child(SCAN_STAGE)
         self._stack.append(self._scan_node)
         self._in_scan = True
+        if self._cpu_clock is not None:
+            self._scan_cpu_start = self._cpu_clock()
         self._scan_start = self._clock()
 
     def end_scan(self) -> None:
@@ -162,6 +176,8 @@ class StageTimer:
             raise RuntimeError(f"end_scan: stage '{self._stack[-1].name}' is still open")
         dt = self._clock() - self._scan_start
         node = self._scan_node
+        if self._cpu_clock is not None:
+            node.cpu_ns += self._cpu_clock() - self._scan_cpu_start
         node.total_ns += dt
         node.count += 1
         node.samples.append(dt)
@@ -219,7 +235,7 @@ class StageTimer:
             else:
                 total, count = node.total_ns + extra, node.count + int(is_open)
             return StageStats(
-                name=node.name, path=path, total_ns=total,
+                name=node.name, path=path, total_ns=total, cpu_ns=node.cpu_ns if self._cpu_clock else None,
                 self_ns=total - sum(c.total_ns for c in children), count=count, in_scan=in_scan,
                 samples_ns=np.asarray(node.samples, dtype=np.int64),
                 sample_scans=np.asarray(node.sample_scans, dtype=np.int64),
@@ -280,6 +296,7 @@ class StageStats:
     self_ns: int                   # total minus the children's totals: the '(other)' line
     count: int                     # times entered
     in_scan: bool                  # inside the scan pseudo-stage (or that stage itself)
+    cpu_ns: int | None = None      # the process's CPU time inside the stage (None: not measured)
     samples_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # per scan where it ran
     sample_scans: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     children: list[StageStats] = field(default_factory=list)
@@ -359,6 +376,9 @@ def report_json(timer: StageTimer | NullTimer | Snapshot) -> dict:
             "p99_ms": s.percentile_ms(99),
             "max_ms": float(s.samples_ns.max()) / 1e6 if s.samples_ns.size else None,
         }
+        if s.cpu_ns is not None and s.path:
+            d["cpu_ms"] = s.cpu_ns / 1e6
+            d["cpu_ms_per_scan"] = (s.cpu_ns / 1e6 / snap.scans) if s.in_scan and snap.scans else None
         flat[s.path or "total"] = dict(d)
         d["children"] = [node(c) for c in s.children]
         return d

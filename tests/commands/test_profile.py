@@ -41,6 +41,9 @@ def test_gates_against_a_baseline(first):
         if stage["ms_per_scan"] is not None:
             stage["ms_per_scan"] /= 20.0
         stage["total_ms"] /= 20.0
+        for key in ("cpu_ms_per_scan", "cpu_ms"):  # what the gates compare
+            if stage.get(key) is not None:
+                stage[key] /= 20.0
     assert not all(g.passed for g in run.gates(max_regression=0.2))
     assert all(g.passed for g in run.gates(max_regression=1000.0))
 
@@ -104,3 +107,12 @@ def test_a_baseline_of_the_other_algorithm_is_refused_before_mapping(first, gmap
     with pytest.raises(CartoError, match="profiled with cartographer"):
         run_profile(tmp_path / "no-such-recording.bag", load_options(), baseline=tmp_path / "old.json",
                     algorithm="gmapping")
+
+
+def test_repeated_runs_record_cpu_time_and_its_spread(tmp_path):
+    run = run_profile(SAMPLE_BAG, load_options(), max_scans=10, repeat=2)
+    stages = run.report["timing"]["stages"]
+    assert run.report["repeats"] == 2 and run.report["counts"]["scans"] == 10
+    assert stages["scan"]["cpu_ms_per_scan"] > 0 and stages["scan"]["cpu_spread"] >= 0
+    with pytest.raises(CartoError, match="--repeat"):
+        run_profile(SAMPLE_BAG, load_options(), repeat=0)

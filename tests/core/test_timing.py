@@ -212,3 +212,21 @@ def test_real_clock_smoke():
     snap = timer.snapshot()
     assert snap.find("scan/sleep").total_ns >= 6_000_000
     assert snap.root.total_ns >= snap.find("scan").total_ns >= snap.find("scan/sleep").total_ns
+
+
+def test_cpu_time_is_recorded_beside_wall_time():
+    wall, cpu = FakeClock(), FakeClock()
+    timer = StageTimer(wall, cpu_clock=cpu)
+    for _ in range(2):
+        with timer.scan():
+            with timer.stage("matching"):
+                wall.advance(10)
+                cpu.advance(4)  # waiting for the other core's job: wall time that is not CPU time
+            wall.advance(1)
+            cpu.advance(1)
+    timer.stop()
+    stages = report_json(timer)["stages"]
+    assert stages["scan/matching"]["ms_per_scan"] == pytest.approx(10.0)
+    assert stages["scan/matching"]["cpu_ms_per_scan"] == pytest.approx(4.0)
+    assert stages["scan"]["cpu_ms"] == pytest.approx(10.0) and stages["scan"]["total_ms"] == pytest.approx(22.0)
+    assert "cpu_ms" not in report_json(StageTimer(FakeClock()))["stages"].get("scan", {})

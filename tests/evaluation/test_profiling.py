@@ -84,6 +84,45 @@ def test_calibration_scales_times(report):
     assert not all(g.passed for g in compare_profiles(uncalibrated, report, 0.2))
 
 
+def _with_cpu(report, factor=1.0):
+    """The report as if CPU time had been measured: each stage's CPU time its wall time times ``factor``."""
+    out = copy.deepcopy(report)
+    for path, stage in out["timing"]["stages"].items():
+        if path != "total":
+            stage["cpu_ms"] = stage["total_ms"] * factor
+            stage["cpu_ms_per_scan"] = None if stage["ms_per_scan"] is None else stage["ms_per_scan"] * factor
+    return out
+
+
+def test_gates_compare_cpu_time_so_a_busy_neighbour_does_not_fail_them(report):
+    base = _with_cpu(report)
+    busy = copy.deepcopy(base)  # another job on the other core: wall times up by half, CPU times unchanged
+    for stage in busy["timing"]["stages"].values():
+        stage["total_ms"] *= 1.5
+        if stage["ms_per_scan"] is not None:
+            stage["ms_per_scan"] *= 1.5
+    assert all(g.passed for g in compare_profiles(busy, base, 0.2))
+    assert not all(g.passed for g in compare_profiles(busy, report, 0.2))  # on wall time it would fail
+    slower = _with_cpu(report, 1.3)  # the code itself 30 % slower
+    failed = [g for g in compare_profiles(slower, base, 0.2) if not g.passed]
+    assert any(g.name == "scan" and g.unit == "CPU ms/scan" for g in failed)
+
+
+def test_repeats_keep_each_stages_lowest_cpu_time_and_their_spread_widens_the_gate(report):
+    from carto_cli.evaluation.profiling import merge_repeats
+
+    runs = [_with_cpu(report, f) for f in (1.1, 1.0, 1.25)]
+    merged = merge_repeats(runs)
+    scan = merged["timing"]["stages"]["scan"]
+    assert merged["repeats"] == 3
+    assert scan["cpu_ms_per_scan"] == pytest.approx(report["timing"]["stages"]["scan"]["ms_per_scan"])
+    assert scan["cpu_spread"] == pytest.approx(0.25)
+    # 30 % slower fails a baseline without spread at +20 %, and passes one whose repeats varied by 25 %
+    slower = _with_cpu(report, 1.3)
+    assert not all(g.passed for g in compare_profiles(slower, _with_cpu(report), 0.2))
+    assert all(g.passed for g in compare_profiles(slower, merged, 0.2) if g.name == "scan")
+
+
 def test_reference_kernel_is_positive_and_stable():
     a = calibrate(repeats=3)
     assert a["ms"] > 0 and a["kernel"]
@@ -123,6 +162,9 @@ def test_cli_profile_gate_exit_codes(tmp_path):
         if stage["ms_per_scan"] is not None:
             stage["ms_per_scan"] /= 20.0
         stage["total_ms"] /= 20.0
+        for key in ("cpu_ms_per_scan", "cpu_ms"):  # what the gates compare
+            if stage.get(key) is not None:
+                stage[key] /= 20.0
     base.write_text(json.dumps(data))
     junit = tmp_path / "j.xml"
     r = runner.invoke(app, args + ["--baseline", str(base), "--junit", str(junit)])
