@@ -251,6 +251,8 @@ def map_(
             load_state=load_state, on_configured=_say_configured,
             algorithm=algorithm, force=force,
         )
+    for warning in result.warnings:
+        typer.echo(f"carto: warning: {warning}", err=True)
     if timings:
         typer.echo(report_tree_text(timer))
     typer.echo(f"{summary_line(result)}{compile_note(timer)} -> {outputs.yaml.parent}")

@@ -6,7 +6,7 @@ import dataclasses
 import time as _time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +16,7 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.gmapping import ALGORITHMS
 from carto_cli.gmapping.filter import GMappingSlam
+from carto_cli.io.content import ContentCheck
 from carto_cli.io.recording import ReadOptions, Recording
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
@@ -34,6 +35,7 @@ class MapResult(SlamResult):
     regime: Regime | None = None  # what --profile auto measured (None for a named profile)
     auto: AutoChoice | None = None  # and what it chose
     quality: MapQuality | None = None  # carto's own verdict on the map (mapping.quality)
+    warnings: list[str] = field(default_factory=list)  # what the recording held that mapping dropped (io.content)
 
     def summary(self) -> dict:
         """What summary.json holds: the mapping system, the verdict, the statistics, and what auto detected and
@@ -48,6 +50,7 @@ class MapResult(SlamResult):
                 "settings": self.auto.settings,
                 "reasons": self.auto.reasons},
             "laser_pose_source": self.laser_pose_source,
+            "warnings": list(self.warnings),
         }
 
 
@@ -208,7 +211,8 @@ def build(
     if use_imu and selection.imu and tb.use_imu_data and algorithm != "gmapping":
         topics.append(selection.imu)
 
-    for record in recording.records(topics):
+    content = ContentCheck()
+    for record in content.filter(recording.records(topics)):
         if isinstance(record, Scan):
             if max_scans is not None and slam.num_scans >= max_scans:
                 break
@@ -223,7 +227,8 @@ def build(
     if slam.num_poses == 0:
         raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
     core = slam.finish()
-    result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection)
+    result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
+                       warnings=content.warnings())
     if judge and result.graph is not None:
         with slam.timer.stage("quality"):
             result.quality = assess(result, result.graph.odometry_samples(trajectory_id))

@@ -26,6 +26,7 @@ import numpy as np
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Scan
+from carto_cli.io.content import ContentCheck
 from carto_cli.io.recording import Recording
 from carto_cli.io.topics import TopicSelection
 
@@ -147,7 +148,8 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
     topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
     scans: list[Scan] = []
     odometry: list[tuple[float, float, float, float]] = []
-    for record in recording.records(topics):
+    # What mapping will not use (io.content) must not shape the settings either; mapping reports it.
+    for record in ContentCheck().filter(recording.records(topics)):
         if isinstance(record, Scan):
             if len(scans) >= max_scans:
                 break

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli.core.records import Scan, Transform
+from carto_cli.io.content import ContentCheck
 from carto_cli.io.recording import ReadOptions, Recording
 from carto_cli.io.sources.open import open_recording
 
@@ -133,7 +134,9 @@ def inspect_recording(recording: Recording, on_record: Callable[[], None] | None
     infos = recording.topics()
     accumulators = {t.name: _TopicAccumulator() for t in infos}
     supported = [t.name for t in infos if t.kind in ("scan", "odometry", "imu")]
+    content = ContentCheck()  # what mapping will drop, reported before mapping; the tables count the file
     for record in recording.records(supported):
+        content.accept(record)
         if isinstance(record, Transform):  # static transforms are read apart, by static_transforms()
             continue
         acc = accumulators.get(record.topic)
@@ -144,7 +147,7 @@ def inspect_recording(recording: Recording, on_record: Callable[[], None] | None
             on_record()
 
     reports = []
-    warnings = []
+    warnings = content.warnings()
     kinds = {t.name: t for t in infos}
     for name, acc in accumulators.items():
         info = kinds.get(name)
@@ -157,8 +160,6 @@ def inspect_recording(recording: Recording, on_record: Callable[[], None] | None
         )
         _time_stats(report, acc.times)
         reports.append(report)
-        if report.backwards:
-            warnings.append(f"{name}: time goes backwards {report.backwards} time(s)")
         if report.gaps:
             warnings.append(
                 f"{name}: {report.gaps} gap(s) over {GAP_FACTOR:g}x the median period "

@@ -48,7 +48,7 @@ def test_rates_geometry_and_warnings():
     assert s.count == 8 and s.scan.beams_min == s.scan.beams_max == 5
     assert s.backwards == 1 and s.gaps == 1 and 1.1 < s.max_gap < 1.3
     warnings = " | ".join(info.warnings)
-    assert "backwards" in warnings and "gap" in warnings
+    assert "time goes backwards" in warnings and "gap" in warnings
     assert "20.0% of ranges are NaN" in warnings and "20.0% of ranges are Inf" in warnings
     assert "20.0% of ranges are out-of-limit" in warnings
     assert info.has_odometry and not info.has_imu
