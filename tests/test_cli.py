@@ -264,3 +264,18 @@ def test_min_z_and_max_z_on_map_become_the_options(tmp_path, monkeypatch):
     assert (tb.min_z, tb.max_z) == (-0.25, 0.5)  # --min-z wins over --set
     r = run("map", SAMPLE_BAG, "-o", tmp_path / "m", "--min-z", "1", "--max-z", "0")
     assert r.exit_code == 2 and "min_z" in r.stderr
+
+
+@pytest.mark.parametrize("extra", [[], ["--algorithm", "gmapping", "--set", "gmapping.particles=5"]])
+def test_two_processes_write_byte_identical_maps(tmp_path, extra):
+    """Same input, same options: the same bytes, whatever the threads did (the loop step and the re-matching
+    run on threads; GMapping draws from its seeded generator)."""
+    outs = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        r = subprocess.run([sys.executable, "-m", "carto_cli", "--quiet", "map", str(SAMPLE_BAG), "-o", str(out),
+                            *extra], capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr
+        outs.append(out)
+    for f in ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto"):
+        assert (outs[0] / f).read_bytes() == (outs[1] / f).read_bytes(), f

@@ -17,7 +17,8 @@ their defaults. What a state holds beyond this (odometry samples, key-frame pose
 submaps were searched, linked trajectories) is not stored: loading sets it as it was when
 the map was finished (see :meth:`LoadedMap.to_state`).
 
-Header keys: ``format``, ``format_version``, ``carto_version``, ``created`` (UTC, ISO 8601),
+Header keys: ``format``, ``format_version``, ``carto_version``, ``created`` (UTC, ISO 8601; only when
+``SOURCE_DATE_EPOCH`` is set, so that the same input gives the same bytes),
 ``recordings``, optionally ``laser_pose_source``, ``scan_topic``, ``stats``; ``options``;
 ``arrays`` (name -> dtype, shape, codec, offset and length in the data, raw_length);
 ``data_length``. Arrays (N nodes, M submaps, K constraints, S scans, P points, C cells):
@@ -38,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import math
+import os
 import struct
 import typing
 from collections.abc import Iterable
@@ -174,9 +176,14 @@ def save_map(path: str | Path, result_or_graph, options: Options, *, trajectory=
     state = graph.to_state()
     meta: dict[str, Any] = {
         "carto_version": __version__,
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z"),
         "recordings": [str(r) for r in recordings],
     }
+    # No wall-clock time by default, so the same input gives the same bytes (the file's own time says when it
+    # was written); SOURCE_DATE_EPOCH, the reproducible-builds convention, stamps one.
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if epoch.isdigit():
+        meta["created"] = (_dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc).isoformat(timespec="seconds")
+                           .replace("+00:00", "Z"))
     arrays: dict[str, np.ndarray] = {}
     arrays.update(_node_arrays(state))
     arrays.update(_submap_arrays(state))
@@ -224,9 +231,16 @@ def _trajectory_arrays(trajectory) -> tuple[np.ndarray, np.ndarray]:
     return times, poses
 
 
+# How long the run took is the machine's business, not the map's: left out so the same input gives the same bytes
+# (summary.json next to the map keeps them)
+_TIMING_STATS = ("wall_time_s", "scans_per_s", "optimization_time_s", "first_pass_wall_time_s")
+
+
 def _json_safe_stats(stats: dict) -> dict:
     out: dict[str, Any] = {}
     for k, v in (stats or {}).items():
+        if k in _TIMING_STATS:
+            continue
         if isinstance(v, (bool, np.bool_)):
             out[str(k)] = bool(v)
         elif isinstance(v, (int, np.integer)):
