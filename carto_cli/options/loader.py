@@ -69,9 +69,10 @@ def read_yaml(path: Path) -> tuple[dict, dict[str, int]]:
         raise CartoError("no such profile file", path) from None
     except (OSError, UnicodeDecodeError) as e:
         raise CartoError(f"cannot read profile: {e}", path) from None
-    loader = YamlLoader(text)
     lines: dict[str, int] = {}
+    loader = None
     try:
+        loader = YamlLoader(text)  # the reader already refuses control characters here (found by tests/io/test_fuzz)
         node = loader.get_single_node()
         if node is None:
             return {}, lines
@@ -84,7 +85,8 @@ def read_yaml(path: Path) -> tuple[dict, dict[str, int]]:
         problem = getattr(e, "problem", None) or str(e)
         raise CartoError(f"{where}invalid YAML: {problem}", path) from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
     return data, lines
 
 
