@@ -287,3 +287,41 @@ def test_default_output_names_keep_the_whole_name(tmp_path, name, want):
     from carto_cli.commands.map import default_outdir
 
     assert default_outdir(tmp_path / name) == tmp_path / want
+
+
+def test_sigkill_at_any_moment_leaves_no_partial_output(tmp_path):
+    """`carto map` killed with SIGKILL at ten moments from start-up to the writing of the outputs: the output
+    directory holds either nothing or a whole set identical to an uninterrupted run's, and the next run
+    (with --force) finishes and leaves no temporary directory behind."""
+    import random
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from support import SAMPLE_BAG
+
+    def command(out, *extra):
+        return [sys.executable, "-m", "carto_cli", "--quiet", "map", str(SAMPLE_BAG), "-o", str(out), *extra]
+
+    reference = tmp_path / "reference"
+    started = time.perf_counter()
+    assert subprocess.run(command(reference), capture_output=True, timeout=600).returncode == 0
+    full = time.perf_counter() - started
+    names = ["map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto", "summary.json"]
+    want = {n: (reference / n).read_bytes() for n in names if n != "summary.json"}  # summary has timings
+    rng = random.Random(7)
+    for k in range(10):
+        out = tmp_path / f"run{k}"
+        proc = subprocess.Popen(command(out, "--force"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(0.05, 1.1) * full)  # from start-up to after the end
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+        visible = sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) if out.exists() else []
+        assert visible in ([], sorted(names)), (k, visible)
+        for n in want if visible else ():
+            assert (out / n).read_bytes() == want[n], (k, n)
+        r = subprocess.run(command(out, "--force"), capture_output=True, timeout=600)
+        assert r.returncode == 0, r.stderr
+        assert [p.name for p in out.iterdir() if p.name.startswith(".")] == []
+        assert all((out / n).read_bytes() == want[n] for n in want)
