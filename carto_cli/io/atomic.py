@@ -8,6 +8,8 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from carto_cli.core.errors import CartoError
+
 
 @contextmanager
 def atomic_output(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
@@ -73,7 +75,12 @@ def output_set(outdir: str | Path, names: Iterable[str]) -> Iterator[Path]:
     staging = Path(tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{os.getpid()}-", dir=outdir))
     done = False
     try:
-        yield staging
+        try:
+            yield staging
+        except OSError as e:
+            # A full disk, a quota, a directory made read-only meanwhile: the user's to fix, said in one line
+            raise CartoError(f"cannot write the outputs: {e.strerror or e}; the earlier outputs are kept",
+                             outdir) from None
         written = {p.name for p in staging.iterdir()}
         for name in names:
             if name in written:

@@ -325,3 +325,28 @@ def test_sigkill_at_any_moment_leaves_no_partial_output(tmp_path):
         assert r.returncode == 0, r.stderr
         assert [p.name for p in out.iterdir() if p.name.startswith(".")] == []
         assert all((out / n).read_bytes() == want[n] for n in want)
+
+
+def test_a_full_disk_is_one_line_and_keeps_the_earlier_map(tmp_path, sim_bag, monkeypatch):
+    import errno
+
+    from carto_cli.io import map_image
+
+    bag, _ = sim_bag
+    out = tmp_path / "o"
+    assert runner.invoke(app, ["map", str(bag), "-o", str(out), *FAST]).exit_code == 0
+    before = _snapshot(out)
+    real = map_image.write_png
+
+    def full(path, bgr):
+        real(path, bgr)  # the image lands in the staging directory, then the disk is full
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(map_image, "write_png", full)
+    monkeypatch.setattr("carto_cli.commands.map.write_png", full)
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--force", *FAST])
+    assert r.exit_code == 2 and "Traceback" not in r.output
+    assert f"{out}: cannot write the outputs: No space left on device; the earlier outputs are kept" in r.stderr
+    assert [line for line in r.stderr.splitlines() if "error" in line] == [
+        f"carto: error: {out}: cannot write the outputs: No space left on device; the earlier outputs are kept"]
+    assert _snapshot(out) == before
