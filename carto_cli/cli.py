@@ -373,6 +373,7 @@ def relocalize_(
         None, "--set", "-s", help="Override one of the map's options, e.g. relocalization.min_score=0.65 "
         "(repeatable; angles in radians, or '20deg')."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace the results CSV if it exists."),
 ):
     """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search."""
     import math
@@ -383,7 +384,7 @@ def relocalize_(
         map_file, recording, initial_pose=initial_pose, at=at, scan_index=scan_index, sigma_xy=sigma_xy,
         sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), corridor=corridor, global_search=global_,
         queries=queries, csv_out=csv_out, scan_topic=scan_topic, overrides=overrides,
-        on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet)
+        on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force)
     if as_json:
         typer.echo(json.dumps(run.to_dict(), indent=2))
         return

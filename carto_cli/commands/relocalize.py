@@ -70,13 +70,15 @@ def run_relocalize(
     overrides: Sequence[str] | None = None,
     on_warning: Callable[[str], None] | None = None,
     quiet: bool = True,
+    force: bool = False,
 ) -> RelocalizeRun:
     """Relocalize one scan (``at`` / ``scan_index``, default the first) from ``initial_pose`` ('x,y,yaw' text or
     a pose) or globally, or every line of ``queries`` (results to ``csv_out``, default QUERIES.results.csv).
 
     ``sigma_yaw`` is in radians; ``overrides`` are ``--set`` items over the map's own options. The relocalizer's
     warnings go to ``on_warning`` as soon as it is built (before the recording is read), and into the result.
-    ``quiet=False`` shows a progress bar over a batch (on a terminal).
+    ``quiet=False`` shows a progress bar over a batch (on a terminal). An existing results CSV is replaced only
+    with ``force`` (refused before any work).
     """
     if queries is None and not global_search and initial_pose is None:
         raise CartoError("give --initial-pose x,y,yaw, or --global, or --queries FILE")
@@ -84,6 +86,10 @@ def run_relocalize(
         raise CartoError("--global and --initial-pose exclude each other")
     if at is not None and scan_index is not None:
         raise CartoError("--at and --scan-index exclude each other")
+    if queries is not None:
+        csv_out = csv_out or queries.with_suffix(".results.csv")
+        if csv_out.exists() and not force:
+            raise CartoError("exists; --force replaces it, or give another --csv", csv_out)
 
     loaded = load_map(map_file)
     relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
@@ -97,7 +103,8 @@ def run_relocalize(
             with progress("relocalizing", len(qs), quiet) as bar:
                 run.results, run.summary = relocalize_many(relocalizer, rec, qs, scan_topic=scan_topic,
                                                            corridor=corridor, on_query=bar.advance)
-            run.csv = write_results_csv(csv_out or queries.with_suffix(".results.csv"), run.results)
+            assert csv_out is not None
+            run.csv = write_results_csv(csv_out, run.results)
             return run
         run.scan_index, run.scan = scan_at(rec, time=at, index=scan_index, scan_topic=scan_topic)
     # Parsed only now, as the command always has: a bad --initial-pose is reported after the map and the scan.

@@ -135,6 +135,12 @@ def test_cli_batch_prints_the_summary_line(cli_files, tmp_path):
         f"-> {tmp_path / 'out.csv'}")
     r = _cli("relocalize", map_path, bag, "--queries", q, "--json")
     assert r.exit_code == 0 and json.loads(r.output)["successes"] == 1
+    # The results CSV is an output like any other: kept unless --force
+    before = (tmp_path / "out.csv").read_bytes()
+    r = _cli("relocalize", map_path, bag, "--queries", q, "--csv", tmp_path / "out.csv")
+    assert r.exit_code == 2 and "out.csv: exists; --force replaces it" in r.stderr
+    assert (tmp_path / "out.csv").read_bytes() == before
+    assert _cli("relocalize", map_path, bag, "--queries", q, "--csv", tmp_path / "out.csv", "--force").exit_code == 0
 
 
 def test_cli_warns_on_stderr_and_fails_with_exit_2_on_user_errors(cli_files, tmp_path):
