@@ -458,6 +458,8 @@ def tune_(
         "cartographer", "--algorithm",
         help="Mapping system each trial maps with: cartographer (the default) or gmapping; with gmapping the "
              "default --space is the gmapping.* space (spaces/gmapping.yaml)."),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace an -o file that is not this study's output "
+                               "(rerunning the same study resumes it and rewrites its own outputs)."),
 ):
     """Search options against a measured objective (Optuna TPE) and write the best as a profile."""
     from carto_cli.commands.tune import run_tune, summary_line
@@ -472,7 +474,7 @@ def tune_(
         result = run_tune(recordings, out, space=space, trials=trials, objective=objective, relations=relations,
                           ground_truth=ground_truth, profile=profile, overrides=overrides or [],
                           time_weight=time_weight, storage=storage, study=study, n_jobs=n_jobs, seed=seed,
-                          max_scans=max_scans, on_trial=on_trial, algorithm=algorithm)
+                          max_scans=max_scans, on_trial=on_trial, algorithm=algorithm, force=force)
     typer.echo(summary_line(result))
     if result.interrupted:
         typer.echo("carto: tune: interrupted; the profile holds the best trial so far", err=True)

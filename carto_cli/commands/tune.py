@@ -30,6 +30,7 @@ def run_tune(
     max_scans: int | None = None,
     on_trial: Callable[[int, float | None, float | None], None] | None = None,
     algorithm: str = "cartographer",
+    force: bool = False,
 ) -> TuneResult:
     """Run (or resume) the study and write the tuned profile ``out`` with its CSV and report PNG; every trial
     maps with ``algorithm``."""
@@ -43,7 +44,7 @@ def run_tune(
     return tune(recordings, space_path, trials=trials, out=out, objective=objective, relations=relations,
                 ground_truth=ground_truth, base_profile=profile, overrides=list(overrides),
                 time_weight=time_weight, storage=storage, study_name=study, n_jobs=n_jobs, seed=seed,
-                max_scans=max_scans, on_trial=on_trial, algorithm=algorithm)
+                max_scans=max_scans, on_trial=on_trial, algorithm=algorithm, force=force)
 
 
 def summary_line(result: TuneResult) -> str:

@@ -198,6 +198,7 @@ def tune(
     max_scans: int | None = None,
     on_trial: Callable[[int, float | None, float | None], None] | None = None,
     algorithm: str = "cartographer",
+    force: bool = False,
 ) -> TuneResult:
     """Run (or resume) a study of ``trials`` more trials and write the tuned profile ``out``,
     ``<out stem>.trials.csv`` and ``<out stem>.report.png`` next to it. Every trial maps with
@@ -208,7 +209,8 @@ def tune(
     search-space file or dict (see ``tuning.space``). ``storage`` defaults to
     ``sqlite:///<out dir>/<out stem>.optuna.db`` and ``study_name`` to the out stem, so the same
     command resumes. ``on_trial(number, value or None, best value or None)`` is called after
-    every trial this process runs. Raises CartoError for bad inputs and when no trial completed.
+    every trial this process runs. Raises CartoError for bad inputs and when no trial completed. An
+    existing ``out`` is replaced when it belongs to the study being resumed, or with ``force``.
     """
     import optuna
 
@@ -239,6 +241,10 @@ def tune(
     study_name = study_name or out.stem
     out.parent.mkdir(parents=True, exist_ok=True)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
+    if out.exists() and not force and not _has_trials(storage, study_name):
+        # A rerun of the same study (resuming it) rewrites its own profile; any other file is kept.
+        raise CartoError(f"exists and is not the output of study '{study_name}' in {storage}; --force replaces it, "
+                         "or give another -o", out)
     try:
         study = optuna.create_study(study_name=study_name, storage=_storage(storage), direction="minimize",
                                     load_if_exists=True)
@@ -294,6 +300,17 @@ def tune(
             signal.signal(sig, handler)
     interrupted = _STOP["requested"]
     return _finish(study_name, storage, job, out, objective, base_profile, overrides, interrupted=interrupted)
+
+
+def _has_trials(storage: str, study_name: str) -> bool:
+    """Whether ``storage`` holds study ``study_name`` with at least one trial (without creating it)."""
+    import optuna
+
+    try:
+        summaries = optuna.get_all_study_summaries(storage=_storage(storage), include_best_trial=False)
+    except Exception:  # no database yet, or one that is not a study's: nothing to resume
+        return False
+    return any(s.study_name == study_name and s.n_trials > 0 for s in summaries)
 
 
 def _is_main_thread() -> bool:

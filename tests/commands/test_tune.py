@@ -126,3 +126,18 @@ def test_the_cli_exits_130_when_the_study_was_interrupted(tmp_path, monkeypatch)
     r = CliRunner().invoke(app, ["tune", str(tmp_path / "r.bag"), "-o", str(tmp_path / "t.yaml")])
     assert r.exit_code == 130, r.output
     assert "2 trials" in r.stdout and "best trial so far" in r.stderr
+
+
+def test_an_existing_output_is_kept_unless_it_is_the_studys_own(tmp_path, monkeypatch, small_sim):
+    from carto_cli.core.errors import CartoError
+
+    _interrupting(monkeypatch, {})
+    out = tmp_path / "t.yaml"
+    out.write_text("# someone's hand-made profile\n")
+    kwargs = dict(trials=2, ground_truth=[small_sim.ground_truth], profile="sparse", seed=0)
+    with pytest.raises(CartoError, match="not the output of study 't'.*--force"):
+        run_tune([small_sim.recording()], out, **kwargs)
+    assert out.read_text() == "# someone's hand-made profile\n"
+    first = run_tune([small_sim.recording()], out, force=True, **kwargs)
+    resumed = run_tune([small_sim.recording()], out, **kwargs)  # the same study: resuming rewrites its profile
+    assert (first.n_trials, resumed.n_trials) == (2, 4)
