@@ -374,17 +374,21 @@ def relocalize_(
         "(repeatable; angles in radians, or '20deg')."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace the results CSV if it exists."),
+    min_z: float = MIN_Z,
+    max_z: float = MAX_Z,
 ):
     """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search."""
     import math
 
+    from carto_cli.commands.common import z_slice
     from carto_cli.commands.relocalize import run_relocalize
 
     run = run_relocalize(
         map_file, recording, initial_pose=initial_pose, at=at, scan_index=scan_index, sigma_xy=sigma_xy,
         sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), corridor=corridor, global_search=global_,
         queries=queries, csv_out=csv_out, scan_topic=scan_topic, overrides=overrides,
-        on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force)
+        on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force,
+        read=z_slice(min_z, max_z))
     if as_json:
         typer.echo(json.dumps(run.to_dict(), indent=2))
         return
@@ -460,6 +464,8 @@ def tune_(
              "default --space is the gmapping.* space (spaces/gmapping.yaml)."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace an -o file that is not this study's output "
                                "(rerunning the same study resumes it and rewrites its own outputs)."),
+    min_z: float | None = MAP_MIN_Z,
+    max_z: float | None = MAP_MAX_Z,
 ):
     """Search options against a measured objective (Optuna TPE) and write the best as a profile."""
     from carto_cli.commands.tune import run_tune, summary_line
@@ -472,7 +478,7 @@ def tune_(
                 bar.set_description(f"tuning (best {best:.4g})")
 
         result = run_tune(recordings, out, space=space, trials=trials, objective=objective, relations=relations,
-                          ground_truth=ground_truth, profile=profile, overrides=overrides or [],
+                          ground_truth=ground_truth, profile=profile, overrides=_with_z(overrides, min_z, max_z),
                           time_weight=time_weight, storage=storage, study=study, n_jobs=n_jobs, seed=seed,
                           max_scans=max_scans, on_trial=on_trial, algorithm=algorithm, force=force)
     typer.echo(summary_line(result))

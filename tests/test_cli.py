@@ -279,3 +279,9 @@ def test_two_processes_write_byte_identical_maps(tmp_path, extra):
         outs.append(out)
     for f in ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto"):
         assert (outs[0] / f).read_bytes() == (outs[1] / f).read_bytes(), f
+
+
+@pytest.mark.parametrize("command", ["info", "convert", "relocalize", "map", "profile", "tune"])
+def test_every_command_that_reads_clouds_takes_the_z_slice(command):
+    r = run(command, "--help")
+    assert r.exit_code == 0 and "--min-z" in r.output and "--max-z" in r.output

@@ -9,6 +9,7 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.progress import progress
 from carto_cli.core.records import Scan
 from carto_cli.io.map_file import load_map
+from carto_cli.io.recording import ReadOptions
 from carto_cli.io.sources.open import open_recording
 from carto_cli.options import apply_overrides
 from carto_cli.relocalization import (
@@ -71,6 +72,7 @@ def run_relocalize(
     on_warning: Callable[[str], None] | None = None,
     quiet: bool = True,
     force: bool = False,
+    read: ReadOptions | None = None,
 ) -> RelocalizeRun:
     """Relocalize one scan (``at`` / ``scan_index``, default the first) from ``initial_pose`` ('x,y,yaw' text or
     a pose) or globally, or every line of ``queries`` (results to ``csv_out``, default QUERIES.results.csv).
@@ -78,7 +80,7 @@ def run_relocalize(
     ``sigma_yaw`` is in radians; ``overrides`` are ``--set`` items over the map's own options. The relocalizer's
     warnings go to ``on_warning`` as soon as it is built (before the recording is read), and into the result.
     ``quiet=False`` shows a progress bar over a batch (on a terminal). An existing results CSV is replaced only
-    with ``force`` (refused before any work).
+    with ``force`` (refused before any work). ``read``: how point clouds are sliced (io.recording.ReadOptions).
     """
     if queries is None and not global_search and initial_pose is None:
         raise CartoError("give --initial-pose x,y,yaw, or --global, or --queries FILE")
@@ -97,7 +99,7 @@ def run_relocalize(
     if on_warning is not None:
         for w in relocalizer.warnings:
             on_warning(w)
-    with open_recording(recording) as rec:
+    with open_recording(recording, read) as rec:
         if queries is not None:
             qs = read_queries(queries)
             with progress("relocalizing", len(qs), quiet) as bar:
