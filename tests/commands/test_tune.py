@@ -141,3 +141,41 @@ def test_an_existing_output_is_kept_unless_it_is_the_studys_own(tmp_path, monkey
     first = run_tune([small_sim.recording()], out, force=True, **kwargs)
     resumed = run_tune([small_sim.recording()], out, **kwargs)  # the same study: resuming rewrites its profile
     assert (first.n_trials, resumed.n_trials) == (2, 4)
+
+
+def test_sigkill_during_tune_leaves_no_partial_output(tmp_path, small_sim):
+    """`carto tune` killed with SIGKILL at five moments: the profile is absent or whole (it loads), no temporary
+    file is left beside it, and the same command then resumes the study and finishes."""
+    import random
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from carto_cli.io.recording_writers import write_recording
+    from carto_cli.io.trajectory import Trajectory, write_trajectory
+    from carto_cli.options import load_options
+
+    rec = small_sim.recording()
+    bag = tmp_path / "drive.bag"
+    write_recording(rec.records(), bag, "ros1", static_transforms=rec.static_transforms(),
+                    topics={t.name: t.msgtype for t in rec.topics()})
+    gt = small_sim.ground_truth
+    truth = write_trajectory(tmp_path / "truth.tum", Trajectory.from_poses(gt[:, 0], gt[:, 1:4]))
+    out = tmp_path / "tuned" / "t.yaml"
+    command = [sys.executable, "-m", "carto_cli", "--quiet", "tune", str(bag), "--ground-truth", str(truth),
+               "-o", str(out), "--trials", "2", "--max-scans", "15", "--profile", "sparse", "--seed", "0"]
+    started = time.perf_counter()
+    assert subprocess.run(command, capture_output=True, timeout=600).returncode == 0
+    full = time.perf_counter() - started
+    rng = random.Random(3)
+    for k in range(5):
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(0.1, 1.0) * full)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+        load_options(out)  # the profile of an earlier run stays whole
+        assert [p.name for p in out.parent.iterdir() if p.name.startswith(".")] == [], k
+    r = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    load_options(out)
