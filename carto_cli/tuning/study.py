@@ -306,6 +306,8 @@ def _has_trials(storage: str, study_name: str) -> bool:
     """Whether ``storage`` holds study ``study_name`` with at least one trial (without creating it)."""
     import optuna
 
+    if storage.startswith("sqlite:///") and not Path(storage[len("sqlite:///"):]).is_file():
+        return False  # asking would create the database file
     try:
         summaries = optuna.get_all_study_summaries(storage=_storage(storage), include_best_trial=False)
     except Exception:  # no database yet, or one that is not a study's: nothing to resume
@@ -325,14 +327,14 @@ def _finish(study_name: str, storage: str, job: _Job, out: Path, objective: str,
 
     study = optuna.load_study(study_name=study_name, storage=storage)
     trials = study.get_trials(deepcopy=False)
+    complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
+    if interrupted and not complete:
+        raise KeyboardInterrupt  # nothing to write: stopped before any trial completed
     stem = out.with_suffix("") if out.suffix in (".yaml", ".yml") else out
     csv_path = stem.parent / (stem.name + ".trials.csv")
     png_path = stem.parent / (stem.name + ".report.png")
     write_trials_csv(csv_path, trials)
-    complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
     if not complete:
-        if interrupted:
-            raise KeyboardInterrupt  # nothing to write: stopped before any trial completed
         errors = {t.user_attrs["error"] for t in trials if t.user_attrs.get("error")}
         hint = f" (e.g. {sorted(errors)[0]})" if errors else ""
         raise CartoError(f"no trial completed out of {len(trials)}{hint}; see {csv_path}")

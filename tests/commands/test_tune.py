@@ -110,7 +110,7 @@ def test_stopped_before_any_trial_completed_writes_nothing(tmp_path, monkeypatch
     with pytest.raises(KeyboardInterrupt):
         run_tune([small_sim.recording()], tmp_path / "t.yaml", trials=3, ground_truth=[small_sim.ground_truth],
                  profile="sparse", seed=0)
-    assert not (tmp_path / "t.yaml").exists()
+    assert not (tmp_path / "t.yaml").exists() and not (tmp_path / "t.trials.csv").exists()
 
 
 def test_the_cli_exits_130_when_the_study_was_interrupted(tmp_path, monkeypatch):
@@ -137,6 +137,7 @@ def test_an_existing_output_is_kept_unless_it_is_the_studys_own(tmp_path, monkey
     kwargs = dict(trials=2, ground_truth=[small_sim.ground_truth], profile="sparse", seed=0)
     with pytest.raises(CartoError, match="not the output of study 't'.*--force"):
         run_tune([small_sim.recording()], out, **kwargs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.yaml"]  # refused without touching anything
     assert out.read_text() == "# someone's hand-made profile\n"
     first = run_tune([small_sim.recording()], out, force=True, **kwargs)
     resumed = run_tune([small_sim.recording()], out, **kwargs)  # the same study: resuming rewrites its profile
