@@ -226,6 +226,9 @@ def map_(
     force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
     min_z: float | None = MAP_MIN_Z,
     max_z: float | None = MAP_MAX_Z,
+    jobs: int | None = typer.Option(None, "--jobs", "-j", min=1, help="Threads for independent work (GMapping's "
+                                    "particles and final searches); default: every core. The map is the same "
+                                    "for any number."),
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
 
@@ -249,7 +252,7 @@ def map_(
             laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
             on_total=bar.set_total, loop_closure=not no_loop_closure, state=not no_state,
             load_state=load_state, on_configured=_say_configured,
-            algorithm=algorithm, force=force,
+            algorithm=algorithm, force=force, jobs=jobs,
         )
     for warning in result.warnings:
         typer.echo(f"carto: warning: {warning}", err=True)

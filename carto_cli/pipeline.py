@@ -182,11 +182,13 @@ def build(
     trajectory_id: int = 0,
     judge: bool = True,
     algorithm: str = "cartographer",
+    jobs: int | None = None,
 ) -> MapResult:
     """Map one recording. With ``graph`` (e.g. from a loaded map.carto) the recording becomes trajectory
     ``trajectory_id`` of that graph, linked to the earlier ones by loop closures, as Cartographer's
     offline node does with --load_state_filename. ``algorithm`` "gmapping" maps with the particle filter
-    (``options.gmapping``) instead of Cartographer."""
+    (``options.gmapping``) instead of Cartographer. ``jobs``: threads where work is independent (GMapping's
+    particles and final searches; None: every core); the map is the same for any number."""
     wall0 = _time.perf_counter()
     if algorithm not in ALGORITHMS:
         raise CartoError(f"unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
@@ -200,7 +202,7 @@ def build(
     tb = options.trajectory_builder_2d
     slam: Slam | GMappingSlam
     if algorithm == "gmapping":
-        slam = GMappingSlam(options, laser_pose=mount, timer=timer, started=wall0)
+        slam = GMappingSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)
     else:
         slam = Slam(options, laser_pose=mount, timer=timer, loop_closure=loop_closure, graph=graph,
                     trajectory_id=trajectory_id, started=wall0)

@@ -268,13 +268,14 @@ def test_min_z_and_max_z_on_map_become_the_options(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("extra", [[], ["--algorithm", "gmapping", "--set", "gmapping.particles=5"]])
 def test_two_processes_write_byte_identical_maps(tmp_path, extra):
-    """Same input, same options: the same bytes, whatever the threads did (the loop step and the re-matching
-    run on threads; GMapping draws from its seeded generator)."""
+    """Same input, same options: the same bytes, whatever the threads did (GMapping's particles, loop step and
+    re-matching run on threads: one process gets one thread, the other two; GMapping draws from its seeded
+    generator)."""
     outs = []
-    for name in ("a", "b"):
+    for name, jobs in (("a", "1"), ("b", "2")):
         out = tmp_path / name
         r = subprocess.run([sys.executable, "-m", "carto_cli", "--quiet", "map", str(SAMPLE_BAG), "-o", str(out),
-                            *extra], capture_output=True, text=True, timeout=600)
+                            "--jobs", jobs, *extra], capture_output=True, text=True, timeout=600)
         assert r.returncode == 0, r.stderr
         outs.append(out)
     for f in ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto"):
@@ -285,3 +286,4 @@ def test_two_processes_write_byte_identical_maps(tmp_path, extra):
 def test_every_command_that_reads_clouds_takes_the_z_slice(command):
     r = run(command, "--help")
     assert r.exit_code == 0 and "--min-z" in r.output and "--max-z" in r.output
+

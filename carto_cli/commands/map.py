@@ -104,12 +104,14 @@ def run_map(
     on_configured: Callable[[Configured], None] | None = None,
     algorithm: str | None = None,
     force: bool = False,
+    jobs: int | None = None,
 ) -> tuple[MapResult, MapOutputs]:
     """Map a recording and write every output (to ``default_outdir`` when ``outdir`` is None); with
     ``load_state`` continue an existing map.carto; with :class:`~carto_cli.pipeline.Auto` options chosen
     from the recording; ``algorithm`` "gmapping" maps with the particle filter (``options.gmapping``), None
     leaves the choice to auto (Cartographer for a named profile). ``timer`` is stopped once the outputs are
-    written. An earlier map in the output directory is replaced only with ``force`` (checked before mapping)."""
+    written. An earlier map in the output directory is replaced only with ``force`` (checked before mapping).
+    ``jobs``: threads where the work is independent (None: every core); the outputs do not depend on it."""
     if algorithm is not None:
         check_algorithm(algorithm)
     elif load_state is not None:
@@ -144,7 +146,7 @@ def run_map(
         result, configured = build_configured(
             source.recording, configured, options, selection=source.selection, laser_pose=laser_pose, timer=timer,
             on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure, graph=graph,
-            trajectory_id=trajectory_id)
+            trajectory_id=trajectory_id, jobs=jobs)
         if configured is not chosen and on_configured is not None:
             on_configured(configured)  # auto fell back to another system: say so
         result.regime, result.auto = configured.regime, configured.auto

@@ -76,8 +76,19 @@ class _Beams:
 class GMappingSlam:
     """The Rao-Blackwellized particle filter of GMapping, options from ``options.gmapping``."""
 
-    def __init__(self, options: Options, *, laser_pose=(0.0, 0.0, 0.0), timer=None, started: float | None = None):
+    def __init__(self, options: Options, *, laser_pose=(0.0, 0.0, 0.0), timer=None, started: float | None = None,
+                 jobs: int | None = None):
+        """``jobs``: threads for the particles' kernels and the final refinement's searches (None: every core);
+        the result is the same for any number."""
         self.options = options
+        self.jobs = jobs
+        if jobs is not None:
+            import numba
+
+            try:
+                numba.set_num_threads(max(1, int(jobs)))
+            except ValueError:  # more than the threads numba started with: it keeps all of them
+                pass
         self.g = options.gmapping
         self.timer = timer or NullTimer()
         kernels.warm_up(self.timer)
@@ -301,12 +312,12 @@ class GMappingSlam:
             with timer.stage("refine"):
                 if self.g.refineLoops:
                     with timer.stage("loop closure"):
-                        closed = loops.close_loops(steps, scans, resolution=self.g.delta)
+                        closed = loops.close_loops(steps, scans, resolution=self.g.delta, jobs=self.jobs)
                     steps = closed.poses
                 if self.g.refineIterations > 0:
                     with timer.stage("re-match"):
                         steps = refine.refine_poses(steps, scans, resolution=self.g.delta,
-                                                    iterations=self.g.refineIterations)
+                                                    iterations=self.g.refineIterations, jobs=self.jobs)
         with timer.stage("assemble map"):
             step_of = np.asarray(self._scan_step, dtype=np.int64)
             poses = steps[step_of]
