@@ -28,6 +28,7 @@ import carto_cli.pipeline  # noqa: F401  (imports every mapping kernel, register
 from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
 from carto_cli.gmapping import ALGORITHMS
+from carto_cli.io.atomic import output_set
 from carto_cli.options import Options, apply_overrides, load_options
 from carto_cli.tuning.objectives import Case, check_space, evaluate_options, make_cases, prepare, resolve_objective
 from carto_cli.tuning.report import draw_report, write_profile, write_trials_csv
@@ -333,8 +334,8 @@ def _finish(study_name: str, storage: str, job: _Job, out: Path, objective: str,
     stem = out.with_suffix("") if out.suffix in (".yaml", ".yml") else out
     csv_path = stem.parent / (stem.name + ".trials.csv")
     png_path = stem.parent / (stem.name + ".report.png")
-    write_trials_csv(csv_path, trials)
     if not complete:
+        write_trials_csv(csv_path, trials)  # what went wrong, trial by trial
         errors = {t.user_attrs["error"] for t in trials if t.user_attrs.get("error")}
         hint = f" (e.g. {sorted(errors)[0]})" if errors else ""
         raise CartoError(f"no trial completed out of {len(trials)}{hint}; see {csv_path}")
@@ -344,13 +345,17 @@ def _finish(study_name: str, storage: str, job: _Job, out: Path, objective: str,
             importances = dict(optuna.importance.get_param_importances(study))
         except Exception:
             importances = {}
-    draw_report(png_path, trials, importances, title=f"carto tune: {study_name} ({objective})")
     best = study.best_trial
     options = apply_overrides(job.base, {p.name: best.params[p.name] for p in job.params if p.name in best.params})
     baseline = next((t.value for t in complete if t.user_attrs.get("baseline")), None)
-    write_profile(out, options, best=best, objective=objective, n_trials=len(trials), base_profile=base_profile,
-                  overrides=overrides, tuned=[p.name for p in job.params], baseline=baseline,
-                  time_weight=job.time_weight, max_scans=job.max_scans, algorithm=job.algorithm)
+    # The profile, the CSV and the report move into place together: never a new profile beside an old report
+    with output_set(out.parent, [out.name, csv_path.name, png_path.name]) as staging:
+        write_trials_csv(staging / csv_path.name, trials)
+        draw_report(staging / png_path.name, trials, importances, title=f"carto tune: {study_name} ({objective})")
+        write_profile(staging / out.name, options, best=best, objective=objective, n_trials=len(trials),
+                      base_profile=base_profile, overrides=overrides, tuned=[p.name for p in job.params],
+                      baseline=baseline, time_weight=job.time_weight, max_scans=job.max_scans,
+                      algorithm=job.algorithm)
     state = optuna.trial.TrialState
     return TuneResult(
         best_value=float(study.best_value), best_params=dict(best.params), n_trials=len(trials), profile_path=out,

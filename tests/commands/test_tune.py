@@ -180,3 +180,26 @@ def test_sigkill_during_tune_leaves_no_partial_output(tmp_path, small_sim):
     r = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     load_options(out)
+
+
+def test_the_profile_csv_and_report_are_written_together(tmp_path, monkeypatch, small_sim):
+    """A failure while writing the outputs (here the report) leaves the earlier three as they were."""
+    import carto_cli.tuning.study as study
+
+    _interrupting(monkeypatch, {})
+    out = tmp_path / "t.yaml"
+    kwargs = dict(trials=2, ground_truth=[small_sim.ground_truth], profile="sparse", seed=0)
+    run_tune([small_sim.recording()], out, **kwargs)
+    names = ("t.yaml", "t.trials.csv", "t.report.png")
+    before = {n: (tmp_path / n).read_bytes() for n in names}
+
+    def broken(path, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(study, "draw_report", broken)
+    from carto_cli.core.errors import CartoError
+
+    with pytest.raises(CartoError, match="No space left on device"):
+        run_tune([small_sim.recording()], out, **kwargs)  # the same study, resumed
+    assert {n: (tmp_path / n).read_bytes() for n in names} == before
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
