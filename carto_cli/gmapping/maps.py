@@ -123,7 +123,8 @@ class TiledMaps:
         needed = _count_needed(self.table, self.marks, self.refs)
         if needed > self._nfree:
             self._grow_pool(needed - self._nfree)
-        self._nfree, sources, targets = _claim_tiles(self.table, self.marks, self.refs, self._free, self._nfree)
+        self._nfree, sources, targets = _claim_tiles(self.table, self.marks, self.refs, self._free, self._nfree,
+                                                     needed)
         _fill_tiles(sources, targets, self.hits, self.visits, self.mean, self.state)
         _update_cells(self.table, self.marks, self.hits, self.visits, self.mean, self.state, poses, float(origin[0]),
                       float(origin[1]), ends, np.ascontiguousarray(hit, dtype=np.bool_), self.resolution, ox, oy)
@@ -264,20 +265,13 @@ def _count_needed(table, marks, refs):
 
 
 @njit(cache=True)
-def _claim_tiles(table, marks, refs, free, nfree):
+def _claim_tiles(table, marks, refs, free, nfree, needed):
     """Give each particle its own tile id for every tile it is about to write (a fresh one where it has none);
-    returns the free count left and the (source, target) pairs to copy (source -1: an empty tile). The ids are
-    handed out in order here, sequentially; ``_fill_tiles`` copies the cells in parallel."""
-    n = 0
-    for p in range(table.shape[0]):
-        for ty in range(table.shape[1]):
-            for tx in range(table.shape[2]):
-                if marks[p, ty, tx]:
-                    t = table[p, ty, tx]
-                    if t < 0 or refs[t] > 1:
-                        n += 1
-    sources = np.empty(n, np.int32)
-    targets = np.empty(n, np.int32)
+    returns the free count left and the (source, target) pairs to copy (source -1: an empty tile). ``needed``:
+    ``_count_needed``'s bound on how many. The ids are handed out in order here, sequentially; ``_fill_tiles``
+    copies the cells in parallel."""
+    sources = np.empty(needed, np.int32)
+    targets = np.empty(needed, np.int32)
     k = 0
     for p in range(table.shape[0]):
         for ty in range(table.shape[1]):
