@@ -21,7 +21,7 @@ __all__ = ["OUTPUT_NAMES", "MapOutputs", "check_outdir", "compile_note", "defaul
 
 OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto", "summary.json")
 # What a recording's name ends with: cut off for the default output directory, the rest of the name kept
-RECORDING_SUFFIXES = (".gz", ".bag", ".mcap", ".db3", ".clf", ".log", ".gfs")
+RECORDING_SUFFIXES = (".gz", ".bag", ".mcap", ".db3", ".clf", ".log")
 
 COMPILE_NOTE_MIN_S = 1.0  # below this, compiling kernels is not worth a mention
 

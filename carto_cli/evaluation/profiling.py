@@ -161,14 +161,16 @@ def merge_repeats(runs: list[dict]) -> dict:
     report = runs[-1]
     report["repeats"] = len(runs)
     for path, stage in report["timing"]["stages"].items():
-        key = "cpu_ms_per_scan" if stage.get("cpu_ms_per_scan") is not None else "cpu_ms"
-        values = [r["timing"]["stages"][path].get(key) for r in runs if path in r["timing"]["stages"]]
-        values = [v for v in values if v is not None]
-        if not values:
-            continue
-        low = min(values)
-        stage[key] = low
-        stage["cpu_spread"] = (max(values) - low) / low if low > 0 else 0.0
+        spread = None
+        for key in ("cpu_ms", "cpu_ms_per_scan"):  # the second, where a stage has it, is the one gated
+            values = [r["timing"]["stages"][path].get(key) for r in runs if path in r["timing"]["stages"]]
+            values = [v for v in values if v is not None]
+            if values:
+                low = min(values)
+                stage[key] = low
+                spread = (max(values) - low) / low if low > 0 else 0.0
+        if spread is not None:
+            stage["cpu_spread"] = spread
     return report
 
 
