@@ -12,7 +12,8 @@ from carto_cli.core.errors import CartoError
 
 EXIT_STATUS = ("Exit status, every command: 0 success; 1 internal error; 2 bad input or usage; 3 a check you "
                "asked for failed (a gate of eval or profile, a 'failed' map or a 'suspect' one with map --strict, "
-               "an unreliable relocalization); 130 interrupted (Ctrl-C or SIGTERM).")
+               "a relocalization judged 'lost'); 4 a relocalization judged 'ambiguous'; 130 interrupted (Ctrl-C or "
+               "SIGTERM).")
 
 app = typer.Typer(
     add_completion=False,
@@ -39,7 +40,8 @@ def _fail(message: str, code: int) -> None:
 
 EXIT_INTERNAL = 1
 EXIT_USAGE = 2  # bad input: the file and the problem in one line
-EXIT_CHECK_FAILED = 3  # a check the user relies on failed: a gate, a 'failed' map, an unreliable relocalization
+EXIT_CHECK_FAILED = 3  # a check the user relies on failed: a gate, a 'failed' map, a 'lost' relocalization
+EXIT_AMBIGUOUS = 4  # relocalize: an answer, but another place fits about as well
 EXIT_INTERRUPTED = 130  # Ctrl-C or SIGTERM
 
 
@@ -358,7 +360,9 @@ def profile_(
 @app.command("relocalize")
 @handle_errors
 def relocalize_(
-    map_file: Path = typer.Argument(..., help="map.carto written by `carto map`."),
+    map_file: Path = typer.Argument(
+        ..., help="map.carto written by `carto map`, or a map_server YAML (PGM/PNG image: slam_toolbox, GMapping, "
+                  "a floor plan)."),
     recording: Path = typer.Argument(..., help="Recording holding the scan(s) to relocalize."),
     initial_pose: str | None = typer.Option(
         None, "--initial-pose", help="Prior x,y,yaw in the map frame (m, m, rad; 'deg' suffix for degrees)."),
@@ -377,10 +381,18 @@ def relocalize_(
         "(repeatable; angles in radians, or '20deg')."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace the results CSV if it exists."),
+    max_jump: float | None = typer.Option(
+        None, "--max-jump", help="An answer farther than this from the prior (m) is judged 'lost'."),
+    profile: str | None = typer.Option(
+        None, "--profile", "-p", help="Relocalization settings of a profile (office, corridor, warehouse, ... or a "
+        "path) instead of the map's own; a map_server map takes the whole profile."),
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
 ):
-    """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search."""
+    """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search.
+
+    Every answer carries a verdict: ok (exit 0), ambiguous (another place fits about as well; exit 4) or lost
+    (exit 3), with the reason, a covariance, the ambiguity ratio and the share of points on walls."""
     import math
 
     from carto_cli.commands.common import z_slice
@@ -391,27 +403,32 @@ def relocalize_(
         sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), corridor=corridor, global_search=global_,
         queries=queries, csv_out=csv_out, scan_topic=scan_topic, overrides=overrides,
         on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force,
-        read=z_slice(min_z, max_z))
+        read=z_slice(min_z, max_z), profile=profile, max_jump=max_jump)
     if as_json:
         typer.echo(json.dumps(run.to_dict(), indent=2))
-        return
-    if run.summary is not None:
+    elif run.summary is not None:
         s = run.summary
-        typer.echo(f"{s.successes}/{s.queries} relocalized ({100 * s.success_rate:.1f}%), "
-                   f"p50 {s.p50_ms:.1f} ms, p95 {s.p95_ms:.1f} ms, p99 {s.p99_ms:.1f} ms -> {run.csv}")
-        return
-    result, scan = run.result, run.scan
-    assert result is not None and scan is not None
-    x, y, yaw = result.pose
-    t = result.timings
-    typer.echo(f"scan {run.scan_index} at {scan.time:.3f}: pose {x:.3f} {y:.3f} {math.degrees(yaw):.2f}° "
-               f"score {result.score:.3f} ({'ok' if result.success else 'UNRELIABLE'}) via {result.path}, "
-               f"{len(result.submaps_considered)} submaps")
-    typer.echo("timing " + ", ".join(f"{k} {v:.1f} ms" for k, v in t.items()) + f", total {result.total_ms:.1f} ms")
-    if result.reason:
-        typer.echo(f"{'why' if not result.success else 'notes'}: {result.reason}")
-    if not result.success:
-        raise typer.Exit(EXIT_CHECK_FAILED)
+        typer.echo(f"{s.successes}/{s.queries} relocalized ({100 * s.success_rate:.1f}%; "
+                   + ", ".join(f"{k} {v}" for k, v in s.verdicts.items())
+                   + f"), p50 {s.p50_ms:.1f} ms, p95 {s.p95_ms:.1f} ms, p99 {s.p99_ms:.1f} ms -> {run.csv}")
+    else:
+        result, scan = run.result, run.scan
+        assert result is not None and scan is not None
+        x, y, yaw = result.pose
+        t = result.timings
+        sig = result.sigmas
+        typer.echo(f"scan {run.scan_index} at {scan.time:.3f}: pose {x:.3f} {y:.3f} {math.degrees(yaw):.2f}° "
+                   f"verdict {result.verdict}, score {result.score:.3f} via {result.path}, "
+                   f"{len(result.submaps_considered)} submaps")
+        if sig is not None:
+            typer.echo(f"sigma {sig[0]:.3f} m, {sig[1]:.3f} m, {math.degrees(sig[2]):.2f}°; ambiguity "
+                       f"{result.ambiguity:.3f}; {100 * result.inlier_fraction:.0f} % of the points on walls")
+        typer.echo("timing " + ", ".join(f"{k} {v:.1f} ms" for k, v in t.items())
+                   + f", total {result.total_ms:.1f} ms")
+        if result.reason:
+            typer.echo(f"{'why' if not result.success else 'notes'}: {result.reason}")
+    if run.result is not None and run.result.verdict != "ok":
+        raise typer.Exit(EXIT_AMBIGUOUS if run.result.verdict == "ambiguous" else EXIT_CHECK_FAILED)
 
 
 profiles_app = typer.Typer(help="Environment profiles: list them, show the effective options.", no_args_is_help=True)

@@ -8,23 +8,48 @@ from pathlib import Path
 from carto_cli.core.errors import CartoError
 from carto_cli.core.progress import progress
 from carto_cli.core.records import Scan
-from carto_cli.io.map_file import load_map
+from carto_cli.io.map_file import LoadedMap, load_map
+from carto_cli.io.map_server import is_map_server_yaml, load_map_server
 from carto_cli.io.recording import ReadOptions
 from carto_cli.io.sources.open import open_recording
-from carto_cli.options import apply_overrides
+from carto_cli.options import Options, apply_overrides, load_options
+from carto_cli.pipeline import resolve_laser_pose
 from carto_cli.relocalization import (
     BatchSummary,
     QueryResult,
     RelocalizationResult,
     Relocalizer,
+    iter_scans,
     parse_pose,
     read_queries,
     relocalize_many,
     scan_at,
+    select_scan_topic,
     write_results_csv,
 )
 
-__all__ = ["RelocalizeRun", "run_relocalize"]
+__all__ = ["RelocalizeRun", "load_relocalization_map", "relocalization_options", "run_relocalize"]
+
+
+def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -> LoadedMap:
+    """map.carto, or a map_server YAML (its PGM/PNG as the grid: ``io.map_server``).
+
+    ``profile``: for map.carto its ``relocalization`` section replaces the map's own (the scan filtering stays the
+    map's, as the map was built with it); a map_server map takes the whole profile (default: carto's defaults).
+    """
+    if is_map_server_yaml(map_file):
+        return load_map_server(map_file, load_options(profile))
+    loaded = load_map(map_file)
+    if profile is not None:
+        loaded.options = relocalization_options(loaded.options, load_options(profile))
+    return loaded
+
+
+def relocalization_options(map_options: Options, profile_options: Options) -> Options:
+    """The map's options with the profile's ``relocalization`` section."""
+    import dataclasses
+
+    return dataclasses.replace(map_options, relocalization=profile_options.relocalization)
 
 
 @dataclass
@@ -73,6 +98,8 @@ def run_relocalize(
     quiet: bool = True,
     force: bool = False,
     read: ReadOptions | None = None,
+    profile: str | Path | None = None,
+    max_jump: float | None = None,
 ) -> RelocalizeRun:
     """Relocalize one scan (``at`` / ``scan_index``, default the first) from ``initial_pose`` ('x,y,yaw' text or
     a pose) or globally, or every line of ``queries`` (results to ``csv_out``, default QUERIES.results.csv).
@@ -81,7 +108,12 @@ def run_relocalize(
     warnings go to ``on_warning`` as soon as it is built (before the recording is read), and into the result.
     ``quiet=False`` shows a progress bar over a batch (on a terminal). An existing results CSV is replaced only
     with ``force`` (refused before any work). ``read``: how point clouds are sliced (io.recording.ReadOptions).
+    ``map_file`` is a map.carto or a map_server YAML (``load_relocalization_map``, with ``profile``); a map that
+    does not know where the laser sits (a map_server image) takes it from the recording's static TF.
+    ``max_jump`` (m): an answer farther than this from its prior is 'lost'.
     """
+    if max_jump is not None and not max_jump > 0:
+        raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
     if queries is None and not global_search and initial_pose is None:
         raise CartoError("give --initial-pose x,y,yaw, or --global, or --queries FILE")
     if global_search and initial_pose is not None:
@@ -93,23 +125,29 @@ def run_relocalize(
         if csv_out.exists() and not force:
             raise CartoError("exists; --force replaces it, or give another --csv", csv_out)
 
-    loaded = load_map(map_file)
+    loaded = load_relocalization_map(map_file, profile)
     relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
     run = RelocalizeRun(warnings=list(relocalizer.warnings))
     if on_warning is not None:
         for w in relocalizer.warnings:
             on_warning(w)
     with open_recording(recording, read) as rec:
+        mount = None
+        if loaded.laser_pose is None:
+            scan_frame = next(iter_scans(rec, select_scan_topic(rec, scan_topic)), (0, None))[1]
+            mount = resolve_laser_pose(rec, None if scan_frame is None else scan_frame.frame, None)[0]
         if queries is not None:
             qs = read_queries(queries)
             with progress("relocalizing", len(qs), quiet) as bar:
                 run.results, run.summary = relocalize_many(relocalizer, rec, qs, scan_topic=scan_topic,
-                                                           corridor=corridor, on_query=bar.advance)
+                                                           corridor=corridor, on_query=bar.advance,
+                                                           laser_pose=mount, max_jump=max_jump)
             assert csv_out is not None
             run.csv = write_results_csv(csv_out, run.results)
             return run
         run.scan_index, run.scan = scan_at(rec, time=at, index=scan_index, scan_topic=scan_topic)
     # Parsed only now, as the command always has: a bad --initial-pose is reported after the map and the scan.
     prior = None if global_search else (parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose)
-    run.result = relocalizer.relocalize(run.scan, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, corridor=corridor)
+    run.result = relocalizer.relocalize(run.scan, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, corridor=corridor,
+                                        laser_pose=mount, max_jump=max_jump)
     return run

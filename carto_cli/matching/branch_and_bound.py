@@ -127,14 +127,24 @@ def _set_best(best, s, a, x, y):
 
 
 @njit(cache=True, nogil=True)
+def _excluded(excl, a, x, y):
+    """Whether the leaf (angle index a, offsets x, y) lies in one of the boxes (a0, a1, x0, x1, y0, y1)."""
+    for e in range(excl.shape[0]):
+        if excl[e, 0] <= a <= excl[e, 1] and excl[e, 2] <= x <= excl[e, 3] and excl[e, 4] <= y <= excl[e, 5]:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
 def _branch_and_bound(data, starts, widths, heights, pads, discrete, bbox, bounds, angle_index, top, leaf, thr,
-                      scored):
+                      scored, excl):
     """Best leaf (height ``leaf``) over all scans; returns (found, angle index, x, y, sum).
 
     Scan k is rotated by ``angle_index[k]`` angular steps from the estimate;
     ``bounds[k] = (min_x, max_x, min_y, max_y)`` are its cell offsets; a
     candidate with sum <= ``thr`` never counts. ``scored[h]`` is incremented
-    by the number of nodes scored at height h (the cost of the search).
+    by the number of nodes scored at height h (the cost of the search). Leaves inside a box of ``excl``
+    (rows a0, a1, x0, x1, y0, y1; inclusive) never count either: a search for the best *other* place.
     """
     num_scans = discrete.shape[0]
     step = 1 << top
@@ -211,6 +221,8 @@ def _branch_and_bound(data, starts, widths, heights, pads, discrete, bbox, bound
         if not _may_beat(s, a, x, y, extent, thr, found, best):
             continue
         if h == leaf:
+            if excl.shape[0] and _excluded(excl, a, x, y):
+                continue
             _set_best(best, s, a, x, y)
             found = True
             continue
@@ -380,12 +392,15 @@ def _result(problem: _Problem, stack, found, a, x, y, s, n) -> MatchResult:
     return MatchResult(True, float(cell_value_to_probability(s / n)), pose)
 
 
-def _run_bnb(stack, problem: _Problem, top: int, leaf: int, thr: int, scored=None):
+_NO_EXCLUSION = np.zeros((0, 6), dtype=np.int64)
+
+
+def _run_bnb(stack, problem: _Problem, top: int, leaf: int, thr: int, scored=None, excl=None):
     if scored is None:
         scored = np.zeros(stack.depth, dtype=np.int64)
     return _branch_and_bound(stack.data, stack.starts, stack.level_widths, stack.level_heights, stack.pads,
                              problem.discrete, problem.bbox, problem.bounds, problem.angle_index, top, leaf, thr,
-                             scored)
+                             scored, _NO_EXCLUSION if excl is None else excl)
 
 
 class SearchCost(NamedTuple):
@@ -467,6 +482,89 @@ def exhaustive_match(stack: PrecomputationGridStack, points, initial_pose_estima
                                     problem.discrete, problem.bbox, problem.bounds, problem.angle_index, 0,
                                     _threshold(min_score, n))
     return _result(problem, stack, found, a, x, y, s, n)
+
+
+def peaks(stack: PrecomputationGridStack, points, initial_pose_estimate, *, linear_search_window: float,
+          angular_search_window: float, min_score: float, levels: Sequence[tuple[float, int]], count: int,
+          distinct_xy: float, distinct_yaw: float, exclude: Sequence[np.ndarray] = (), tries: int | None = None,
+          coarse_min_score: float | None = None) -> list[MatchResult]:
+    """Up to ``count`` best poses of the window at *different places* (pairwise farther apart than
+    ``distinct_xy`` or ``distinct_yaw``, and from every pose of ``exclude``), best first; none below ``min_score``.
+
+    :func:`match_multilevel` bets on the best leaf of its first, coarse stage. Here that stage is repeated with
+    the places already tried excluded (branch and bound that skips leaves in boxes around them), and each
+    coarse leaf is searched coarse to fine in its own neighbourhood: at most ``tries`` leaves (default
+    count + 2; on bench-dense/intel's map image 3 tries put 92 % of global queries right, 6 tries 97 % in twice
+    the time), stopping once a coarse bound falls below the ``count``-th place found. A whole-map search
+    so keeps its second place (the answer's rival, and the right answer when the best coarse block was not).
+    """
+    levels = [(float(sc), int(lv)) for sc, lv in levels]
+    if not levels or levels[-1][1] != 0:
+        raise ValueError("the last level must be 0 (full resolution)")
+    pts = _points(points)
+    n = pts.shape[0]
+    if n == 0 or count <= 0:
+        return []
+    res = stack.resolution
+    step = angular_step(pts, res)
+    max_a = _cells(angular_search_window, step)
+    max_xy = _cells(linear_search_window, res)
+    scale, lv = levels[0]
+    lattice = 1 << lv
+    half_a = _cells(scale * angular_search_window, step)
+    half_xy = _cells(scale * linear_search_window, res)
+    m = -(-half_a // lattice)
+    angle_index = lattice * np.arange(-m, m + 1)
+    angle_index = angle_index[np.abs(angle_index) <= max_a]
+    problem = _prepare(stack, pts, initial_pose_estimate, step, angle_index,
+                       (-min(half_xy, max_xy), min(half_xy, max_xy), -min(half_xy, max_xy), min(half_xy, max_xy)))
+    thr = _threshold(min_score, n)
+    coarse_thr = thr if coarse_min_score is None else _threshold(coarse_min_score, n)
+    x0, y0, th0 = problem.estimate
+    da = int(math.ceil(distinct_yaw / step))
+    dxy = int(math.ceil(distinct_xy / res))
+
+    def box(pose) -> list[int]:
+        a = int(round(float(wrap_angle(pose[2] - th0)) / step))
+        x = int(round((pose[0] - x0) / res))
+        y = int(round((pose[1] - y0) / res))
+        return [a - da, a + da, x - dxy, x + dxy, y - dxy, y + dxy]
+
+    def same_place(p, q) -> bool:
+        return bool(math.hypot(p[0] - q[0], p[1] - q[1]) <= distinct_xy
+                    and abs(float(wrap_angle(p[2] - q[2]))) <= distinct_yaw)
+
+    avoid = [np.asarray(e, dtype=np.float64) for e in exclude]
+    excl = [box(e) for e in avoid]
+    rest = [(0.0, lvl) for _, lvl in levels[1:]] or [(0.0, 0)]
+    found: list[MatchResult] = []
+    limit = count + 2 if tries is None else int(tries)
+    for _ in range(limit):
+        ok, a, x, y, s = _run_bnb(stack, problem, stack.depth - 1, lv, thr if len(levels) == 1 else coarse_thr,
+                                  excl=np.array(excl, dtype=np.int64).reshape(-1, 6))
+        if not ok:
+            break
+        if len(found) >= count and float(cell_value_to_probability(s / n)) <= found[-1].score:
+            break  # a coarse leaf bounds every pose under it: nothing further down can enter the list
+        centre = np.array([x0 + (x + lattice // 2) * res, y0 + (y + lattice // 2) * res, th0 + a * step])
+        excl.append(box(centre))
+        if len(levels) == 1:
+            r = _result(problem, stack, ok, a, x, y, s, n)
+        else:
+            r = match_multilevel(stack, pts, centre, linear_search_window=1.5 * lattice * res,
+                                 angular_search_window=1.5 * lattice * step, min_score=min_score,
+                                 levels=[(1.0, rest[0][1])] + rest[1:])
+        if not r.found or any(same_place(r.pose, q) for q in avoid):
+            continue
+        twin = [k for k, f in enumerate(found) if same_place(r.pose, f.pose)]
+        if twin:
+            if r.score > found[twin[0]].score:
+                found[twin[0]] = r
+        else:
+            found.append(r)
+        found.sort(key=lambda f: -f.score)
+        del found[count:]
+    return found
 
 
 def default_levels(depth: int) -> tuple[tuple[float, int], ...]:
@@ -577,3 +675,5 @@ def warm_up() -> None:
     match(stack, points, estimate, linear_search_window=0.2, angular_search_window=0.1)
     match_multilevel(stack, points, estimate, linear_search_window=0.2, angular_search_window=0.1)
     match_full_submap(stack, points)
+    peaks(stack, points, estimate, linear_search_window=0.5, angular_search_window=0.2, min_score=0.1,
+          levels=((1.0, 2), (0.0, 0)), count=2, distinct_xy=0.2, distinct_yaw=0.1)

@@ -206,3 +206,28 @@ def evaluate(grid, points, pose, target_translation=None, initial_angle=None, *,
                      pts, float(pose[0]), float(pose[1]), float(pose[2]), float(tx), float(ty), float(th0), s_occ,
                      float(translation_weight), float(rotation_weight), True, h, g)
     return float(cost), h, g
+
+
+def covariance(grid, points, pose, *, min_sigma_xy: float = 0.0, min_sigma_yaw: float = 0.0,
+               max_sigma_xy: float = 10.0, max_sigma_yaw: float = math.pi) -> np.ndarray:
+    """3x3 covariance of ``pose`` (x, y, yaw) from the scan's residuals alone (no prior terms).
+
+    Gauss-Newton's: every point's cost residual an independent measurement whose variance is the residuals'
+    own (sum r^2 / (n - 3)), so cov = sigma^2 (J^T J)^-1. Where the map constrains nothing (along a featureless
+    corridor) J^T J has no information in that direction; ``max_sigma_*`` enter as a weak prior so the result
+    stays finite there (and says "that far, or more"), and ``min_sigma_*`` (e.g. half a cell) are added as the
+    grid's own quantisation, which the residuals cannot see.
+    """
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    n = pts.shape[0]
+    info = np.diag([1.0 / max_sigma_xy ** 2, 1.0 / max_sigma_xy ** 2, 1.0 / max_sigma_yaw ** 2])
+    if n > 3:
+        cost, h, _ = evaluate(grid, pts, pose, translation_weight=0.0, rotation_weight=0.0)
+        # With s_occ = 1/sqrt(n): h = (1/n) sum j j^T and cost = (1/2n) sum f^2.
+        sigma2 = max(2.0 * cost * n / (n - 3), 1e-12)
+        info = info + n * h / sigma2
+    cov = np.linalg.inv(info)
+    cov[0, 0] += min_sigma_xy ** 2
+    cov[1, 1] += min_sigma_xy ** 2
+    cov[2, 2] += min_sigma_yaw ** 2
+    return 0.5 * (cov + cov.T)

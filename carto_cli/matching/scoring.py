@@ -9,7 +9,7 @@ import numpy as np
 
 from carto_cli.core import transform
 
-__all__ = ["known_score", "score_at"]
+__all__ = ["inlier_fraction", "known_score", "score_at"]
 
 
 def score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
@@ -29,3 +29,18 @@ def known_score(grid, points: np.ndarray, pose: np.ndarray) -> tuple[float, floa
     known = ~np.isnan(p)
     n = int(known.sum())
     return n / len(p), (float(p[known].mean()) if n else 0.0)
+
+
+def inlier_fraction(grid, points: np.ndarray, pose: np.ndarray, *, min_probability: float = 0.5) -> float:
+    """Share of ``points`` at ``pose`` on a wall: a cell of the 3 x 3 around the point's reaches
+    ``min_probability`` (a cell's slack, as a scan's own noise and the grid's quantisation put a good point
+    beside the wall's cell as often as on it)."""
+    if len(points) == 0:
+        return 0.0
+    cells = grid.cell_index(transform.apply(pose, points))
+    hit = np.zeros(len(cells), dtype=bool)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            p = grid.probability(cells + np.array([dx, dy]), unknown=0.0)
+            hit |= p >= min_probability
+    return float(hit.mean())

@@ -358,6 +358,9 @@ class Relocalization:
     max_see_through: float = _opt(
         0.2, "a match where more than this share of the scan's rays pass through walls of the map is rejected "
         "(aliased places put the endpoints on walls, rarely the rays through free space)", ge=0, le=1)
+    max_ambiguity: float = _opt(
+        0.95, "an answer whose best rival at a different place (> 1 m or > 10 deg away) scores at least this "
+        "share of its score is 'ambiguous', not 'ok'", gt=0, le=1)
     fallback_max_submaps: int = _opt(
         8, "a reliable prior no window confirms is searched for in at most this many more submaps, nearest first "
         "(0: no limit); such a prior is mostly a place the map never saw, where failing fast is the answer", ge=0)

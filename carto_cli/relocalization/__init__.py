@@ -18,6 +18,7 @@ from carto_cli.relocalization.result import (
     CSV_COLUMNS,
     PATHS,
     TIMING_BUCKETS,
+    VERDICTS,
     BatchSummary,
     Latency,
     QueryResult,
@@ -28,7 +29,8 @@ from carto_cli.relocalization.result import (
 )
 
 __all__ = [
-    "CSV_COLUMNS", "PATHS", "TIMING_BUCKETS", "BatchSummary", "Candidate", "Latency", "Query", "QueryResult",
-    "RelocalizationResult", "Relocalizer", "StackCache", "Timings", "iter_scans", "parse_pose", "read_queries",
-    "relocalize_many", "scan_at", "scans_for_queries", "select_scan_topic", "summarize", "write_results_csv",
+    "CSV_COLUMNS", "PATHS", "TIMING_BUCKETS", "VERDICTS", "BatchSummary", "Candidate", "Latency", "Query",
+    "QueryResult", "RelocalizationResult", "Relocalizer", "StackCache", "Timings", "iter_scans", "parse_pose",
+    "read_queries", "relocalize_many", "scan_at", "scans_for_queries", "select_scan_topic", "summarize",
+    "write_results_csv",
 ]

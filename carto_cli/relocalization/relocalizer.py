@@ -71,7 +71,7 @@ from carto_cli.core.records import Scan
 from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import stack_bytes
 from carto_cli.matching.ray_consistency import see_through_fraction
-from carto_cli.matching.scoring import known_score, score_at
+from carto_cli.matching.scoring import inlier_fraction, known_score, score_at
 from carto_cli.options import Options
 from carto_cli.relocalization.cache import StackCache
 from carto_cli.relocalization.queries import Query, scans_for_queries
@@ -108,7 +108,12 @@ class Candidate:
     submap: int
     grid_pose: np.ndarray  # B&B pose in the submap's grid frame
     score: float
-    estimate: np.ndarray | None = None  # the search's centre in the grid frame (windowed searches)
+    estimate: np.ndarray | None = None  # the search's centre in the grid frame
+    lin: float = 0.0  # the search's half-windows (m, rad) around ``estimate``: where a rival is looked for
+    ang: float = 0.0
+    levels: tuple[tuple[float, int], ...] = ()  # the search's stages (match_multilevel), for the rival search
+    rival: branch_and_bound.MatchResult | None = None  # the search's best at another place, when it looked
+    rival_searched: bool = False
 
 
 @dataclass
@@ -138,6 +143,8 @@ class _Search:
     # Fallback-filtered -> fallback-all, global covering -> global rest: the submaps left, the candidates so far.
     rest: list[int] = field(default_factory=list)
     candidates: list[Candidate] = field(default_factory=list)
+    max_jump: float | None = None  # m: an answer farther from the prior is 'lost'
+    failed: RelocalizationResult | None = None  # the best answer a stage judged not ok, should no stage find one
 
 
 # ----------------------------------------------------------------------------------- relocalizer
@@ -383,7 +390,7 @@ class Relocalizer:
                 min_score=floor, coarse_min_score=min_score, levels=_window_levels(stack.depth))
             tm.add("pose search", t)
             if r.found and (best is None or r.score > best.score):
-                best = Candidate(i, r.pose, r.score, estimate)
+                best = Candidate(i, r.pose, r.score, estimate, lin, ang, _window_levels(stack.depth))
         return best
 
     def _whole(self, points, submaps, min_score, tm: Timings, *, prior=None, window: float | None = None,
@@ -412,15 +419,26 @@ class Relocalizer:
                 nx, ny = stack.num_cells
                 lin = (nx + ny) * stack.resolution
             if self.ro.multilevel_global_search:
-                r = branch_and_bound.match_multilevel(
-                    stack, points, estimate, linear_search_window=lin, angular_search_window=math.pi,
-                    min_score=floor, coarse_min_score=min_score, levels=_global_levels(stack.depth))
+                # The two best places, not only the best: the second is the answer's rival, and betting on the
+                # best coarse leaf alone (match_multilevel) missed right answers scoring 0.8 whenever one grid
+                # holds a whole building (a map_server image: 12 of 60 queries on bench-dense/intel's).
+                levels = _global_levels(stack.depth)
+                ps = branch_and_bound.peaks(stack, points, estimate, linear_search_window=lin,
+                                            angular_search_window=math.pi, min_score=min_score, levels=levels,
+                                            count=2, distinct_xy=_DISTINCT_XY, distinct_yaw=_DISTINCT_YAW,
+                                            coarse_min_score=min_score)
+                tm.add("pose search", t)
+                if ps and ps[0].score > floor:
+                    found.append(Candidate(i, ps[0].pose, ps[0].score, estimate, lin, math.pi, levels,
+                                           ps[1] if len(ps) > 1 else None, True))
+                    top = max(top, ps[0].score)
+                continue
             else:
                 r = branch_and_bound.match(stack, points, estimate, linear_search_window=lin,
                                            angular_search_window=math.pi, min_score=floor)
             tm.add("pose search", t)
             if r.found:
-                found.append(Candidate(i, r.pose, r.score, estimate))
+                found.append(Candidate(i, r.pose, r.score, estimate, lin, math.pi, (), None, True))
                 top = max(top, r.score)
         found.sort(key=lambda c: -c.score)
         return [c for c in found if c.score >= top - margin]
@@ -492,8 +510,11 @@ class Relocalizer:
     # ------------------------------------------------------------------ the query
 
     def relocalize(self, scan: Scan, prior=None, *, sigma_xy: float | None = None, sigma_yaw: float | None = None,
-                   corridor: bool = False, laser_pose=None) -> RelocalizationResult:
+                   corridor: bool = False, laser_pose=None, max_jump: float | None = None) -> RelocalizationResult:
         """Pose of ``scan`` in the map; ``prior`` (x, y, yaw) in the map frame or None for a global search.
+
+        ``max_jump`` (m): an answer farther than this from the prior is 'lost' (a confident jump to a similar
+        place elsewhere is what a robot must not take).
 
         ``sigma_xy`` (m) / ``sigma_yaw`` (rad) default to ``relocalization.default_sigma_*``;
         ``laser_pose`` (laser in the tracking frame) defaults to the one stored in the map.
@@ -512,7 +533,7 @@ class Relocalizer:
         # (bench-dense/aces: right answers at 0.57-0.59 searched, 0.65-0.74 refined; with the floor at 0.55, 13 of
         # 100 global queries on the mapped route found nothing, 6 of which a floor of 0.5 finds).
         s = _Search(mount, search_pts, fine_pts, corridor, tm,
-                    search_floor=min(ro.global_search_min_score, ro.global_min_score))
+                    search_floor=min(ro.global_search_min_score, ro.global_min_score), max_jump=max_jump)
         stages: tuple[Callable[[_Search], RelocalizationResult | None], ...]
         if prior is None:
             stages = (self._global_covering, self._global_rest)
@@ -522,6 +543,13 @@ class Relocalizer:
         for stage in stages:
             result = stage(s)
             if result is not None:
+                if result.verdict == "lost" and result.submap is None and s.failed is not None:
+                    # Nothing at all in the last stage: what an earlier one found and doubted says more.
+                    failed = s.failed
+                    failed.reason = "; ".join(s.reasons)
+                    failed.timings, failed.total_ms = s.tm.finish()
+                    failed.submaps_considered = s.considered
+                    return failed
                 return result
         raise AssertionError("the last stage always answers")
 
@@ -563,7 +591,8 @@ class Relocalizer:
         edge = cand is not None and self._at_edge(cand, s.lin, s.ang)
         if cand is not None and not edge:
             res = self._finish(s, cand, "windowed", ro.min_score, s.prior, label="windowed search", known_ok=True)
-            if res.success:
+            # Two places fit inside the prior's own window: no wider search can tell them apart.
+            if res.success or res.verdict == "ambiguous":
                 return res
         elif cand is not None:
             s.reasons.append(f"windowed search's best ({cand.score:.3f}) is at the edge of its window")
@@ -662,7 +691,12 @@ class Relocalizer:
 
     def _finish(self, s: _Search, cand: Candidate | None, path: str, threshold: float, fallback_pose, *,
                 label: str = "", rivals: Sequence[Candidate] = (), known_ok: bool = False) -> RelocalizationResult:
-        """The result of ``path``: ``cand`` refined and judged (not found without one)."""
+        """The result of ``path``: ``cand`` refined and judged (not found without one).
+
+        The verdict: 'lost' when nothing was found, the refined pose fails the score, consistency or free-space
+        checks, or it lies more than ``max_jump`` from the prior; 'ambiguous' when a different place (in another
+        submap, or elsewhere in this search's window) scores ``max_ambiguity`` of the answer or more; else 'ok'.
+        """
         if cand is None:
             timings, total = s.tm.finish()
             return RelocalizationResult(np.asarray(fallback_pose, dtype=np.float64), 0.0, path, False,
@@ -670,18 +704,68 @@ class Relocalizer:
                                         "; ".join(s.reasons + ["no match above the threshold"]), threshold)
         pose, score, ok, reason, known, kscore, see = self.refine(
             s.fine_pts, cand, threshold, s.tm, known_ok=known_ok, sensor=s.mount[:2])
-        if ok and rivals:
-            rival = self._rival(cand, pose, rivals, None if path == "global" else s.prior)
-            if rival is not None:
-                c, p = rival
-                ok = False
-                reason = (f"ambiguous: submap {c.submap} scores {c.score:.3f} against {cand.score:.3f} at "
-                          f"{p[0]:.2f},{p[1]:.2f},{math.degrees(p[2]):.0f}deg (margin {_AMBIGUITY_MARGIN:g})")
+        t = time.perf_counter()
+        grid = self.grids[cand.submap]
+        grid_pose = transform.compose(self.map_to_grid[cand.submap], pose)
+        cov = least_squares.covariance(grid, s.fine_pts, grid_pose, min_sigma_xy=0.5 * grid.resolution,
+                                       min_sigma_yaw=0.5 * branch_and_bound.angular_step(s.fine_pts, grid.resolution))
+        rot = np.eye(3)
+        c, si = math.cos(self.grid_to_map[cand.submap, 2]), math.sin(self.grid_to_map[cand.submap, 2])
+        rot[:2, :2] = [[c, -si], [si, c]]
+        cov = rot @ cov @ rot.T
+        inliers = inlier_fraction(grid, s.fine_pts, grid_pose)
+        verdict = "ok" if ok else "lost"
+        ambiguity, rival_pose, rival_note = self._ambiguity(s, cand, pose, rivals, path)
+        s.tm.add("scan scoring", t)
+        if ok and ambiguity >= self.ro.max_ambiguity:
+            verdict = "ambiguous"
+            reason = f"ambiguous: {rival_note} (ratio {ambiguity:.3f}, at least {self.ro.max_ambiguity:g})"
+        if ok and s.max_jump is not None and s.prior is not None and path != "global":
+            jump = math.hypot(*(pose[:2] - s.prior[:2]))
+            if jump > s.max_jump:
+                verdict = "lost"
+                reason = f"the answer is {jump:.2f} m from the prior (more than --max-jump {s.max_jump:g} m)"
         if reason:
             s.reasons.append(f"{label}: {reason}" if label else reason)
         timings, total = s.tm.finish()
-        return RelocalizationResult(pose, score, path, ok, s.considered, timings, total, cand.submap, cand.score,
-                                    "; ".join(s.reasons), threshold, known, kscore, see)
+        result = RelocalizationResult(pose, score, path, verdict == "ok", s.considered, timings, total, cand.submap,
+                                      cand.score, "; ".join(s.reasons), threshold, known, kscore, see, verdict, cov,
+                                      ambiguity, rival_pose, inliers)
+        rank = {"lost": 0, "ambiguous": 1}
+        if verdict != "ok" and (s.failed is None or (rank[verdict], score) > (rank[s.failed.verdict], s.failed.score)):
+            s.failed = result  # an ambiguous answer says more than a lost one, a better score more than a worse
+        return result
+
+    def _ambiguity(self, s: _Search, cand: Candidate, pose: np.ndarray, rivals: Sequence[Candidate],
+                   path: str) -> tuple[float, np.ndarray | None, str]:
+        """(best distinct rival's search score / the answer's, its map pose, a note): the other submaps' bests,
+        and the best pose of the answer's own search window away from the answer (``branch_and_bound.best_rival``).
+        With a prior, a rival farther from it than the answer (by more than _DISTINCT_XY) does not count."""
+        prior = None if path == "global" else s.prior
+        best: tuple[float, np.ndarray | None, str] = (0.0, None, "")
+        rival = self._rival(cand, pose, rivals, prior)
+        if rival is not None and cand.score > 0:
+            c, p = rival
+            best = (c.score / cand.score, p, f"submap {c.submap} scores {c.score:.3f} against {cand.score:.3f} at "
+                                             f"{p[0]:.2f},{p[1]:.2f},{math.degrees(p[2]):.0f}deg")
+        if cand.estimate is None or cand.lin <= 0 or not (cand.levels or cand.rival_searched):
+            return best
+        r = cand.rival
+        if not cand.rival_searched:
+            stack = self.cache.get(cand.submap, self.grids[cand.submap])
+            grid_pose = transform.compose(self.map_to_grid[cand.submap], pose)
+            ps = branch_and_bound.peaks(
+                stack, s.search_pts, cand.estimate, linear_search_window=cand.lin, angular_search_window=cand.ang,
+                min_score=max(s.search_floor * 0.8, 0.1), levels=cand.levels, count=1, distinct_xy=_DISTINCT_XY,
+                distinct_yaw=_DISTINCT_YAW, exclude=[grid_pose, cand.grid_pose])
+            r = ps[0] if ps else None
+        if r is not None and cand.score > 0 and r.score / cand.score > best[0]:
+            p = transform.compose(self.grid_to_map[cand.submap], r.pose)
+            if prior is None or (math.hypot(*(p[:2] - prior[:2]))
+                                 <= math.hypot(*(pose[:2] - prior[:2])) + _DISTINCT_XY):
+                best = (r.score / cand.score, p, f"{p[0]:.2f},{p[1]:.2f},{math.degrees(p[2]):.0f}deg in submap "
+                                                 f"{cand.submap} scores {r.score:.3f} against {cand.score:.3f}")
+        return best
 
     def _decide(self, s: _Search, cands: list[Candidate], path: str, threshold: float, fallback_pose,
                 label: str = "") -> RelocalizationResult:
@@ -704,9 +788,10 @@ class Relocalizer:
 
     def relocalize_many(self, recording, queries: Sequence[Query], *, scan_topic: str | None = None,
                         laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
-                        on_query=None) -> tuple[list[QueryResult], BatchSummary]:
+                        on_query=None, max_jump: float | None = None) -> tuple[list[QueryResult], BatchSummary]:
         return relocalize_many(self, recording, queries, scan_topic=scan_topic, laser_pose=laser_pose,
-                               corridor=corridor, max_time_offset=max_time_offset, on_query=on_query)
+                               corridor=corridor, max_time_offset=max_time_offset, on_query=on_query,
+                               max_jump=max_jump)
 
     def stats(self) -> dict:
         return {"submaps": self.map.num_submaps, "searchable": len(self.searchable), "cache": self.cache.stats()}
@@ -749,7 +834,7 @@ def _window_levels(depth: int) -> tuple[tuple[float, int], ...]:
 
 def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query], *, scan_topic: str | None = None,
                     laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
-                    on_query=None) -> tuple[list[QueryResult], BatchSummary]:
+                    on_query=None, max_jump: float | None = None) -> tuple[list[QueryResult], BatchSummary]:
     """Run every query against its scan (nearest to its time, or at its index), in file order."""
     if not queries:
         raise CartoError("no queries")
@@ -758,7 +843,7 @@ def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query
     for k, q in enumerate(queries):
         i, scan = scans[k]
         r = relocalizer.relocalize(scan, q.prior, sigma_xy=q.sigma_xy, sigma_yaw=q.sigma_yaw, corridor=corridor,
-                                   laser_pose=laser_pose)
+                                   laser_pose=laser_pose, max_jump=max_jump)
         results.append(QueryResult(q, i, scan.time, r))
         if on_query is not None:
             on_query(1)

@@ -17,6 +17,7 @@ __all__ = [
     "CSV_COLUMNS",
     "PATHS",
     "TIMING_BUCKETS",
+    "VERDICTS",
     "BatchSummary",
     "Latency",
     "QueryResult",
@@ -29,7 +30,10 @@ __all__ = [
 # The search stage a result came from (RelocalizationResult.path), in the order a query tries them.
 PATHS = ("windowed", "windowed-wide", "fallback-filtered", "fallback-all", "global")
 TIMING_BUCKETS = ("submap preparation", "pose search", "scan scoring", "other")
-CSV_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "score", "path", "ms", "success", "submap")
+VERDICTS = ("ok", "ambiguous", "lost")
+# The batch CSV: the scan, then the same fields as one answer's JSON (RelocalizationResult.to_dict), flattened.
+CSV_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "verdict", "score", "ambiguity", "inlier_fraction", "cov_xx",
+               "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw", "path", "ms", "success", "submap", "reason")
 
 
 class Timings:
@@ -86,11 +90,40 @@ class RelocalizationResult:
     known_fraction: float = 1.0  # share of the refinement points in known cells at ``pose``
     known_score: float = 0.0  # score_at over those points only
     see_through: float = 0.0  # share of the scan's rays crossing a wall of the submap at ``pose`` (ray_consistency)
+    # How far to trust ``pose``: ``verdict`` 'ok' (success), 'ambiguous' (a different place fits about as well:
+    # ``ambiguity`` = the best distinct rival's search score / the answer's, ``rival`` its map pose) or 'lost'
+    # (nothing fits well enough, or the answer jumped farther than allowed); ``reason`` says why.
+    verdict: str = ""  # '' -> from ``success``: 'ok' or 'lost'
+    covariance: np.ndarray | None = None  # (3, 3) of (x, y, yaw) in the map frame (m^2, rad^2)
+    ambiguity: float = 0.0
+    rival: np.ndarray | None = None
+    inlier_fraction: float = 0.0  # share of the refinement points on a wall of the map at ``pose``
+
+    def __post_init__(self):
+        if not self.verdict:
+            self.verdict = "ok" if self.success else "lost"
+        if self.verdict not in VERDICTS:
+            raise ValueError(f"verdict must be one of {VERDICTS}, got {self.verdict!r}")
+
+    @property
+    def sigmas(self) -> tuple[float, float, float] | None:
+        """Standard deviations of x, y (m) and yaw (rad) from the covariance's diagonal."""
+        if self.covariance is None:
+            return None
+        d = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        return float(d[0]), float(d[1]), float(d[2])
 
     def to_dict(self) -> dict:
         """JSON-ready (``carto relocalize --json``)."""
+        cov = None if self.covariance is None else [[float(f"{v:.6g}") for v in row] for row in self.covariance]
         return {
             "pose": {"x": float(self.pose[0]), "y": float(self.pose[1]), "yaw": float(self.pose[2])},
+            "verdict": self.verdict,
+            "covariance": cov,
+            "ambiguity": round(float(self.ambiguity), 4),
+            "rival": None if self.rival is None else {"x": float(self.rival[0]), "y": float(self.rival[1]),
+                                                      "yaw": float(self.rival[2])},
+            "inlier_fraction": round(float(self.inlier_fraction), 4),
             "score": round(float(self.score), 6),
             "search_score": round(float(self.search_score), 6),
             "threshold": float(self.threshold),
@@ -116,10 +149,16 @@ class QueryResult:
 
     def row(self) -> dict:
         r = self.result
+        c = np.full((3, 3), np.nan) if r.covariance is None else r.covariance
+        cov = {name: ("" if np.isnan(c[i, j]) else f"{c[i, j]:.6g}") for name, (i, j) in zip(
+            ("cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw"),
+            ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))}
         return {"t": f"{self.scan_time:.6f}", "scan_index": self.scan_index,
-                "x": f"{r.pose[0]:.4f}", "y": f"{r.pose[1]:.4f}", "yaw": f"{r.pose[2]:.5f}",
-                "score": f"{r.score:.4f}", "path": r.path, "ms": f"{r.total_ms:.2f}",
-                "success": int(bool(r.success)), "submap": "" if r.submap is None else r.submap}
+                "x": f"{r.pose[0]:.4f}", "y": f"{r.pose[1]:.4f}", "yaw": f"{r.pose[2]:.5f}", "verdict": r.verdict,
+                "score": f"{r.score:.4f}", "ambiguity": f"{r.ambiguity:.4f}",
+                "inlier_fraction": f"{r.inlier_fraction:.4f}", **cov, "path": r.path, "ms": f"{r.total_ms:.2f}",
+                "success": int(bool(r.success)), "submap": "" if r.submap is None else r.submap,
+                "reason": r.reason}
 
 
 @dataclass
@@ -132,6 +171,7 @@ class BatchSummary:
     p99_ms: float
     max_ms: float
     paths: dict[str, int] = field(default_factory=dict)
+    verdicts: dict[str, int] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)  # mean per bucket
 
     def to_dict(self) -> dict:
@@ -141,10 +181,11 @@ class BatchSummary:
 def summarize(results: Sequence[QueryResult]) -> BatchSummary:
     ok = sum(bool(q.result.success) for q in results)
     paths = {p: sum(q.result.path == p for q in results) for p in PATHS}
+    verdicts = {v: sum(q.result.verdict == v for q in results) for v in VERDICTS}
     buckets = {b: float(np.mean([q.result.timings[b] for q in results])) if results else 0.0 for b in TIMING_BUCKETS}
     lat = Latency.of([q.result.total_ms for q in results])
     return BatchSummary(len(results), ok, ok / len(results) if results else 0.0, lat.p50_ms or 0.0,
-                        lat.p95_ms or 0.0, lat.p99_ms or 0.0, lat.max_ms or 0.0, paths, buckets)
+                        lat.p95_ms or 0.0, lat.p99_ms or 0.0, lat.max_ms or 0.0, paths, verdicts, buckets)
 
 
 def write_results_csv(path: str | Path, results: Iterable[QueryResult]) -> Path:

@@ -63,6 +63,7 @@ def test_summarize_counts_paths_and_percentiles():
     assert (s.p50_ms, s.max_ms) == (6.0, 8.0) and s.p50_ms <= s.p95_ms <= s.p99_ms <= s.max_ms
     assert list(s.paths) == list(PATHS) and s.paths["windowed"] == 2 and s.paths["global"] == 1
     assert s.timings_ms["pose search"] == 2.0 and s.timings_ms["other"] == pytest.approx(2.5)
+    assert s.verdicts == {"ok": 2, "ambiguous": 0, "lost": 1}
     d = s.to_dict()
     assert d["success_rate"] == 0.667 and d["paths"]["fallback-all"] == 0
     empty = summarize([])
@@ -74,6 +75,7 @@ def test_results_csv_is_written_atomically(tmp_path):
     out = write_results_csv(tmp_path / "out" / "results.csv", rows)
     lines = out.read_text().splitlines()
     assert lines[0].split(",") == list(CSV_COLUMNS) and len(lines) == 3
-    assert lines[1] == "1000.000000,0,1.0000,2.0000,0.50000,0.7123,windowed,4.00,1,2"
-    assert lines[2].endswith(",fallback-all,4.00,0,")
+    assert lines[1] == "1000.000000,0,1.0000,2.0000,0.50000,ok,0.7123,0.0000,0.0000,,,,,,,windowed,4.00,1,2,"
+    assert lines[2].endswith(",fallback-all,4.00,0,,refined score 0.4 below 0.55")
+    assert ",lost," in lines[2]
     assert not [f for f in out.parent.iterdir() if f.name.startswith(".")]  # no temporary left behind
