@@ -386,6 +386,12 @@ def relocalize_(
     profile: str | None = typer.Option(
         None, "--profile", "-p", help="Relocalization settings of a profile (office, corridor, warehouse, ... or a "
         "path) instead of the map's own; a map_server map takes the whole profile."),
+    track: bool = typer.Option(
+        False, "--track", help="A pose for every scan of the recording: first fix from --initial-pose or a global "
+        "search, then odometry-predicted matches; writes trajectory.tum, track.csv, track.json into -o."),
+    output: Path | None = typer.Option(None, "--output", "-o", help="--track: output directory (default NAME_track "
+                                       "next to the recording)."),
+    odom_topic: str | None = typer.Option(None, "--odom-topic", help="--track: odometry topic for predictions."),
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
 ):
@@ -396,6 +402,15 @@ def relocalize_(
     import math
 
     from carto_cli.commands.common import z_slice
+
+    if track:
+        _track(map_file, recording, output, initial_pose=initial_pose, sigma_xy=sigma_xy,
+               sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), scan_topic=scan_topic,
+               odom_topic=odom_topic, overrides=overrides, profile=profile, max_jump=max_jump, force=force,
+               read=z_slice(min_z, max_z), as_json=as_json)
+        return
+    if output is not None or odom_topic is not None:
+        raise CartoError("--output and --odom-topic go with --track")
     from carto_cli.commands.relocalize import run_relocalize
 
     run = run_relocalize(
@@ -429,6 +444,25 @@ def relocalize_(
             typer.echo(f"{'why' if not result.success else 'notes'}: {result.reason}")
     if run.result is not None and run.result.verdict != "ok":
         raise typer.Exit(EXIT_AMBIGUOUS if run.result.verdict == "ambiguous" else EXIT_CHECK_FAILED)
+
+
+def _track(map_file: Path, recording: Path, output: Path | None, *, as_json: bool, **kwargs) -> None:
+    from carto_cli.commands.relocalize import run_track
+    from carto_cli.core.progress import progress
+
+    with progress("tracking", None, state.quiet) as bar:
+        run = run_track(map_file, recording, output, on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True),
+                        on_scan=lambda _scan: bar.advance(), **kwargs)
+    s = run.summary
+    if as_json:
+        typer.echo(json.dumps(run.to_dict(), indent=2))
+    else:
+        first = ("no fix" if s.first_fix_index is None
+                 else f"first fix at scan {s.first_fix_index} after {s.first_fix_s:.2f} s")
+        typer.echo(f"{s.scans} scans: " + ", ".join(f"{k} {v}" for k, v in s.verdicts.items())
+                   + f"; {first}; {s.relocalizations} searches; {s.scans_per_second:.0f} scans/s -> {run.outdir}")
+    if s.first_fix_index is None:
+        raise typer.Exit(EXIT_CHECK_FAILED)
 
 
 profiles_app = typer.Typer(help="Environment profiles: list them, show the effective options.", no_args_is_help=True)

@@ -1,17 +1,26 @@
 """`carto relocalize` as a library call: load the map, build the relocalizer, answer one scan or a queries file."""
 from __future__ import annotations
 
+import csv
+import io
+import json
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from carto_cli.core.errors import CartoError
 from carto_cli.core.progress import progress
 from carto_cli.core.records import Scan
+from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
 from carto_cli.io.map_file import LoadedMap, load_map
 from carto_cli.io.map_server import is_map_server_yaml, load_map_server
 from carto_cli.io.recording import ReadOptions
 from carto_cli.io.sources.open import open_recording
+from carto_cli.io.topics import select_topics
+from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options, apply_overrides, load_options
 from carto_cli.pipeline import resolve_laser_pose
 from carto_cli.relocalization import (
@@ -27,8 +36,10 @@ from carto_cli.relocalization import (
     select_scan_topic,
     write_results_csv,
 )
+from carto_cli.relocalization.tracking import TRACK_COLUMNS, TrackedScan, Tracker, TrackSummary, summarize_track
 
-__all__ = ["RelocalizeRun", "load_relocalization_map", "relocalization_options", "run_relocalize"]
+__all__ = ["TRACK_OUTPUTS", "RelocalizeRun", "TrackRun", "default_track_dir", "load_relocalization_map",
+           "relocalization_options", "run_relocalize", "run_track"]
 
 
 def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -> LoadedMap:
@@ -151,3 +162,93 @@ def run_relocalize(
     run.result = relocalizer.relocalize(run.scan, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, corridor=corridor,
                                         laser_pose=mount, max_jump=max_jump)
     return run
+
+
+TRACK_OUTPUTS = ("trajectory.tum", "track.csv", "track.json")
+
+
+@dataclass
+class TrackRun:
+    """What `carto relocalize --track` wrote and measured."""
+
+    outdir: Path
+    summary: TrackSummary
+    warnings: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"outdir": str(self.outdir), **self.summary.to_dict()}
+
+
+def default_track_dir(recording: Path) -> Path:
+    """``NAME_track`` next to the recording (NAME as for ``carto map``'s ``NAME_map``)."""
+    from carto_cli.commands.map import default_outdir
+
+    out = default_outdir(recording)
+    return out.with_name(out.name[:-len("_map")] + "_track")
+
+
+def run_track(
+    map_file: Path,
+    recording: Path,
+    outdir: Path | None = None,
+    *,
+    initial_pose: str | Sequence[float] | None = None,
+    sigma_xy: float | None = None,
+    sigma_yaw: float | None = None,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    overrides: Sequence[str] | None = None,
+    profile: str | Path | None = None,
+    max_jump: float | None = None,
+    force: bool = False,
+    read: ReadOptions | None = None,
+    on_warning: Callable[[str], None] | None = None,
+    on_scan: Callable[[TrackedScan], None] | None = None,
+) -> TrackRun:
+    """A pose and a verdict for every scan of ``recording`` in the map (``relocalization.tracking``): the first
+    from ``initial_pose`` or a global search, then each from the previous one moved by odometry; writes
+    ``trajectory.tum`` (the scans judged ok), ``track.csv`` (every scan: pose, verdict, source, score, sigmas)
+    and ``track.json`` (the summary: verdict counts, time to first fix, scans per second) into ``outdir``
+    (default NAME_track next to the recording) as one set; an earlier set is replaced only with ``force``."""
+    outdir = Path(outdir) if outdir is not None else default_track_dir(recording)
+    if outdir.exists() and not outdir.is_dir():
+        raise CartoError("exists and is not a directory; the outputs go into a directory (give another -o)", outdir)
+    taken = existing_outputs(outdir, TRACK_OUTPUTS)
+    if taken and not force:
+        raise CartoError(f"already holds a track ({', '.join(taken)}); --force replaces it, or give another -o",
+                         outdir)
+    if max_jump is not None and not max_jump > 0:
+        raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
+    prior = parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose
+    t0 = time.perf_counter()
+    loaded = load_relocalization_map(map_file, profile)
+    relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
+    warnings = list(relocalizer.warnings)
+    if on_warning is not None:
+        for w in warnings:
+            on_warning(w)
+    with open_recording(recording, read) as rec:
+        selection = select_topics(rec, scan_topic, odom_topic)
+        mount = None
+        if loaded.laser_pose is None:
+            first = next(iter_scans(rec, selection.scan), (0, None))[1]
+            mount = resolve_laser_pose(rec, None if first is None else first.frame, None)[0]
+        tracker = Tracker(relocalizer, laser_pose=mount, max_jump=max_jump)
+        topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
+        scans = list(tracker.track(rec.records(topics), initial_pose=prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw,
+                                   on_scan=on_scan))
+    if not scans:
+        raise CartoError(f"no scans on {selection.scan}", recording)
+    summary = summarize_track(scans, time.perf_counter() - t0, tracker.relocalizations, tracker.timings)
+    ok = [s for s in scans if s.verdict == "ok" and s.pose is not None]
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(TRACK_COLUMNS), lineterminator="\n")
+    writer.writeheader()
+    for s in scans:
+        writer.writerow(s.row())
+    with output_set(outdir, TRACK_OUTPUTS) as staging:
+        poses = np.array([s.pose for s in ok]).reshape(-1, 3)
+        write_trajectory(staging / "trajectory.tum", Trajectory.from_poses(np.array([s.time for s in ok]), poses))
+        write_text_atomic(staging / "track.csv", buf.getvalue())
+        write_text_atomic(staging / "track.json", json.dumps(summary.to_dict(), indent=1) + "\n")
+    return TrackRun(outdir, summary, warnings)

@@ -337,6 +337,19 @@ class Relocalizer:
         np.minimum.at(out, self._track_submap, d)
         return out
 
+    def nearest_submap(self, xy) -> int:
+        """The searchable submap to match a pose at ``xy`` against: the one whose scans were taken nearest it; in
+        a map without nodes (a map_server image's tiles) the one whose known box holds it most centrally."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(2)
+        if len(self._track_xy):
+            d = self.track_distances(xy)
+            return min(self.searchable, key=lambda i: (d[i], i))
+        box = self.box_distances(xy)
+        centre = np.array([transform.apply(self.grid_to_map[i], np.array([[(b[0] + b[2]) / 2, (b[1] + b[3]) / 2]]))[0]
+                           if not np.isnan(b[0]) else (np.inf, np.inf) for i, b in enumerate(self.boxes)])
+        off = np.hypot(centre[:, 0] - xy[0], centre[:, 1] - xy[1])
+        return min(self.searchable, key=lambda i: (box[i], off[i], i))
+
     def _order(self, indices: Sequence[int], prior) -> list[int]:
         """Nearest first, by the distance from the prior to the submap's nodes."""
         key = self.track_distances(np.asarray(prior, dtype=np.float64)[:2])
