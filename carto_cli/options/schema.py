@@ -356,8 +356,11 @@ class Relocalization:
         0.5, "whole-submap searches keep candidates down to this score on the coarser search points (which score "
         "~0.07 below the refined pose); the refined pose is still judged against global_min_score", ge=0, le=1)
     max_see_through: float = _opt(
-        0.2, "a match where more than this share of the scan's rays pass through walls of the map is rejected "
+        0.13, "a match where more than this share of the scan's rays pass through walls of the map is rejected "
         "(aliased places put the endpoints on walls, rarely the rays through free space)", ge=0, le=1)
+    min_inlier_fraction: float = _opt(
+        0.8, "an answer with less than this share of its points on walls of the map (among the points on cells the "
+        "map knows) is 'lost': a scan from elsewhere can reach the score with half its points on walls", ge=0, le=1)
     max_ambiguity: float = _opt(
         0.95, "an answer whose best rival at a different place (> 1 m or > 10 deg away) scores at least this "
         "share of its score is 'ambiguous', not 'ok'", gt=0, le=1)

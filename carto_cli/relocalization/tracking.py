@@ -6,14 +6,16 @@ the :class:`~carto_cli.relocalization.Relocalizer` reads (map.carto or a map_ser
 1. **First fix.** From ``initial_pose`` (a windowed search around it), else a global search; scans before the
    first fix are reported 'lost' with no pose, and the time to the first fix is measured.
 2. **Each following scan** is predicted from the previous pose moved by the odometry between the two scans (or,
-   without odometry, by the previous scan-to-scan motion: constant velocity), then refined by least squares
-   against the map grid nearest the prediction (the map's own refinement weights, pulled towards the
-   prediction). That is the whole cost of a tracked scan: no search.
+   without odometry, by the previous scan-to-scan motion: constant velocity, then a small correlative search),
+   then refined by least squares against the map grid nearest the prediction (the map's own refinement weights,
+   pulled towards the prediction). With odometry that is the whole cost of a tracked scan: no search.
 3. **Judged like a relocalization:** the refined pose's score on the map, or the score of its points on known
-   cells when part of the scan sees what the map never did, must reach ``min_score``; the refinement must not
-   slide farther than a window from the prediction. A scan that fails is 'lost'; after ``lost_after`` such scans
-   in a row (or at once, when the prediction itself is in doubt) the tracker re-localizes: a windowed search
-   around the prediction, then a global one. A kidnapped robot is so found again within a few scans.
+   cells when part of the scan sees what the map never did, must reach ``min_score``; of the points on known
+   cells ``min_inlier_fraction`` must fall on walls; at most ``max_see_through`` of the rays may cross a wall;
+   the refinement must not slide farther than ``max_slide`` from the prediction. A scan that fails is 'lost';
+   after ``lost_after`` such scans in a row the tracker re-localizes: a windowed search around the prediction,
+   then a global one (and again every ``lost_after`` scans while it stays lost). A kidnapped robot is so found
+   again within a few scans.
 """
 from __future__ import annotations
 
@@ -25,8 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from carto_cli.core import transform
+from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Scan
-from carto_cli.matching import least_squares
+from carto_cli.matching import correlative, least_squares
+from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.matching.scoring import inlier_fraction, known_score, score_at
 from carto_cli.relocalization.relocalizer import Relocalizer
 
@@ -35,6 +39,11 @@ __all__ = ["TRACK_COLUMNS", "TrackSummary", "TrackedScan", "Tracker", "summarize
 TRACK_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "verdict", "source", "score", "inlier_fraction", "sigma_x",
                  "sigma_y", "sigma_yaw", "ms", "reason")
 _MIN_KNOWN_FRACTION = 0.5  # as the relocalizer: part of a scan may see what the map never saw
+# Without odometry the prediction is the previous motion repeated, and least squares from it alone is held back
+# by its pull towards the prediction: along a corridor the track fell behind by 0.1 m a scan (3 m in 6 s, every
+# scan still scoring 0.75) on the loop building. A small correlative search first (as local SLAM's online one).
+CORRELATIVE_WINDOW_M = 0.2
+CORRELATIVE_WINDOW_RAD = math.radians(5.0)
 
 
 @dataclass
@@ -90,14 +99,21 @@ class Tracker:
         c = relocalizer.options.pose_graph.constraint_builder.ceres_scan_matcher
         self._ceres = c
         self.min_score = relocalizer.ro.min_score
+        self.min_inliers = relocalizer.ro.min_inlier_fraction
+        self.max_see_through = relocalizer.ro.max_see_through
         self.timings = {"preprocessing": 0.0, "refinement": 0.0, "judging": 0.0, "relocalization": 0.0}
 
-    def _refine(self, scan_pts: np.ndarray, predicted: np.ndarray) -> tuple[np.ndarray, float, float, float, int]:
-        """(map pose, score, known share, known score, submap) of the scan refined from ``predicted``."""
+    def _refine(self, scan_pts: np.ndarray, predicted: np.ndarray, search_pts: np.ndarray | None
+                ) -> tuple[np.ndarray, float, float, float, int]:
+        """(map pose, score, known share, known score, submap) of the scan refined from ``predicted``; with
+        ``search_pts``, a correlative search around the prediction first (for a prediction without odometry)."""
         r = self.reloc
         i = r.nearest_submap(predicted[:2])
         grid = r.grids[i]
         start = transform.compose(r.map_to_grid[i], predicted)
+        if search_pts is not None and len(search_pts):
+            start = correlative.match(grid, search_pts, start, linear_search_window=CORRELATIVE_WINDOW_M,
+                                      angular_search_window=CORRELATIVE_WINDOW_RAD).pose
         c = self._ceres
         ls = least_squares.match(grid, scan_pts, start, target_translation=start[:2],
                                  occupied_space_weight=c.occupied_space_weight, translation_weight=c.translation_weight,
@@ -163,23 +179,35 @@ class Tracker:
             if res.verdict == "ok":
                 return res
             return self._search(scan, index, None, None, None, f"{failures} scans lost; windowed search failed")
-        _, fine = self.reloc.preprocess(scan, self.mount)
+        search, fine = self.reloc.preprocess(scan, self.mount)
         t = self._add("preprocessing", t)
         if len(fine) == 0:
             return TrackedScan(index, scan.time, predicted, "lost", "none", reason="no returns in range")
-        found, score, known, kscore, submap = self._refine(fine, predicted)
+        with_odometry = prev_odom is not None and odom is not None
+        found, score, known, kscore, submap = self._refine(fine, predicted, None if with_odometry else search)
         t = self._add("refinement", t)
         slide = math.hypot(*(found[:2] - predicted[:2]))
+        grid = self.reloc.grids[submap]
+        grid_pose = transform.compose(self.reloc.map_to_grid[submap], found)
+        inliers = inlier_fraction(grid, fine, grid_pose)
+        on_walls = inliers / known if known > 0 else 0.0
         good = score >= self.min_score or (known >= _MIN_KNOWN_FRACTION and kscore >= self.min_score)
         reason = ""
         if not good:
             reason = f"score {score:.3f} (known cells {100 * known:.0f} %: {kscore:.3f}) below {self.min_score:g}"
+        elif on_walls < self.min_inliers:
+            # A scan of another place (a kidnapped robot) still scores 0.7 against a corridor's walls, but a
+            # quarter of its points miss them: right matches put >= 0.92 of their points on walls.
+            good = False
+            reason = f"only {100 * on_walls:.0f} % of the points on known cells fall on walls"
         elif slide > self.max_slide:
             good = False
             reason = f"refinement slid {slide:.2f} m from the prediction"
-        grid = self.reloc.grids[submap]
-        grid_pose = transform.compose(self.reloc.map_to_grid[submap], found)
-        inliers = inlier_fraction(grid, fine, grid_pose)
+        else:
+            see = see_through_fraction(grid, fine, grid_pose, self.mount[:2])
+            if see > self.max_see_through:
+                good = False
+                reason = f"{100 * see:.0f} % of the rays pass through walls of the map"
         cov = least_squares.covariance(grid, fine, grid_pose, min_sigma_xy=0.5 * grid.resolution)
         sig = tuple(float(v) for v in np.sqrt(np.maximum(np.diag(cov), 0.0)))
         self._add("judging", t)
@@ -190,8 +218,14 @@ class Tracker:
         t = time.perf_counter()
         self.relocalizations += 1
         try:
-            r = self.reloc.relocalize(scan, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, laser_pose=self.mount,
-                                      max_jump=self.max_jump if prior is not None else None)
+            try:
+                r = self.reloc.relocalize(scan, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, laser_pose=self.mount,
+                                          max_jump=self.max_jump if prior is not None else None)
+            except CartoError:
+                if prior is None:
+                    raise
+                # Dead reckoning has carried the prediction off the map: only a global search can help.
+                r = self.reloc.relocalize(scan, None, laser_pose=self.mount)
         finally:
             self._add("relocalization", t)
         return TrackedScan(index, scan.time, r.pose if r.verdict != "lost" else None, r.verdict,

@@ -3,6 +3,7 @@ loop-building map (tests/reloc_map.py) and its second pass written as a ROS1 bag
 import json
 import math
 
+import numpy as np
 import pytest
 from reloc_map import build_map, pose_error, second_pass
 from typer.testing import CliRunner
@@ -102,12 +103,13 @@ def test_cli_relocalizes_one_scan_as_text_and_json(cli_files):
     pose = f"{prior[0]},{prior[1]},{math.degrees(prior[2])}deg"
     r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time)
     assert r.exit_code == 0, r.output
-    assert "(ok) via windowed" in r.output and "timing submap preparation" in r.output
+    assert "verdict ok, score" in r.output and "via windowed" in r.output and "timing submap preparation" in r.output
+    assert "sigma " in r.output and "ambiguity" in r.output
     assert r.output.startswith(f"scan {round((scan.time - 1000.0) * 5)} at {scan.time:.3f}: pose ")
     r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time, "--json")
     assert r.exit_code == 0, r.output
     d = json.loads(r.output)
-    assert d["success"] and d["path"] == "windowed"
+    assert d["success"] and d["path"] == "windowed" and d["verdict"] == "ok" and len(d["covariance"]) == 3
     assert pose_error([d["pose"]["x"], d["pose"]["y"], d["pose"]["yaw"]], truth)[0] < 0.1
     assert set(d["timings_ms"]) == {"submap preparation", "pose search", "scan scoring", "other"}
     assert d["scan_time"] == pytest.approx(scan.time)
@@ -121,7 +123,7 @@ def test_cli_says_why_a_scan_was_not_relocalized(cli_files):
     r = _cli("relocalize", map_path, bag, "--initial-pose", pose, "--at", scan.time,
              "--set", "relocalization.min_score=0.95", "--set", "relocalization.global_min_score=0.95")
     assert r.exit_code == 3, r.output
-    assert "UNRELIABLE" in r.output and "why: " in r.output and "below 0.95" in r.output
+    assert "verdict lost" in r.output and "why: " in r.output and "below 0.95" in r.output
 
 
 def test_cli_batch_prints_the_summary_line(cli_files, tmp_path):
@@ -131,7 +133,7 @@ def test_cli_batch_prints_the_summary_line(cli_files, tmp_path):
     q.write_text(f"{s0.time} {t0[0]} {t0[1]} {t0[2]}\n")
     r = _cli("relocalize", map_path, bag, "--queries", q, "--csv", tmp_path / "out.csv")
     assert r.exit_code == 0, r.output
-    assert r.output.startswith("1/1 relocalized (100.0%), p50 ") and r.output.rstrip().endswith(
+    assert r.output.startswith("1/1 relocalized (100.0%; ok 1, ambiguous 0, lost 0), p50 ") and r.output.rstrip().endswith(
         f"-> {tmp_path / 'out.csv'}")
     r = _cli("relocalize", map_path, bag, "--queries", q, "--json")
     assert r.exit_code == 0 and json.loads(r.output)["successes"] == 1
@@ -159,3 +161,101 @@ def test_cli_rejects_an_unknown_override_by_name(cli_files):
     map_path, bag, _ = cli_files
     r = _cli("relocalize", map_path, bag, "--global", "--set", "relocalization.min_scroe=0.7")
     assert r.exit_code == 2 and "min_scroe" in r.output
+
+
+# ------------------------------------------------------------------------------------------ map_server maps, tracking
+
+
+@pytest.fixture(scope="module")
+def track_files(cli_files, tmp_path_factory):
+    """The second pass with its odometry as a ROS1 bag, and the map as map_server PGM + YAML."""
+    from reloc_map import DURATION, SCAN_RATE, world
+
+    from carto_cli.core import transform
+    from carto_cli.grid.occupancy_image import assemble
+    from carto_cli.io.map_file import load_map
+    from carto_cli.io.map_image import write_map
+    from carto_cli.sim import simulate
+
+    map_path, _, qs = cli_files
+    base = tmp_path_factory.mktemp("track")
+    w, tr = world()
+    sim = simulate(w, tr, duration=DURATION, scan_rate=SCAN_RATE, seed=7)
+    bag = base / "with_odom.bag"
+    write_recording(iter(list(sim.records(["/scan", "/odom"]))), bag, "ros1",
+                    topics={"/scan": "sensor_msgs/msg/LaserScan", "/odom": "nav_msgs/msg/Odometry"})
+    m = load_map(map_path)
+    image = assemble([s.grid for s in m.submaps], [transform.compose(g, transform.inverse(s.local_pose))
+                                                   for s, g in zip(m.submaps, m.submap_global_poses)])
+    _, yaml_path = write_map(base / "ms", image)
+    return bag, yaml_path, qs
+
+
+def test_cli_relocalizes_in_a_map_server_map(track_files, cli_files):
+    bag, yaml_path, qs = track_files
+    scan, truth = qs[5]
+    prior = truth + [0.4, -0.3, math.radians(5)]
+    r = _cli("relocalize", yaml_path, bag, "--initial-pose", f"{prior[0]},{prior[1]},{prior[2]}", "--at", scan.time,
+             "--json")
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.output)
+    assert d["verdict"] == "ok" and pose_error([d["pose"]["x"], d["pose"]["y"], d["pose"]["yaw"]], truth)[0] < 0.1
+
+
+def test_cli_tracks_a_recording(track_files, cli_files, tmp_path):
+    bag, _, _qs = track_files
+    map_path = cli_files[0]
+    out = tmp_path / "trk"
+    r = _cli("relocalize", map_path, bag, "--track", "-o", out)  # no prior: a global first fix
+    assert r.exit_code == 0, r.output
+    assert "first fix at scan 0" in r.output and r.output.rstrip().endswith(f"-> {out}")
+    rows = (out / "track.csv").read_text().splitlines()
+    assert rows[0].startswith("t,scan_index,x,y,yaw,verdict,source") and len(rows) == 1 + 350
+    summary = json.loads((out / "track.json").read_text())
+    assert summary["scans"] == 350 and summary["first_fix_index"] == 0
+    tum = (out / "trajectory.tum").read_text().splitlines()
+    assert len(tum) - 1 == summary["verdicts"]["ok"] >= 340  # a header line, then one pose per ok scan
+    # an earlier track is kept unless --force
+    r = _cli("relocalize", map_path, bag, "--track", "-o", out)
+    assert r.exit_code == 2 and "--force" in r.output
+    r = _cli("relocalize", map_path, bag, "--track", "-o", out, "--force", "--json")
+    assert r.exit_code == 0 and json.loads(r.output)["scans"] == 350
+    r = _cli("relocalize", map_path, bag, "--output", out, "--initial-pose", "0,0,0")
+    assert r.exit_code == 2 and "--track" in r.output
+
+
+def test_cli_exit_status_4_for_an_ambiguous_answer(tmp_path):
+    import cv2
+
+    from carto_cli.core.records import Scan
+
+    # Two identical rooms 12 m apart; the scan sees only one of them.
+    n = 480
+    px = np.full((n, n), 254, np.uint8)
+    rooms = []
+    for ox in (2.0, 14.0):
+        rooms += [(ox, 2.0, ox + 6.0, 2.0), (ox + 6.0, 2.0, ox + 6.0, 7.0), (ox + 6.0, 7.0, ox, 7.0),
+                  (ox, 7.0, ox, 2.0), (ox + 1.0, 5.0, ox + 2.5, 5.0), (ox + 2.5, 5.0, ox + 2.5, 6.0)]
+    for x0, y0, x1, y1 in rooms:
+        cv2.line(px, (int(x0 / 0.05), n - 1 - int(y0 / 0.05)), (int(x1 / 0.05), n - 1 - int(y1 / 0.05)), 0, 1)
+    cv2.imwrite(str(tmp_path / "twins.pgm"), px)
+    (tmp_path / "twins.yaml").write_text("image: twins.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n")
+    angles = -math.pi + np.arange(360) * (2 * math.pi / 360)
+    ranges = np.full(360, 9.0)
+    for k, a in enumerate(angles + 0.2):
+        d = np.array([math.cos(a), math.sin(a)])
+        for x0, y0, x1, y1 in rooms[:6]:
+            e = np.array([x1 - x0, y1 - y0])
+            m = np.array([[d[0], -e[0]], [d[1], -e[1]]])
+            if abs(np.linalg.det(m)) > 1e-12:
+                t, u = np.linalg.solve(m, np.array([x0 - 4.0, y0 - 4.0]))
+                if t > 0 and 0 <= u <= 1:
+                    ranges[k] = min(ranges[k], t)
+    scan = Scan(1000.0, ranges.astype(np.float32), angles.astype(np.float32), "laser", "/scan", 0.05, 8.0,
+                float(angles[0]), float(angles[1] - angles[0]))
+    bag = tmp_path / "one.bag"
+    write_recording(iter([scan]), bag, "ros1", topics={"/scan": "sensor_msgs/msg/LaserScan"})
+    r = _cli("relocalize", tmp_path / "twins.yaml", bag, "--global")
+    assert r.exit_code == 4, r.output
+    assert "verdict ambiguous" in r.output
+
