@@ -419,6 +419,8 @@ def relocalize_(
         queries=queries, csv_out=csv_out, scan_topic=scan_topic, overrides=overrides,
         on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force,
         read=z_slice(min_z, max_z), profile=profile, max_jump=max_jump)
+    if run.auto is not None and not as_json:
+        typer.echo(f"auto: {run.auto.describe()}", err=True)
     if as_json:
         typer.echo(json.dumps(run.to_dict(), indent=2))
     elif run.summary is not None:
@@ -454,6 +456,8 @@ def _track(map_file: Path, recording: Path, output: Path | None, *, as_json: boo
         run = run_track(map_file, recording, output, on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True),
                         on_scan=lambda _scan: bar.advance(), **kwargs)
     s = run.summary
+    if run.auto is not None and not as_json:
+        typer.echo(f"auto: {run.auto.describe()}", err=True)
     if as_json:
         typer.echo(json.dumps(run.to_dict(), indent=2))
     else:

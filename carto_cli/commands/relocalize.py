@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -36,6 +37,7 @@ from carto_cli.relocalization import (
     select_scan_topic,
     write_results_csv,
 )
+from carto_cli.relocalization.auto import AutoRelocalization, choose_for_scans
 from carto_cli.relocalization.tracking import TRACK_COLUMNS, TrackedScan, Tracker, TrackSummary, summarize_track
 
 __all__ = ["TRACK_OUTPUTS", "RelocalizeRun", "TrackRun", "default_track_dir", "load_relocalization_map",
@@ -56,6 +58,25 @@ def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -
     return loaded
 
 
+AUTO_SCANS = 50  # scans read to choose a map_server map's settings (regime.no_return_value needs a few hundred
+# readings at the top of the range; 50 scans of 360 beams hold 18 000)
+
+
+def _set_up(loaded: LoadedMap, rec, scan_topic: str, profile, overrides) -> tuple[
+        Relocalizer, np.ndarray | None, AutoRelocalization | None]:
+    """The relocalizer for ``loaded``, the laser mount when the map does not know it (a map_server image: from
+    the recording's static TF), and, for such a map without a profile, the settings chosen from its scans."""
+    mount = auto = None
+    if loaded.laser_pose is None:
+        scans = [scan for _, scan in itertools.islice(iter_scans(rec, scan_topic), AUTO_SCANS)]
+        mount = resolve_laser_pose(rec, scans[0].frame if scans else None, None)[0]
+        if profile in (None, "auto"):
+            auto = choose_for_scans(loaded.options, scans)
+            loaded.options = auto.options
+    relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
+    return relocalizer, mount, auto
+
+
 def relocalization_options(map_options: Options, profile_options: Options) -> Options:
     """The map's options with the profile's ``relocalization`` section."""
     import dataclasses
@@ -74,6 +95,7 @@ class RelocalizeRun:
     results: list[QueryResult] | None = None
     summary: BatchSummary | None = None
     csv: Path | None = None
+    auto: AutoRelocalization | None = None  # what was chosen from the scans for a map without options
 
     @property
     def batch(self) -> bool:
@@ -82,11 +104,12 @@ class RelocalizeRun:
     def to_dict(self) -> dict:
         """JSON-ready: the batch summary, or the one result with its scan's index and time."""
         if self.summary is not None:
-            return self.summary.to_dict()
+            return {**self.summary.to_dict(), "auto": None if self.auto is None else self.auto.describe()}
         assert self.result is not None and self.scan is not None
         data = self.result.to_dict()
         data["scan_index"] = self.scan_index
         data["scan_time"] = self.scan.time
+        data["auto"] = None if self.auto is None else self.auto.describe()
         return data
 
 
@@ -116,7 +139,7 @@ def run_relocalize(
     a pose) or globally, or every line of ``queries`` (results to ``csv_out``, default QUERIES.results.csv).
 
     ``sigma_yaw`` is in radians; ``overrides`` are ``--set`` items over the map's own options. The relocalizer's
-    warnings go to ``on_warning`` as soon as it is built (before the recording is read), and into the result.
+    warnings go to ``on_warning`` as soon as it is built (before any scan is relocalized), and into the result.
     ``quiet=False`` shows a progress bar over a batch (on a terminal). An existing results CSV is replaced only
     with ``force`` (refused before any work). ``read``: how point clouds are sliced (io.recording.ReadOptions).
     ``map_file`` is a map.carto or a map_server YAML (``load_relocalization_map``, with ``profile``); a map that
@@ -136,17 +159,14 @@ def run_relocalize(
         if csv_out.exists() and not force:
             raise CartoError("exists; --force replaces it, or give another --csv", csv_out)
 
-    loaded = load_relocalization_map(map_file, profile)
-    relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
-    run = RelocalizeRun(warnings=list(relocalizer.warnings))
-    if on_warning is not None:
-        for w in relocalizer.warnings:
-            on_warning(w)
+    loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
+    run = RelocalizeRun()
     with open_recording(recording, read) as rec:
-        mount = None
-        if loaded.laser_pose is None:
-            scan_frame = next(iter_scans(rec, select_scan_topic(rec, scan_topic)), (0, None))[1]
-            mount = resolve_laser_pose(rec, None if scan_frame is None else scan_frame.frame, None)[0]
+        relocalizer, mount, run.auto = _set_up(loaded, rec, select_scan_topic(rec, scan_topic), profile, overrides)
+        run.warnings = list(relocalizer.warnings)
+        if on_warning is not None:
+            for w in relocalizer.warnings:
+                on_warning(w)
         if queries is not None:
             qs = read_queries(queries)
             with progress("relocalizing", len(qs), quiet) as bar:
@@ -174,9 +194,11 @@ class TrackRun:
     outdir: Path
     summary: TrackSummary
     warnings: list[str] = field(default_factory=list)
+    auto: AutoRelocalization | None = None
 
     def to_dict(self) -> dict:
-        return {"outdir": str(self.outdir), **self.summary.to_dict()}
+        return {"outdir": str(self.outdir), **self.summary.to_dict(),
+                "auto": None if self.auto is None else self.auto.describe()}
 
 
 def default_track_dir(recording: Path) -> Path:
@@ -221,18 +243,14 @@ def run_track(
         raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
     prior = parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose
     t0 = time.perf_counter()
-    loaded = load_relocalization_map(map_file, profile)
-    relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
-    warnings = list(relocalizer.warnings)
-    if on_warning is not None:
-        for w in warnings:
-            on_warning(w)
+    loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
     with open_recording(recording, read) as rec:
         selection = select_topics(rec, scan_topic, odom_topic)
-        mount = None
-        if loaded.laser_pose is None:
-            first = next(iter_scans(rec, selection.scan), (0, None))[1]
-            mount = resolve_laser_pose(rec, None if first is None else first.frame, None)[0]
+        relocalizer, mount, auto = _set_up(loaded, rec, selection.scan, profile, overrides)
+        warnings = list(relocalizer.warnings)
+        if on_warning is not None:
+            for w in warnings:
+                on_warning(w)
         tracker = Tracker(relocalizer, laser_pose=mount, max_jump=max_jump)
         topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
         scans = list(tracker.track(rec.records(topics), initial_pose=prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw,
@@ -251,4 +269,4 @@ def run_track(
         write_trajectory(staging / "trajectory.tum", Trajectory.from_poses(np.array([s.time for s in ok]), poses))
         write_text_atomic(staging / "track.csv", buf.getvalue())
         write_text_atomic(staging / "track.json", json.dumps(summary.to_dict(), indent=1) + "\n")
-    return TrackRun(outdir, summary, warnings)
+    return TrackRun(outdir, summary, warnings, auto)
