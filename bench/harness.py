@@ -1150,7 +1150,7 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
 # --------------------------------------------------------------------------- main
 
 
-KEPT_SECTIONS = ("relocalization",)  # written by other scripts (bench/relocalization.py) between markers
+KEPT_SECTIONS = ("relocalization", "localization")  # written by bench/relocalization.py and bench/localization.py
 
 
 def _kept_sections(doc: Path) -> str:

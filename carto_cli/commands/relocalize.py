@@ -62,19 +62,32 @@ AUTO_SCANS = 50  # scans read to choose a map_server map's settings (regime.no_r
 # readings at the top of the range; 50 scans of 360 beams hold 18 000)
 
 
-def _set_up(loaded: LoadedMap, rec, scan_topic: str, profile, overrides) -> tuple[
-        Relocalizer, np.ndarray | None, AutoRelocalization | None]:
-    """The relocalizer for ``loaded``, the laser mount when the map does not know it (a map_server image: from
-    the recording's static TF), and, for such a map without a profile, the settings chosen from its scans."""
-    mount = auto = None
-    if loaded.laser_pose is None:
-        scans = [scan for _, scan in itertools.islice(iter_scans(rec, scan_topic), AUTO_SCANS)]
-        mount = resolve_laser_pose(rec, scans[0].frame if scans else None, None)[0]
-        if profile in (None, "auto"):
-            auto = choose_for_scans(loaded.options, scans)
-            loaded.options = auto.options
+def _reads_scans(loaded: LoadedMap) -> bool:
+    """Whether the relocalizer needs the recording first: a map that does not know the laser mount (a
+    map_server image) takes it from the recording's static TF (and, without a profile, settings from its scans)."""
+    return loaded.laser_pose is None
+
+
+def _from_scans(loaded: LoadedMap, rec, scan_topic: str, profile) -> tuple[np.ndarray, AutoRelocalization | None]:
+    """(the laser mount from the recording's static TF, the settings chosen from its first scans when no profile
+    was given: ``loaded.options`` are replaced by them)."""
+    scans = [scan for _, scan in itertools.islice(iter_scans(rec, scan_topic), AUTO_SCANS)]
+    mount = resolve_laser_pose(rec, scans[0].frame if scans else None, None)[0]
+    auto = None
+    if profile in (None, "auto"):
+        auto = choose_for_scans(loaded.options, scans)
+        loaded.options = auto.options
+    return mount, auto
+
+
+def _relocalizer(loaded: LoadedMap, overrides, warnings: list[str],
+                 on_warning: Callable[[str], None] | None) -> Relocalizer:
     relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
-    return relocalizer, mount, auto
+    warnings.extend(relocalizer.warnings)
+    if on_warning is not None:
+        for w in relocalizer.warnings:
+            on_warning(w)
+    return relocalizer
 
 
 def relocalization_options(map_options: Options, profile_options: Options) -> Options:
@@ -104,12 +117,13 @@ class RelocalizeRun:
     def to_dict(self) -> dict:
         """JSON-ready: the batch summary, or the one result with its scan's index and time."""
         if self.summary is not None:
-            return {**self.summary.to_dict(), "auto": None if self.auto is None else self.auto.describe()}
+            return {**self.summary.to_dict(), **({} if self.auto is None else {"auto": self.auto.describe()})}
         assert self.result is not None and self.scan is not None
         data = self.result.to_dict()
         data["scan_index"] = self.scan_index
         data["scan_time"] = self.scan.time
-        data["auto"] = None if self.auto is None else self.auto.describe()
+        if self.auto is not None:
+            data["auto"] = self.auto.describe()
         return data
 
 
@@ -161,12 +175,13 @@ def run_relocalize(
 
     loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
     run = RelocalizeRun()
+    # Built before the recording is read when the map holds all it needs, so its warnings come first.
+    relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, run.warnings, on_warning)
     with open_recording(recording, read) as rec:
-        relocalizer, mount, run.auto = _set_up(loaded, rec, select_scan_topic(rec, scan_topic), profile, overrides)
-        run.warnings = list(relocalizer.warnings)
-        if on_warning is not None:
-            for w in relocalizer.warnings:
-                on_warning(w)
+        mount = None
+        if relocalizer is None:
+            mount, run.auto = _from_scans(loaded, rec, select_scan_topic(rec, scan_topic), profile)
+            relocalizer = _relocalizer(loaded, overrides, run.warnings, on_warning)
         if queries is not None:
             qs = read_queries(queries)
             with progress("relocalizing", len(qs), quiet) as bar:
@@ -244,13 +259,14 @@ def run_track(
     prior = parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose
     t0 = time.perf_counter()
     loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
+    warnings: list[str] = []
+    relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning)
     with open_recording(recording, read) as rec:
         selection = select_topics(rec, scan_topic, odom_topic)
-        relocalizer, mount, auto = _set_up(loaded, rec, selection.scan, profile, overrides)
-        warnings = list(relocalizer.warnings)
-        if on_warning is not None:
-            for w in warnings:
-                on_warning(w)
+        mount = auto = None
+        if relocalizer is None:
+            mount, auto = _from_scans(loaded, rec, selection.scan, profile)
+            relocalizer = _relocalizer(loaded, overrides, warnings, on_warning)
         tracker = Tracker(relocalizer, laser_pose=mount, max_jump=max_jump)
         topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
         scans = list(tracker.track(rec.records(topics), initial_pose=prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw,

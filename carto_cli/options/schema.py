@@ -359,7 +359,7 @@ class Relocalization:
         0.13, "a match where more than this share of the scan's rays pass through walls of the map is rejected "
         "(aliased places put the endpoints on walls, rarely the rays through free space)", ge=0, le=1)
     min_inlier_fraction: float = _opt(
-        0.8, "an answer with less than this share of its points on walls of the map (among the points on cells the "
+        0.9, "an answer with less than this share of its points on walls of the map (among the points on cells the "
         "map knows) is 'lost': a scan from elsewhere can reach the score with half its points on walls", ge=0, le=1)
     max_ambiguity: float = _opt(
         0.95, "an answer whose best rival at a different place (> 1 m or > 10 deg away) scores at least this "
