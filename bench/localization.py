@@ -65,8 +65,10 @@ def _scans(path: Path) -> list:
 
 
 def _err(pose, ref) -> tuple[float, float]:
+    from carto_cli.core.transform import wrap_angle_scalar
+
     d = np.asarray(pose, float) - np.asarray(ref, float)
-    return math.hypot(d[0], d[1]), abs(math.degrees((d[2] + math.pi) % (2 * math.pi) - math.pi))
+    return math.hypot(d[0], d[1]), abs(math.degrees(wrap_angle_scalar(float(d[2]))))
 
 
 def _lat(ms) -> dict:
