@@ -210,6 +210,12 @@ def map_(
     odom_topic: str | None = typer.Option(None, "--odom-topic"),
     imu_topic: str | None = typer.Option(None, "--imu-topic"),
     no_odometry: bool = typer.Option(False, "--no-odometry", help="Ignore odometry even when the recording has it."),
+    odom_frame: str | None = typer.Option(
+        None, "--odom-frame", help="Odometry from dynamic TF (/tf): the odometry frame (default: odom*, used when "
+        "the recording has no Odometry topic)."),
+    base_frame: str | None = typer.Option(
+        None, "--base-frame", help="Odometry from dynamic TF: the robot's base frame (default: where the laser's "
+                                   "static TF ends, else base_footprint / base_link)."),
     laser_pose: str | None = typer.Option(
         None, "--laser-pose",
         help="x,y,yaw of the laser on the robot (m, m, rad; 'deg' suffix for degrees). "
@@ -251,7 +257,8 @@ def map_(
     with progress(f"mapping {recording.name}", None, state.quiet) as bar:
         result, outputs = run_map(
             recording, outdir, options, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
-            laser_pose=mount, use_odometry=not no_odometry, timer=timer, on_scan=bar.advance,
+            laser_pose=mount, use_odometry=not no_odometry, odom_frame=odom_frame, base_frame=base_frame,
+            timer=timer, on_scan=bar.advance,
             on_total=bar.set_total, loop_closure=not no_loop_closure, state=not no_state,
             load_state=load_state, on_configured=_say_configured,
             algorithm=algorithm, force=force, jobs=jobs,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time as _time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,14 +13,14 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
-from carto_cli.core.records import Imu, Odometry, Scan
+from carto_cli.core.records import Imu, Odometry, Scan, Transform
 from carto_cli.gmapping import ALGORITHMS
 from carto_cli.gmapping.filter import GMappingSlam
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.recording import ReadOptions, Recording
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
-from carto_cli.io.topics import TopicSelection, select_topics
+from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.quality import LEVELS, MapQuality, assess
 from carto_cli.mapping.slam import Slam, SlamResult
@@ -50,6 +50,7 @@ class MapResult(SlamResult):
                 "settings": self.auto.settings,
                 "reasons": self.auto.reasons},
             "laser_pose_source": self.laser_pose_source,
+            "odometry": None if self.selection is None else self.selection.describe_odometry(),
             "warnings": list(self.warnings),
         }
 
@@ -141,14 +142,18 @@ def read_options(options: Options | Auto) -> ReadOptions:
 
 @contextmanager
 def opened(path: str | Path, read: ReadOptions | None = None, *, scan_topic: str | None = None,
-           odom_topic: str | None = None, imu_topic: str | None = None) -> Iterator[OpenedRecording]:
+           odom_topic: str | None = None, imu_topic: str | None = None, odom_frame: str | None = None,
+           base_frame: str | None = None) -> Iterator[OpenedRecording]:
     """Open a recording and choose its topics (the ``--scan-topic`` family of choices), closing it after."""
     with open_recording(path, read) as rec:
-        yield OpenedRecording(rec, select_topics(rec, scan_topic, odom_topic, imu_topic))
+        yield OpenedRecording(rec, select_topics(rec, scan_topic, odom_topic, imu_topic, odom_frame=odom_frame,
+                                                 base_frame=base_frame))
 
 
-def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit) -> tuple[np.ndarray, str]:
-    """--laser-pose wins; else static TF; else the laser is at the tracking frame."""
+def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit,
+                       fixed_tf: Sequence[Transform] = ()) -> tuple[np.ndarray, str]:
+    """--laser-pose wins; else static TF; else transforms of /tf that never moved (``fixed_tf``: a mount broadcast
+    on /tf); else the laser is at the tracking frame."""
     if explicit is not None:
         return transform.as_pose(explicit), "--laser-pose"
     if scan_frame:
@@ -156,6 +161,10 @@ def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit) -
         if found is not None:
             pose, root = found
             return np.asarray(pose, dtype=np.float64), f"static TF {root} -> {scan_frame}"
+        found = laser_pose_from_tf(list(recording.static_transforms()) + list(fixed_tf), scan_frame)
+        if found is not None:
+            pose, root = found
+            return np.asarray(pose, dtype=np.float64), f"TF {root} -> {scan_frame} (fixed transforms on /tf)"
     return np.zeros(3), "identity (no static TF for the laser)"
 
 
@@ -198,7 +207,8 @@ def build(
     scan_frame = _first_scan_frame(recording, selection.scan)
     if scan_frame is None:
         raise CartoError(f"no scans on {selection.scan}", recording.path)
-    mount, mount_source = resolve_laser_pose(recording, scan_frame, laser_pose)
+    mount, mount_source = resolve_laser_pose(recording, scan_frame, laser_pose,
+                                             selection.tf_odometry.fixed if selection.tf_odometry else ())
     tb = options.trajectory_builder_2d
     slam: Slam | GMappingSlam
     if algorithm == "gmapping":
@@ -214,7 +224,7 @@ def build(
         topics.append(selection.imu)
 
     content = ContentCheck()
-    for record in content.filter(recording.records(topics)):
+    for record in content.filter(selected_records(recording, selection, topics)):
         if isinstance(record, Scan):
             if max_scans is not None and slam.num_scans >= max_scans:
                 break

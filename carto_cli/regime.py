@@ -28,7 +28,7 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.recording import Recording
-from carto_cli.io.topics import TopicSelection
+from carto_cli.io.topics import TopicSelection, selected_records
 
 __all__ = ["AutoChoice", "Regime", "choose", "no_return_value", "survey"]
 
@@ -149,7 +149,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
     scans: list[Scan] = []
     odometry: list[tuple[float, float, float, float]] = []
     # What mapping will not use (io.content) must not shape the settings either; mapping reports it.
-    for record in ContentCheck().filter(recording.records(topics)):
+    for record in ContentCheck().filter(selected_records(recording, selection, topics)):
         if isinstance(record, Scan):
             if len(scans) >= max_scans:
                 break

@@ -61,6 +61,8 @@ class RecordingInfo:
     has_imu: bool
     warnings: list[str]
     auto: dict | None = None  # what `carto map` with no profile would detect and choose
+    odometry_source: str | None = None  # where `carto map` takes odometry from: a topic, or TF (odom -> base)
+    tf_transforms: list[dict] | None = None  # dynamic TF: the odometry edge and the /tf transforms that never moved
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -199,27 +201,36 @@ def run_info(path: str | Path, read: ReadOptions | None = None, *,
              on_record: Callable[[], None] | None = None) -> RecordingInfo:
     """Open the recording at ``path`` and summarise it; ``on_total`` hears how many messages will be read."""
     with open_recording(path, read) as rec:
-        auto = _auto(rec)
+        auto, selection = _auto(rec)
         if on_total is not None:
             on_total(sum(t.count for t in rec.topics() if t.kind in ("scan", "odometry", "imu")))
         info = inspect_recording(rec, on_record=on_record)
         info.auto = auto
+        if selection is not None:
+            info.odometry_source = selection.describe_odometry()
+            tf = selection.tf_odometry
+            if tf is not None:
+                info.has_odometry = True
+                info.tf_transforms = [{"parent": tf.odom_frame, "child": tf.base_frame, "moving": True}] + [
+                    {**_transform_dict(t), "moving": False} for t in tf.fixed]
         return info
 
 
-def _auto(recording: Recording) -> dict | None:
-    """The regime `carto map` would detect and the settings it would choose; None without scans."""
+def _auto(recording: Recording):
+    """(the regime `carto map` would detect and the settings it would choose, the topics it would read); Nones
+    without scans."""
     from carto_cli.core.errors import CartoError
     from carto_cli.io.topics import select_topics
     from carto_cli.regime import choose, survey
 
     try:
-        regime = survey(recording, select_topics(recording))
+        selection = select_topics(recording)
+        regime = survey(recording, selection)
     except CartoError:
-        return None
+        return None, None
     choice = choose(regime)
-    return {"detected": regime.describe(), "regime": regime.to_dict(), "profile": choice.profile,
-            "settings": choice.settings, "reasons": choice.reasons}
+    return ({"detected": regime.describe(), "regime": regime.to_dict(), "profile": choice.profile,
+             "settings": choice.settings, "reasons": choice.reasons}, selection)
 
 
 def _fmt_time(t: float | None) -> str:
@@ -256,7 +267,8 @@ def format_info(info: RecordingInfo) -> str:
                 f"frame {', '.join(s.frames)}"
             )
     lines.append("")
-    lines.append(f"odometry   {'yes' if info.has_odometry else 'no'}")
+    lines.append(f"odometry   {'yes' if info.has_odometry else 'no'}"
+                 + (f" ({info.odometry_source})" if info.odometry_source and info.has_odometry else ""))
     lines.append(f"imu        {'yes' if info.has_imu else 'no'}")
     if info.static_transforms:
         from carto_cli.io.tf_tree import format_tree
@@ -267,6 +279,10 @@ def format_info(info: RecordingInfo) -> str:
         lines.extend(f"  {line}" for line in format_tree(tfs))
     else:
         lines.append("static tf  none")
+    if info.tf_transforms:
+        lines.append("tf (dynamic)")
+        lines.extend(f"  {t['parent']} -> {t['child']}" + ("  (odometry: what map uses)" if t["moving"] else
+                                                          "  (never moves: a mount)") for t in info.tf_transforms)
     if info.auto is not None:
         lines.append("")
         lines.append(f"auto       {info.auto['detected']}")

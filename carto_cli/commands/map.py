@@ -95,6 +95,8 @@ def run_map(
     imu_topic: str | None = None,
     laser_pose=None,
     use_odometry: bool = True,
+    odom_frame: str | None = None,
+    base_frame: str | None = None,
     timer=None,
     on_scan: Callable[[int], None] | None = None,
     on_total: Callable[[int], None] | None = None,
@@ -127,7 +129,7 @@ def run_map(
     trajectory_id = 0
     recordings = [Path(recording_path).name]
     with opened(recording_path, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic,
-                imu_topic=imu_topic) as source:
+                imu_topic=imu_topic, odom_frame=odom_frame, base_frame=base_frame) as source:
         # --no-odometry: the survey must not count on odometry local SLAM will not get.
         surveyed = source.selection if use_odometry else dataclasses.replace(source.selection, odometry=None)
         configured = configure(options, source.recording, surveyed, algorithm)

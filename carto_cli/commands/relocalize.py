@@ -20,7 +20,7 @@ from carto_cli.io.map_file import LoadedMap, load_map
 from carto_cli.io.map_server import is_map_server_yaml, load_map_server
 from carto_cli.io.recording import ReadOptions
 from carto_cli.io.sources.open import open_recording
-from carto_cli.io.topics import select_topics
+from carto_cli.io.topics import select_topics, selected_records
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options, apply_overrides, load_options
 from carto_cli.pipeline import resolve_laser_pose
@@ -269,8 +269,8 @@ def run_track(
             relocalizer = _relocalizer(loaded, overrides, warnings, on_warning)
         tracker = Tracker(relocalizer, laser_pose=mount, max_jump=max_jump)
         topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
-        scans = list(tracker.track(rec.records(topics), initial_pose=prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw,
-                                   on_scan=on_scan))
+        scans = list(tracker.track(selected_records(rec, selection, topics), initial_pose=prior,
+                                   sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, on_scan=on_scan))
     if not scans:
         raise CartoError(f"no scans on {selection.scan}", recording)
     summary = summarize_track(scans, time.perf_counter() - t0, tracker.relocalizations, tracker.timings)

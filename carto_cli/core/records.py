@@ -107,13 +107,15 @@ class Imu:
 
 @dataclass(frozen=True)
 class Transform:
-    """A static transform: pose of ``child`` in ``parent``; rotation as (x, y, z, w)."""
+    """A transform: pose of ``child`` in ``parent``; rotation as (x, y, z, w). ``topic`` is '' for a static one
+    (/tf_static) and the topic for one read from a dynamic TF topic (/tf)."""
 
     parent: str
     child: str
     translation: tuple[float, float, float]
     rotation: tuple[float, float, float, float]
     time: float = 0.0
+    topic: str = ""
 
     @property
     def yaw(self) -> float:

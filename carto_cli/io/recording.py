@@ -88,7 +88,8 @@ class Recording(ABC):
 
     @abstractmethod
     def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
-        """Scan / Odometry / Imu records of the given topics (all supported ones when None), in time order."""
+        """Scan / Odometry / Imu records of the given topics (all supported ones when None), in time order; a
+        dynamic TF topic (/tf) asked for by name gives a Transform record per transform it carries."""
 
     def preferred_topic(self, kind: str) -> str | None:
         """The topic a format designates for ``kind`` when it has several (CARMEN's scan-time odometry)."""

@@ -234,7 +234,7 @@ class _Builder:
             topic = rec.topic or DEFAULT_TOPICS[Imu]
             return topic, IMU, self.imu(rec, topic)
         if isinstance(rec, Transform):
-            return TF_STATIC, TF_MESSAGE, self.tf([rec])
+            return rec.topic or TF_STATIC, TF_MESSAGE, self.tf([rec])
         raise CartoError(f"cannot write a {type(rec).__name__} record")
 
     def laser_scan(self, s: Scan, topic: str):

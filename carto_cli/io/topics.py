@@ -1,17 +1,26 @@
 """Choosing which topics feed SLAM: automatic when unambiguous, explicit otherwise."""
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 from carto_cli.core.errors import TopicError
+from carto_cli.core.records import Record, Scan
 from carto_cli.io.recording import Recording, TopicInfo
+from carto_cli.io.tf_odometry import TfOdometry, find_tf_odometry, tf_as_odometry
 
 
 @dataclass(frozen=True)
 class TopicSelection:
     scan: str
-    odometry: str | None = None
+    odometry: str | None = None  # an Odometry topic, or the TF topic when ``tf_odometry`` is set
     imu: str | None = None
+    tf_odometry: TfOdometry | None = None  # odometry read from dynamic TF (io.tf_odometry)
+
+    def describe_odometry(self) -> str:
+        if self.tf_odometry is not None:
+            return f"from TF {self.tf_odometry.describe()}"
+        return self.odometry or "none"
 
     @property
     def topics(self) -> list[str]:
@@ -56,10 +65,32 @@ def select_topics(
     scan_topic: str | None = None,
     odom_topic: str | None = None,
     imu_topic: str | None = None,
+    *,
+    odom_frame: str | None = None,
+    base_frame: str | None = None,
 ) -> TopicSelection:
+    """The scan, odometry and IMU topics. Without an Odometry topic (or with ``odom_frame`` / ``base_frame``
+    given), odometry comes from dynamic TF when /tf carries an odom -> base transform (``io.tf_odometry``)."""
     topics = recording.topics()
     scan = choose_topic(recording, topics, "scan", scan_topic, True)
     assert scan is not None  # a required topic that is missing raised TopicError
-    odom = choose_topic(recording, topics, "odometry", odom_topic, False)
     imu = choose_topic(recording, topics, "imu", imu_topic, False)
+    if odom_topic is not None and (odom_frame or base_frame):
+        raise TopicError("--odom-topic and --odom-frame / --base-frame exclude each other", recording.path)
+    odom = None if (odom_frame or base_frame) else choose_topic(recording, topics, "odometry", odom_topic, False)
+    if odom is None and odom_topic is None:
+        laser = next((r.frame for r in recording.records([scan]) if isinstance(r, Scan)), None)
+        tf = find_tf_odometry(recording, odom_frame=odom_frame, base_frame=base_frame, laser_frame=laser)
+        if tf is not None:
+            return TopicSelection(scan=scan, odometry=tf.topic, imu=imu, tf_odometry=tf)
     return TopicSelection(scan=scan, odometry=odom, imu=imu)
+
+
+def selected_records(recording: Recording, selection: TopicSelection,
+                     topics: Sequence[str] | None = None) -> Iterator[Record]:
+    """``recording.records(topics)`` (default: the selection's), with odometry from TF turned into Odometry."""
+    topics = list(selection.topics if topics is None else topics)
+    records = recording.records(topics)
+    if selection.tf_odometry is not None and selection.odometry in topics:
+        return tf_as_odometry(records, selection.tf_odometry)
+    return records

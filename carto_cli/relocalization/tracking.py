@@ -28,7 +28,7 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
-from carto_cli.core.records import Odometry, Scan
+from carto_cli.core.records import Odometry, Record, Scan
 from carto_cli.matching import correlative, least_squares
 from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.matching.scoring import inlier_fraction, known_score, score_at
@@ -123,7 +123,7 @@ class Tracker:
         known, kscore = known_score(grid, scan_pts, ls.pose)
         return transform.compose(r.grid_to_map[i], ls.pose), score, known, kscore, i
 
-    def track(self, records: Iterable[Scan | Odometry], *, initial_pose=None, sigma_xy: float | None = None,
+    def track(self, records: Iterable[Record], *, initial_pose=None, sigma_xy: float | None = None,
               sigma_yaw: float | None = None,
               on_scan: Callable[[TrackedScan], None] | None = None) -> Iterator[TrackedScan]:
         """A :class:`TrackedScan` per scan of ``records`` (scans and odometry in time order), as they come."""

@@ -111,7 +111,7 @@ class McapRecording(Recording):
             types = sorted({ty for topic, ty in self._channels.values() if topic == t})
             if not types:
                 raise TopicError(f"no topic {t} in the recording", self.path)
-            if not any(messages.is_supported(t, ty) for ty in types):
+            if not any(messages.is_readable(t, ty) for ty in types):
                 raise TopicError(f"topic {t} has type {', '.join(types)}, which carto does not read", self.path)
         return wanted
 
@@ -126,9 +126,9 @@ class McapRecording(Recording):
             decode = _Decoders()
             for schema, channel, message in _in_log_time_order(reader, topics):
                 msgtype = schema.name if schema is not None else ""
-                if not messages.is_supported(channel.topic, msgtype):
+                if not messages.is_readable(channel.topic, msgtype):
                     continue  # another channel of a mixed-type topic: not worth decoding
-                yield messages.to_record(decode(schema, channel, message), msgtype, channel.topic, options)
+                yield from messages.to_records(decode(schema, channel, message), msgtype, channel.topic, options)
 
 
 # How far out of log-time order an unindexed file's messages may be and still come out sorted.

@@ -217,7 +217,7 @@ def imu_from_msg(msg: Any, topic: str = "") -> Imu:
     )
 
 
-def transforms_from_tf(msg: Any) -> list[Transform]:
+def transforms_from_tf(msg: Any, topic: str = "") -> list[Transform]:
     out = []
     for ts in msg.transforms:
         t, r = ts.transform.translation, ts.transform.rotation
@@ -227,6 +227,7 @@ def transforms_from_tf(msg: Any) -> list[Transform]:
             translation=(float(t.x), float(t.y), float(t.z)),
             rotation=(float(r.x), float(r.y), float(r.z), float(r.w)),
             time=stamp_seconds(ts.header.stamp),
+            topic=topic,
         ))
     return out
 
@@ -248,6 +249,19 @@ def merge_static_transforms(transforms: list[Transform]) -> list[Transform]:
 def is_supported(topic: str, msgtype: str) -> bool:
     """True for the message types ``to_record`` turns into Scan / Odometry / Imu."""
     return kind_of(topic, msgtype) in ("scan", "odometry", "imu")
+
+
+def is_readable(topic: str, msgtype: str) -> bool:
+    """What ``records`` yields when asked for the topic by name: the supported types and dynamic TF (/tf), whose
+    transforms carry odometry when a recording has no Odometry topic (``io.tf_odometry``)."""
+    return kind_of(topic, msgtype) in ("scan", "odometry", "imu", "tf")
+
+
+def to_records(msg: Any, msgtype: str, topic: str = "", options: ReadOptions | None = None) -> list[Record]:
+    """The records of one decoded message: one for a supported type, one per transform for dynamic TF."""
+    if kind_of(topic, msgtype) == "tf":
+        return list(transforms_from_tf(msg, topic))
+    return [to_record(msg, msgtype, topic, options)]
 
 
 def to_record(msg: Any, msgtype: str, topic: str = "", options: ReadOptions | None = None) -> Record:

@@ -136,10 +136,10 @@ class RosbagRecording(Recording):
                 raise TopicError(f"no topic {t} in the recording", self.path)
         conns = [c for c in self._connections if c.topic in wanted]
         for t in wanted:
-            if not any(messages.is_supported(c.topic, c.msgtype) for c in conns if c.topic == t):
+            if not any(messages.is_readable(c.topic, c.msgtype) for c in conns if c.topic == t):
                 types = sorted({normalise_type(c.msgtype) for c in conns if c.topic == t})
                 raise TopicError(f"topic {t} has type {', '.join(types)}, which carto does not read", self.path)
-        return [c for c in conns if messages.is_supported(c.topic, c.msgtype)]
+        return [c for c in conns if messages.is_readable(c.topic, c.msgtype)]
 
     def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
         if self._reader is None:
@@ -154,7 +154,8 @@ class RosbagRecording(Recording):
         assert reader is not None  # set by __init__, cleared only by close()
         with self._translate_errors():
             for conn, _, raw in reader.messages(connections=conns):
-                yield messages.to_record(reader.deserialize(raw, conn.msgtype), conn.msgtype, conn.topic, options)
+                yield from messages.to_records(reader.deserialize(raw, conn.msgtype), conn.msgtype, conn.topic,
+                                               options)
 
     def close(self) -> None:
         reader, self._reader = self._reader, None
