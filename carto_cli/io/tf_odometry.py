@@ -53,7 +53,13 @@ def find_tf_odometry(recording: Recording, *, odom_frame: str | None = None, bas
             raise TopicError("--odom-frame / --base-frame: the recording has no /tf topic", recording.path)
         return None
     topic = "/tf" if "/tf" in topics else topics[0]
-    sample = [r for r in itertools.islice(recording.records([topic]), SAMPLE) if isinstance(r, Transform)]
+    records = recording.records([topic])
+    try:
+        sample = [r for r in itertools.islice(records, SAMPLE) if isinstance(r, Transform)]
+    finally:
+        close = getattr(records, "close", None)
+        if close is not None:
+            close()
     edges: dict[tuple[str, str], list[Transform]] = {}
     for tf in sample:
         edges.setdefault((strip_frame(tf.parent), strip_frame(tf.child)), []).append(tf)

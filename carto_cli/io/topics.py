@@ -78,12 +78,22 @@ def select_topics(
     if odom_topic is not None and (odom_frame or base_frame):
         raise TopicError("--odom-topic and --odom-frame / --base-frame exclude each other", recording.path)
     odom = None if (odom_frame or base_frame) else choose_topic(recording, topics, "odometry", odom_topic, False)
-    if odom is None and odom_topic is None:
-        laser = next((r.frame for r in recording.records([scan]) if isinstance(r, Scan)), None)
+    if odom is None and odom_topic is None and (odom_frame or base_frame or any(t.kind == "tf" for t in topics)):
+        laser = _first_scan_frame(recording, scan)
         tf = find_tf_odometry(recording, odom_frame=odom_frame, base_frame=base_frame, laser_frame=laser)
         if tf is not None:
             return TopicSelection(scan=scan, odometry=tf.topic, imu=imu, tf_odometry=tf)
     return TopicSelection(scan=scan, odometry=odom, imu=imu)
+
+
+def _first_scan_frame(recording: Recording, topic: str) -> str | None:
+    records = recording.records([topic])
+    try:
+        return next((r.frame for r in records if isinstance(r, Scan)), None)
+    finally:
+        close = getattr(records, "close", None)
+        if close is not None:
+            close()  # the reader's file handle goes with the generator, not at garbage collection
 
 
 def selected_records(recording: Recording, selection: TopicSelection,
