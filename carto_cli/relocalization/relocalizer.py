@@ -39,10 +39,14 @@ answers :meth:`Relocalizer.relocalize` queries, Cartographer-style:
    ``matching/ray_consistency.py``). Whole-submap searches (global and
    fallbacks) search down to ``global_search_min_score`` and judge the refined
    score against ``global_min_score``; they also keep every submap's best within ``_AMBIGUITY_MARGIN`` of
-   the best overall: when one of those is a different place (> 1 m or > 10°
-   away in the map frame; with a prior, and not farther from it than the
-   best), the answer is marked ambiguous (``success`` false) -- aliasing
-   between similar rooms or corridors is reported, not guessed.
+   the best overall as rivals.
+5. The verdict (``_finish``): 'lost' when a check above fails, fewer than ``min_inlier_fraction`` of the
+   points on known cells fall on walls, or the answer is farther than ``max_jump`` from the prior;
+   'ambiguous' when the best rival at a different place (> 1 m or > 10° away in the map frame; with a prior,
+   not farther from it than the answer) -- another submap's best, or the best elsewhere in the answer's own
+   search window (``branch_and_bound.peaks``) -- scores ``max_ambiguity`` of the answer or more: aliasing
+   between similar rooms or corridors is reported, not guessed; else 'ok'. Every answer carries a covariance
+   (``least_squares.covariance``), the ambiguity ratio and the inlier fraction (docs/localization.md).
 
 Poses are (x, y, yaw) of the tracking frame in the map frame. A submap's grid
 lives in its trajectory's local frame; a map pose P is at
