@@ -249,6 +249,10 @@ def tune(
     try:
         study = optuna.create_study(study_name=study_name, storage=_storage(storage), direction="minimize",
                                     load_if_exists=True)
+    except ModuleNotFoundError as e:
+        # SQLAlchemy imports the database driver only when it connects (psycopg for postgresql:// since 2.1).
+        raise CartoError(f"cannot open the study storage {storage}: the database driver '{e.name}' is not "
+                         f"installed (pip install \"carto-slam[postgres]\" installs psycopg for PostgreSQL)") from None
     except Exception as e:
         raise CartoError(f"cannot open the study storage {storage}: {e}") from None
     # Studies from before --algorithm carry no name: they mapped with Cartographer.
