@@ -36,6 +36,7 @@ class MapResult(SlamResult):
     auto: AutoChoice | None = None  # and what it chose
     quality: MapQuality | None = None  # carto's own verdict on the map (mapping.quality)
     warnings: list[str] = field(default_factory=list)  # what the recording held that mapping dropped (io.content)
+    options: Options | None = None  # the options the map was built with (auto's choice), once known
 
     def summary(self) -> dict:
         """What summary.json holds: the mapping system, the verdict, the statistics, and what auto detected and

@@ -151,7 +151,7 @@ def run_map(
             trajectory_id=trajectory_id, jobs=jobs)
         if configured is not chosen and on_configured is not None:
             on_configured(configured)  # auto fell back to another system: say so
-        result.regime, result.auto = configured.regime, configured.auto
+        result.regime, result.auto, result.options = configured.regime, configured.auto, configured.options
     outputs = write_outputs(result, outdir, configured.options, state=state, recordings=recordings)
     if timer is not None:
         timer.stop()

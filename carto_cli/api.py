@@ -1,0 +1,167 @@
+"""carto's Python API: what the command line does, as functions, for scripts and notebooks.
+
+This module is the stable surface: its names and their parameters change only with a new major version;
+modules below it may change in any release. Units are metres, seconds and radians throughout.
+
+    from carto_cli import api
+
+    run = api.map_recording("run.bag")           # `carto map run.bag`, nothing written yet
+    run.write("run_map")                         # map.pgm/.yaml/.png, trajectory.tum, map.carto, summary.json
+    scans = [api.scan(t, ranges, angle_min=-2.0, angle_increment=0.01, range_max=30.0) for t, ranges in data]
+    run = api.map_records(scans + [api.odometry(t, x, y, yaw) for t, x, y, yaw in odo])   # from arrays
+    answer = api.relocalize("run_map/map.carto", scans[10], prior=(1.0, 2.0, 0.3))        # .verdict, .pose
+    report = api.evaluate("run_map/trajectory.tum", relations="run.relations")            # .relations.mean_translation
+
+Scans are de-skewed by the robot's motion during the sweep only when they say how long it took
+(``time_increment`` per beam, or ``scan_time``); with both 0 (the default of :func:`scan`) a scan is taken as
+instantaneous, as a LaserScan with those fields at 0 is by the command line.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from carto_cli.commands.eval import run_eval
+from carto_cli.commands.map import MapOutputs, check_outdir, run_map, write_outputs
+from carto_cli.commands.relocalize import load_relocalization_map
+from carto_cli.core import transform
+from carto_cli.core.errors import CartoError
+from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
+from carto_cli.evaluation.metrics import Evaluation
+from carto_cli.io.sources.memory import MemoryRecording
+from carto_cli.io.topics import select_topics
+from carto_cli.options import Options, load_options
+from carto_cli.pipeline import Auto, MapResult, build_configured, configure
+from carto_cli.relocalization import RelocalizationResult, Relocalizer
+
+__all__ = [
+    "CartoError",
+    "MapRun",
+    "evaluate",
+    "map_recording",
+    "map_records",
+    "odometry",
+    "options",
+    "relocalize",
+    "scan",
+]
+
+
+@dataclasses.dataclass
+class MapRun:
+    """A map in memory: ``result`` (poses, the occupancy image, the verdict, statistics) and the options it was
+    built with (what map.carto records)."""
+
+    result: MapResult
+    options: Options
+    recordings: tuple[str, ...] = ()
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 3) x, y, yaw of every scan in the map frame."""
+        return self.result.poses
+
+    @property
+    def quality(self) -> str | None:
+        """'ok', 'suspect' or 'failed' (the map's own verdict)."""
+        return None if self.result.quality is None else self.result.quality.verdict
+
+    def write(self, outdir: str | Path, *, force: bool = False, state: bool = True) -> MapOutputs:
+        """Every output `carto map` writes, into ``outdir`` as one set; an earlier map there only with ``force``."""
+        check_outdir(Path(outdir), force=force)
+        return write_outputs(self.result, Path(outdir), self.options, state=state, recordings=list(self.recordings))
+
+
+def options(profile: str | Path | None = None, overrides: Sequence[str] = ()) -> Options | Auto:
+    """The options a command would use: ``profile`` None or 'auto' chooses them from each recording (what
+    `carto map` does with no profile), else a profile name or YAML path; ``overrides`` as ``--set`` items."""
+    if profile in (None, "auto"):
+        load_options(None, overrides)  # a bad override fails here, not once a recording is read
+        return Auto(tuple(overrides))
+    return load_options(profile, overrides)
+
+
+def map_recording(recording: str | Path, *, profile: str | Path | None = None, overrides: Sequence[str] = (),
+                  algorithm: str | None = None, jobs: int | None = None, outdir: str | Path | None = None,
+                  force: bool = False) -> MapRun:
+    """Map a recording file as `carto map` does; with ``outdir`` the outputs are written there too."""
+    import tempfile
+
+    opts = options(profile, overrides)
+    if outdir is not None:
+        result, _ = run_map(Path(recording), Path(outdir), opts, algorithm=algorithm, force=force, jobs=jobs)
+    else:
+        with tempfile.TemporaryDirectory() as tmp:  # run_map writes; the caller wants the result only
+            result, _ = run_map(Path(recording), Path(tmp) / "map", opts, algorithm=algorithm, jobs=jobs,
+                                state=False)
+    assert result.options is not None  # run_map records the options it mapped with
+    return MapRun(result, result.options, (Path(recording).name,))
+
+
+def map_records(records: Iterable[Record], *, laser_pose: Sequence[float] | None = None,
+                profile: str | Path | None = None, overrides: Sequence[str] = (), algorithm: str | None = None,
+                jobs: int | None = None) -> MapRun:
+    """Map scans (and odometry / IMU) a program holds, with no file: :func:`scan`, :func:`odometry` or
+    ``carto_cli.core.records`` objects, in any order (sorted by time here). ``laser_pose`` (x, y, yaw): the
+    laser on the robot (default: at the robot's origin)."""
+    statics: list[Transform] = []
+    if laser_pose is not None:
+        x, y, yaw = (float(v) for v in laser_pose)
+        statics.append(Transform("base_link", "laser", (x, y, 0.0), yaw_quaternion(yaw)))
+    recording = MemoryRecording(records, statics)
+    if not any(t.kind == "scan" for t in recording.topics()):
+        raise CartoError("no scans to map")
+    opts = options(profile, overrides)
+    selection = select_topics(recording)
+    configured = configure(opts, recording, selection, algorithm)
+    mount = None if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
+    result, configured = build_configured(recording, configured, opts, selection=selection, laser_pose=mount,
+                                          jobs=jobs)
+    result.regime, result.auto, result.options = configured.regime, configured.auto, configured.options
+    return MapRun(result, configured.options, ("memory",))
+
+
+def scan(time: float, ranges, *, angle_min: float, angle_increment: float, range_min: float = 0.0,
+         range_max: float = math.inf, frame: str = "laser", time_increment: float = 0.0, scan_time: float = 0.0,
+         intensities=None) -> Scan:
+    """A LaserScan: ``ranges`` (m) of beams at ``angle_min + i * angle_increment`` (rad). A return outside
+    [range_min, range_max] (or inf / NaN) is no return. See the module doc for de-skewing."""
+    # Every field as a LaserScan message holds it (float32), so a scan made here maps exactly as the same scan
+    # recorded in a bag and read back (tests/test_api.py).
+    r = np.asarray(ranges, dtype=np.float32).reshape(-1)
+
+    def f32(v: float) -> float:
+        return float(np.float32(v))
+
+    return Scan(float(time), r, beam_angles(f32(angle_min), f32(angle_increment), r.size), frame, "", f32(range_min),
+                f32(range_max), f32(angle_min), f32(angle_increment), f32(time_increment), f32(scan_time),
+                None if intensities is None else np.asarray(intensities, dtype=np.float32).reshape(-1))
+
+
+def odometry(time: float, x: float, y: float, yaw: float) -> Odometry:
+    """The robot's pose by wheel odometry in its odometry frame at ``time``."""
+    return Odometry(float(time), float(x), float(y), float(yaw))
+
+
+def relocalize(map_file: str | Path, query: Scan, prior: Sequence[float] | None = None, *,
+               sigma_xy: float | None = None, sigma_yaw: float | None = None, max_jump: float | None = None,
+               laser_pose: Sequence[float] | None = None, profile: str | Path | None = None) -> RelocalizationResult:
+    """Where ``query`` is in the map (map.carto or a map_server YAML): from ``prior`` (x, y, yaw) or, without,
+    by a global search. The answer carries ``pose``, ``verdict`` ('ok' | 'ambiguous' | 'lost') and ``reason``,
+    ``covariance``, ``ambiguity`` and ``inlier_fraction`` (docs/localization.md). For many queries against one
+    map, build a ``carto_cli.relocalization.Relocalizer`` once instead."""
+    loaded = load_relocalization_map(Path(map_file), profile)
+    return Relocalizer(loaded).relocalize(query, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw,
+                                          laser_pose=laser_pose, max_jump=max_jump)
+
+
+def evaluate(trajectory: str | Path, *, relations: str | Path | None = None,
+             ground_truth: str | Path | None = None) -> Evaluation:
+    """`carto eval`: relation error (Kümmerle et al.) with ``relations``, ATE and RPE with ``ground_truth``."""
+    return run_eval(Path(trajectory), relations=None if relations is None else Path(relations),
+                    ground_truth=None if ground_truth is None else Path(ground_truth)).result
+

@@ -1,0 +1,76 @@
+"""carto_cli.api, the documented Python surface: a map from arrays equals the command line's map of the same
+data written as a bag; relocalize and evaluate through it."""
+import math
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from carto_cli import api
+from carto_cli.cli import app
+from carto_cli.core.records import Odometry, Scan
+from carto_cli.io.recording_writers import write_recording
+from carto_cli.io.sources.messages import ns_to_seconds, seconds_to_ns
+from carto_cli.sim import loop_building, loop_trajectory, simulate
+
+
+@pytest.fixture(scope="module")
+def drive():
+    w = loop_building()
+    sim = simulate(w, loop_trajectory(w), duration=25.0, scan_rate=10.0, laser_pose=(0.1, 0.0, 0.0))
+    return sim, list(sim.records(["/scan", "/odom"]))
+
+
+def _as_arrays(records):
+    """What a program holds: plain arrays and numbers, turned into records by the API's own constructors; times
+    on the nanosecond grid a bag stores them on, so the bag written from them holds exactly the same."""
+    out = []
+    for r in records:
+        t = ns_to_seconds(seconds_to_ns(r.time))
+        if isinstance(r, Scan):
+            out.append(api.scan(t, np.asarray(r.ranges, dtype=np.float64), angle_min=r.angle_min,
+                                angle_increment=r.angle_increment, range_min=r.range_min, range_max=r.range_max))
+        elif isinstance(r, Odometry):
+            out.append(api.odometry(t, r.x, r.y, r.yaw))
+    return out
+
+
+def test_a_map_from_arrays_is_the_command_lines_map(drive, tmp_path):
+    sim, records = drive
+    arrays = _as_arrays(records)
+    run = api.map_records(arrays, laser_pose=(0.1, 0.0, 0.0), profile="wheeled")
+    assert run.quality == "ok" and run.poses.shape == (250, 3)
+    outputs = run.write(tmp_path / "api")
+    # The same scans and odometry written as a bag, the laser mount as static TF: what a robot would record.
+    bag = tmp_path / "drive.bag"
+    write_recording(iter(sorted(arrays, key=lambda r: r.time)), bag, "ros1", static_transforms=sim.static_transforms)
+    r = CliRunner().invoke(app, ["map", str(bag), "-o", str(tmp_path / "cli"), "--profile", "wheeled"])
+    assert r.exit_code == 0, r.output
+    assert outputs.trajectory.read_bytes() == (tmp_path / "cli" / "trajectory.tum").read_bytes()
+    assert outputs.pgm.read_bytes() == (tmp_path / "cli" / "map.pgm").read_bytes()
+    with pytest.raises(api.CartoError, match="already holds a map"):
+        run.write(tmp_path / "api")
+
+
+def test_map_recording_relocalize_and_evaluate(drive, tmp_path):
+    sim, records = drive
+    bag = tmp_path / "drive.bag"
+    write_recording(iter(records), bag, "ros1", static_transforms=sim.static_transforms)
+    run = api.map_recording(bag, outdir=tmp_path / "m")  # auto
+    assert run.result.auto is not None and run.options.trajectory_builder_2d.max_range > 0
+    scan = next(r for r in records if isinstance(r, Scan) and r.time >= 1020.0)
+    k = int(round((scan.time - 1000.0) * 10))
+    answer = api.relocalize(tmp_path / "m" / "map.carto", scan, prior=run.poses[k] + [0.3, -0.2, 0.05])
+    assert answer.verdict == "ok" and np.hypot(*(answer.pose[:2] - run.poses[k][:2])) < 0.05
+    (tmp_path / "self.relations").write_text(
+        "".join(f"{run.result.times[i]} {run.result.times[i + 10]} 0 0 0 0 0 0\n" for i in range(0, 200, 50)))
+    report = api.evaluate(tmp_path / "m" / "trajectory.tum", relations=tmp_path / "self.relations")
+    assert report.relations is not None
+    assert math.isfinite(report.relations.translation.mean)
+
+
+def test_bad_input_is_a_carto_error(tmp_path):
+    with pytest.raises(api.CartoError, match="no scans"):
+        api.map_records([api.odometry(0.0, 0.0, 0.0, 0.0)])
+    with pytest.raises(api.CartoError):
+        api.options("no-such-profile")
