@@ -476,6 +476,33 @@ def _track(map_file: Path, recording: Path, output: Path | None, *, as_json: boo
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
+@app.command("render")
+@handle_errors
+def render_(
+    map_file: Path = typer.Argument(..., help="map.carto written by `carto map`."),
+    outdir: Path = typer.Option(..., "--output", "-o", help="Output directory."),
+    resolution: float | None = typer.Option(None, "--resolution", help="Cell size of the exported map (m; default "
+                                            "the map's own)."),
+    mode: str = typer.Option("trinary", "--mode", help="trinary (map.pgm) or scale (map.scale.png with alpha: the "
+                             "probabilities, unknown transparent)."),
+    occupied_thresh: float | None = typer.Option(
+        None, "--occupied-thresh", help="trinary: cells at or above this probability are walls (default: more hit "
+        "than miss evidence)."),
+    free_thresh: float | None = typer.Option(
+        None, "--free-thresh", help="trinary: cells at or below this probability are free (between: unknown)."),
+    png_scale: int | None = typer.Option(None, "--png-scale", help="Pixels per cell in map.png (default: about "
+                                         "900 px on the longer side, at most 8)."),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
+):
+    """Re-export a saved map without its recording: map.pgm + map.yaml (nav2 / map_server) and map.png."""
+    from carto_cli.commands.render import run_render
+
+    done = run_render(map_file, outdir, resolution=resolution, mode=mode, occupied_thresh=occupied_thresh,
+                      free_thresh=free_thresh, png_scale=png_scale, force=force)
+    h, w = done.image.probability.shape
+    typer.echo(f"{w} x {h} cells at {done.image.resolution:g} m -> {done.image_file}, {done.yaml}, {done.png}")
+
+
 profiles_app = typer.Typer(help="Environment profiles: list them, show the effective options.", no_args_is_help=True)
 app.add_typer(profiles_app, name="profiles")
 

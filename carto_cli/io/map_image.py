@@ -1,6 +1,7 @@
 """The map as ROS map_server / nav2 load it (PGM + YAML), and a PNG for people with the trajectory drawn on."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -43,11 +44,11 @@ def _pgm_bytes(pixels: np.ndarray) -> bytes:
     return f"P5\n# carto map\n{w} {h}\n255\n".encode() + pixels.tobytes()
 
 
-def map_yaml(image_name: str, image: OccupancyImage) -> str:
+def map_yaml(image_name: str, image: OccupancyImage, mode: str = "trinary") -> str:
     ox, oy = image.origin
     return (
         f"image: {image_name}\n"
-        f"mode: trinary\n"
+        f"mode: {mode}\n"
         f"resolution: {image.resolution:.6g}\n"
         f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\n"
         f"negate: 0\n"
@@ -56,40 +57,177 @@ def map_yaml(image_name: str, image: OccupancyImage) -> str:
     )
 
 
-def write_map(outdir: Path, image: OccupancyImage, stem: str = "map") -> tuple[Path, Path]:
-    """Write ``stem.pgm`` and ``stem.yaml``; the YAML goes last so a reader never sees it without its image."""
+def _thresholded_pixels(image: OccupancyImage, occupied_thresh: float, free_thresh: float) -> np.ndarray:
+    """Trinary pixels by probability thresholds: >= occupied 0, <= free 254, between and never seen 205."""
+    p = image.probability
+    known = ~np.isnan(p)
+    pixels = np.full(p.shape, UNKNOWN, dtype=np.uint8)
+    pixels[known & (p >= occupied_thresh)] = 0
+    pixels[known & (p <= free_thresh)] = 254
+    return np.ascontiguousarray(pixels[::-1])
+
+
+def _scale_bgra(image: OccupancyImage) -> np.ndarray:
+    """map_server 'scale' mode keeps the probability: grey 255 (1 - p); never-seen cells transparent, which is
+    the only way scale mode reads a cell as unknown."""
+    p = image.probability
+    known = ~np.isnan(p)
+    grey = np.clip(np.rint(255.0 * (1.0 - np.where(known, p, 0.5))), 0, 255).astype(np.uint8)
+    bgra = np.dstack([grey, grey, grey, np.where(known, 255, 0).astype(np.uint8)])
+    return np.ascontiguousarray(bgra[::-1])
+
+
+def write_map(outdir: Path, image: OccupancyImage, stem: str = "map", *, mode: str = "trinary",
+              occupied_thresh: float | None = None, free_thresh: float | None = None) -> tuple[Path, Path]:
+    """Write the map_server image and ``stem.yaml``; the YAML goes last so a reader never sees it without its image.
+
+    ``trinary`` (``stem.pgm``): without thresholds a cell is occupied or free by the balance of its evidence
+    (``to_pgm_pixels``); with ``occupied_thresh`` / ``free_thresh`` by its probability, cells in between unknown.
+    ``scale`` (``stem.scale.png``, grey and alpha): the probability itself, map_server reading it in scale mode.
+    """
     if image.probability.size == 0:
         raise CartoError("the map is empty: no scan was inserted", outdir)
+    if mode not in ("trinary", "scale"):
+        raise CartoError(f"--mode must be trinary or scale, got {mode!r}")
     outdir.mkdir(parents=True, exist_ok=True)
-    pgm = outdir / f"{stem}.pgm"
     yml = outdir / f"{stem}.yaml"
-    with atomic_output(pgm) as tmp:
-        tmp.write_bytes(_pgm_bytes(to_pgm_pixels(image, trinary=True)))
-    write_text_atomic(yml, map_yaml(pgm.name, image))
-    return pgm, yml
+    if mode == "scale":
+        img = outdir / f"{stem}.scale.png"
+        ok, buf = cv2.imencode(".png", _scale_bgra(image))
+        if not ok:
+            raise CartoError("could not encode the PNG", img)
+        with atomic_output(img) as tmp:
+            tmp.write_bytes(buf.tobytes())
+    else:
+        img = outdir / f"{stem}.pgm"
+        if occupied_thresh is None and free_thresh is None:
+            pixels = to_pgm_pixels(image, trinary=True)
+        else:
+            occ = OCCUPIED_THRESH if occupied_thresh is None else float(occupied_thresh)
+            free = FREE_THRESH if free_thresh is None else float(free_thresh)
+            if not 0.0 <= free < occ <= 1.0:
+                raise CartoError(f"need 0 <= --free-thresh ({free:g}) < --occupied-thresh ({occ:g}) <= 1")
+            pixels = _thresholded_pixels(image, occ, free)
+        with atomic_output(img) as tmp:
+            tmp.write_bytes(_pgm_bytes(pixels))
+    write_text_atomic(yml, map_yaml(img.name, image, mode))
+    return img, yml
+
+
+# What a person reads (map.png): free white, walls black, never seen a mid grey that is neither; in between,
+# evidence shades the free side towards light grey and the wall side towards dark grey.
+PNG_UNKNOWN = 160
+PNG_FREE = 255  # p = 0.1 (certainly free) ... PNG_FREE_EDGE at p = 0.5
+PNG_FREE_EDGE = 215
+PNG_WALL_EDGE = 110  # p just above 0.5 ... 0 at p = 0.9
+PNG_TARGET_PX = 900  # the longer side of map.png is scaled up towards this (whole multiples, at most 8x)
+_FOOTER_PX = 34
+
+
+def to_png_pixels(image: OccupancyImage) -> np.ndarray:
+    """uint8 grey levels for people (PNG_* above), row 0 at the top."""
+    p = image.probability
+    known = ~np.isnan(p)
+    q = np.where(known, p, 0.5)
+    free = PNG_FREE - (np.clip(q, 0.1, 0.5) - 0.1) / 0.4 * (PNG_FREE - PNG_FREE_EDGE)
+    wall = PNG_WALL_EDGE * (0.9 - np.clip(q, 0.5, 0.9)) / 0.4
+    grey = np.where(q <= 0.5, free, wall)
+    pixels = np.full(p.shape, PNG_UNKNOWN, dtype=np.uint8)
+    pixels[known] = np.clip(np.rint(grey[known]), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(pixels[::-1])
+
+
+def png_scale_for(image: OccupancyImage) -> int:
+    """The default upscaling of map.png: a whole factor bringing the longer side towards PNG_TARGET_PX."""
+    longest = max(image.probability.shape) if image.probability.size else 1
+    return int(min(8, max(1, PNG_TARGET_PX // max(longest, 1))))
+
+
+def _nice_length(metres: float) -> float:
+    """The largest 1 / 2 / 5 x 10^k not above ``metres``."""
+    if metres <= 0:
+        return 1.0
+    k = math.floor(math.log10(metres))
+    for m in (5.0, 2.0, 1.0):
+        if m * 10 ** k <= metres:
+            return m * 10 ** k
+    return 10 ** k
 
 
 def render_png(
     image: OccupancyImage,
     trajectory_xy: np.ndarray | None = None,
     constraints_xy: np.ndarray | None = None,
-    scale: int = 1,
+    scale: int | None = None,
+    legend: bool = True,
 ) -> np.ndarray:
-    """BGR image: the map in grey, loop-closure constraints in green, the trajectory in red."""
-    grey = to_pgm_pixels(image)
+    """BGR image for people: the map (``to_png_pixels``) scaled by ``scale`` (default ``png_scale_for``),
+    loop-closure constraints in green, the trajectory in red with its start (green dot) and end (red square),
+    and below it a footer with a scale bar and a legend."""
+    scale = png_scale_for(image) if scale is None else int(scale)
+    if scale < 1:
+        raise CartoError(f"--png-scale must be a whole number >= 1, got {scale}")
+    grey = to_png_pixels(image)
     bgr = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     if scale > 1:
         bgr = cv2.resize(bgr, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     shift = 4  # cv2 draws with fixed-point sub-pixel coordinates
+    one = 1 << shift
+
+    def px(xy: np.ndarray) -> np.ndarray:
+        # world_to_pixel is continuous (pixel i spans [i, i + 1)); cv2 puts pixel i's centre at i.
+        return np.rint((image.world_to_pixel(xy) * scale - 0.5) * one).astype(np.int32)
+
     if constraints_xy is not None and len(constraints_xy):
-        a = np.rint(image.world_to_pixel(constraints_xy[:, :2]) * scale * (1 << shift)).astype(np.int32)
-        b = np.rint(image.world_to_pixel(constraints_xy[:, 2:4]) * scale * (1 << shift)).astype(np.int32)
+        a, b = px(constraints_xy[:, :2]), px(constraints_xy[:, 2:4])
         for p, q in zip(a, b):
             cv2.line(bgr, tuple(p), tuple(q), (60, 170, 60), 1, cv2.LINE_AA, shift)
     if trajectory_xy is not None and len(trajectory_xy) > 1:
-        pts = np.rint(image.world_to_pixel(trajectory_xy[:, :2]) * scale * (1 << shift)).astype(np.int32)
+        pts = px(trajectory_xy[:, :2])
         cv2.polylines(bgr, [pts.reshape(-1, 1, 2)], False, (40, 40, 220), 1, cv2.LINE_AA, shift)
-    return bgr
+        r = max(3, scale + 2) * one
+        cv2.circle(bgr, tuple(pts[0]), r, (40, 170, 40), -1, cv2.LINE_AA, shift)
+        e = pts[-1]
+        cv2.rectangle(bgr, tuple(e - r), tuple(e + r), (40, 40, 220), -1, cv2.LINE_AA, shift)
+    if not legend:
+        return bgr
+    return _with_footer(bgr, image.resolution / scale)
+
+
+def _with_footer(bgr: np.ndarray, metres_per_px: float) -> np.ndarray:
+    """The map above a white strip holding a scale bar (1 / 2 / 5 x 10^k m, about a quarter of the width) and the
+    legend: free, wall, unknown, trajectory, start, end, loop closure."""
+    h, w = bgr.shape[:2]
+    width = max(w, 420)
+    row = 18  # the legend wraps onto further rows of this height where the map is narrow
+    out = np.full((h + _FOOTER_PX + 3 * row, width, 3), 255, dtype=np.uint8)
+    out[:h, :w] = bgr
+    font, size, ink = cv2.FONT_HERSHEY_SIMPLEX, 0.38, (30, 30, 30)
+    y = h + 22
+    bar_m = _nice_length(0.25 * w * metres_per_px)
+    bar_px = max(1, int(round(bar_m / metres_per_px)))
+    cv2.rectangle(out, (8, y - 6), (8 + bar_px, y - 2), (0, 0, 0), -1)
+    label = f"{bar_m:g} m"
+    cv2.putText(out, label, (12 + bar_px, y), font, size, ink, 1, cv2.LINE_AA)
+    x = 12 + bar_px + cv2.getTextSize(label, font, size, 1)[0][0] + 14
+    items = [("free", (PNG_FREE,) * 3, "box"), ("wall", (0, 0, 0), "box"), ("unknown", (PNG_UNKNOWN,) * 3, "box"),
+             ("path", (40, 40, 220), "line"), ("start", (40, 170, 40), "dot"), ("end", (40, 40, 220), "square"),
+             ("loop closure", (60, 170, 60), "line")]
+    for text, colour, kind in items:
+        if x + 27 + cv2.getTextSize(text, font, size, 1)[0][0] > width:
+            x, y = 8, y + row
+        if kind == "box":
+            cv2.rectangle(out, (x, y - 9), (x + 10, y + 1), colour, -1)
+            cv2.rectangle(out, (x, y - 9), (x + 10, y + 1), (90, 90, 90), 1)
+        elif kind == "line":
+            cv2.line(out, (x, y - 4), (x + 12, y - 4), colour, 2, cv2.LINE_AA)
+        elif kind == "dot":
+            cv2.circle(out, (x + 5, y - 4), 4, colour, -1, cv2.LINE_AA)
+        else:
+            cv2.rectangle(out, (x + 1, y - 8), (x + 9, y), colour, -1)
+        cv2.putText(out, text, (x + 15, y), font, size, ink, 1, cv2.LINE_AA)
+        x += 15 + cv2.getTextSize(text, font, size, 1)[0][0] + 12
+    return np.ascontiguousarray(out[:y + _FOOTER_PX - 22])
 
 
 def write_png(path: Path, bgr: np.ndarray) -> Path:
