@@ -146,7 +146,7 @@ def convert(
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
 ):
-    """Convert between ROS1 bags, ROS2 bags (sqlite3 / mcap storage) and MCAP; scans, odometry, IMU and static TF."""
+    """Convert between ROS1 bags, ROS2 bags (sqlite3 / mcap storage) and MCAP (ROS1 <-> ROS2: every topic, lossless)."""
     from carto_cli.commands.common import z_slice
     from carto_cli.commands.convert import run_convert
     from carto_cli.core.progress import progress
@@ -155,8 +155,12 @@ def convert(
     with progress(f"converting {source.name}", None, state.quiet) as bar:
         done = run_convert(source, out, fmt=fmt, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
                            overwrite=force, read=read, on_total=bar.set_total, on_record=bar.advance)
+    if done.left_out:
+        typer.echo(f"carto: warning: not copied (carto's writer carries scans, odometry, IMU and static TF; ROS1 <-> "
+                   f"ROS2 with every topic is lossless): {', '.join(done.left_out)}", err=True)
     if not state.quiet:
-        typer.echo(f"wrote {done.messages} messages to {done.out} ({done.format})", err=True)
+        how = ", lossless: every topic and stamp as recorded" if done.lossless else ""
+        typer.echo(f"wrote {done.messages} messages to {done.out} ({done.format}{how})", err=True)
 
 
 PROFILE = typer.Option(None, "--profile", "-p",

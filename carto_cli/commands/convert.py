@@ -1,4 +1,8 @@
-"""`carto convert` as a library call: copy a recording's scans, odometry, IMU and static TF to another format."""
+"""`carto convert` as a library call: a recording in another format.
+
+ROS1 <-> ROS2 with every topic goes through rosbags' converter, losing nothing (every topic, message and
+stamp as recorded). Anything else (MCAP, CARMEN, chosen topics) goes through carto's writer, which carries
+scans, odometry, IMU and static TF and says which topics it left out."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -6,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from carto_cli.io.recording import ReadOptions
-from carto_cli.io.recording_writers import format_for_output, write_recording
+from carto_cli.io.recording_writers import convert_bag, format_for_output, write_recording
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.topics import choose_topic
 
@@ -18,6 +22,8 @@ class Converted:
     messages: int
     out: Path
     format: str
+    lossless: bool = False  # every topic and stamp as recorded (rosbags' converter)
+    left_out: tuple[str, ...] = ()  # topics of the source not written (carto's writer)
 
 
 def run_convert(
@@ -42,6 +48,14 @@ def run_convert(
     out_format = format_for_output(out, fmt)
     with open_recording(source, read) as rec:
         topics = rec.topics()
+        ros2 = ("ros2-sqlite3", "ros2-mcap")
+        whole = scan_topic is None and odom_topic is None and imu_topic is None
+        if whole and ((rec.format == "ros1" and out_format in ros2) or (rec.format in ros2 and out_format == "ros1")):
+            total = sum(t.count for t in topics)
+            if on_total is not None:
+                on_total(total)
+            convert_bag(Path(source), out, out_format, overwrite=overwrite)
+            return Converted(total, out, out_format, lossless=True)
         chosen: list[str] = []
         for kind, wanted in (("scan", scan_topic), ("odometry", odom_topic), ("imu", imu_topic)):
             if wanted is not None:
@@ -58,4 +72,5 @@ def run_convert(
             static_transforms=rec.static_transforms(), topics={t: types[t] for t in chosen},
             on_record=on_record, overwrite=overwrite,
         )
-    return Converted(n, out, out_format)
+        left_out = tuple(t.name for t in topics if t.name not in chosen and t.kind != "tf_static")
+    return Converted(n, out, out_format, left_out=left_out)

@@ -107,6 +107,34 @@ def write_recording(
         shutil.rmtree(tmpdir, ignore_errors=True)
 
 
+def convert_bag(source: Path, out: Path, fmt: str, *, overwrite: bool = False) -> None:
+    """A ROS1 bag to a ROS2 bag or back through rosbags' own converter: every topic and message as recorded,
+    stamps exact (carto's writer carries only what carto reads). ``fmt``: 'ros1', 'ros2-sqlite3' or
+    'ros2-mcap'. Staged and moved into place like :func:`write_recording`."""
+    from rosbags.convert import ConverterError, convert
+    from rosbags.rosbag2 import Writer
+
+    out = Path(out)
+    if (out.exists() or out.is_symlink()) and not overwrite:
+        raise CartoError("already exists (use --force to replace it)", out)
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise CartoError(f"directory {parent} does not exist", out)
+    tmpdir = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=parent))
+    try:
+        staged = tmpdir / out.name
+        storage = "mcap" if fmt == "ros2-mcap" else "sqlite3"
+        try:
+            convert([Path(source)], staged, storage, Writer.VERSION_LATEST, None, "file", None, None, [], [], [], [])
+        except ConverterError as e:
+            raise CartoError(f"cannot convert: {e}", source) from None
+        _move_into_place(staged, out, tmpdir, overwrite)
+    except OSError as e:
+        raise CartoError(f"cannot write: {e.strerror or e}", out) from e
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+
+
 def _move_into_place(staged: Path, out: Path, tmpdir: Path, overwrite: bool) -> None:
     if not (out.exists() or out.is_symlink()):
         os.rename(staged, out)
