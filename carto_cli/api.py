@@ -152,8 +152,9 @@ def relocalize(map_file: str | Path, query: Scan, prior: Sequence[float] | None 
                laser_pose: Sequence[float] | None = None, profile: str | Path | None = None) -> RelocalizationResult:
     """Where ``query`` is in the map (map.carto or a map_server YAML): from ``prior`` (x, y, yaw) or, without,
     by a global search. The answer carries ``pose``, ``verdict`` ('ok' | 'ambiguous' | 'lost') and ``reason``,
-    ``covariance``, ``ambiguity`` and ``inlier_fraction`` (docs/localization.md). For many queries against one
-    map, build a ``carto_cli.relocalization.Relocalizer`` once instead."""
+    ``covariance``, ``ambiguity`` and ``inlier_fraction`` (docs/localization.md). A map_server map takes carto's
+    defaults or ``profile`` (the command line also fits the range to the recording's first scans, which one query
+    cannot do). For many queries against one map, build a ``carto_cli.relocalization.Relocalizer`` once instead."""
     loaded = load_relocalization_map(Path(map_file), profile)
     return Relocalizer(loaded).relocalize(query, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw,
                                           laser_pose=laser_pose, max_jump=max_jump)

@@ -49,7 +49,9 @@ def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -
 
     ``profile``: for map.carto its ``relocalization`` section replaces the map's own (the scan filtering stays the
     map's, as the map was built with it); a map_server map takes the whole profile (default: carto's defaults).
+    None or 'auto': the map's own options (for a map_server map, carto's defaults; ``_from_scans`` fits them).
     """
+    profile = None if profile == "auto" else profile
     if is_map_server_yaml(map_file):
         return load_map_server(map_file, load_options(profile))
     loaded = load_map(map_file)

@@ -95,7 +95,8 @@ _AMBIGUITY_MARGIN = 0.03  # a search without a (trusted) prior must beat every o
 _NODE_MARGIN = 2.0  # m: a whole-submap search covers the box of the submap's nodes plus this
 # Coarse leaves a whole-map search follows down to full resolution, shared among the submaps it searches: a map of
 # many submaps gets one per submap (each submap is a bet of its own), a map_server image of one grid six (on
-# bench-dense/intel's image, global queries right: 1 bet 80 %, 3 bets 92 %, 6 bets 95 %).
+# bench-dense/intel's image, global queries right: 1 bet 80 % and 3 bets 92 % of 60 before the range fix of
+# relocalization/auto.py; after it, 4 bets 93 % and 6 bets 95 % of 100).
 _GLOBAL_BETS = 6
 # A scan taken where the map ends sees partly unmapped space: its points there read 0.1 whatever the pose, and
 # drag the plain score of the right pose below min_score (on bench-dense, every failure with a prior was such a

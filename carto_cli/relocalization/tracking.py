@@ -102,6 +102,7 @@ class Tracker:
         self.min_inliers = relocalizer.ro.min_inlier_fraction
         self.max_see_through = relocalizer.ro.max_see_through
         self.timings = {"preprocessing": 0.0, "refinement": 0.0, "judging": 0.0, "relocalization": 0.0}
+        self.relocalizations = 0  # searches run by the last track() (its first fix included)
 
     def _refine(self, scan_pts: np.ndarray, predicted: np.ndarray, search_pts: np.ndarray | None
                 ) -> tuple[np.ndarray, float, float, float, int]:
