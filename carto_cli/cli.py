@@ -163,6 +163,12 @@ def convert(
         typer.echo(f"wrote {done.messages} messages to {done.out} ({done.format}{how})", err=True)
 
 
+ODOM_FRAME = typer.Option(
+    None, "--odom-frame", help="Odometry from dynamic TF (/tf): the odometry frame (default: odom*, used when the "
+    "recording has no Odometry topic).")
+BASE_FRAME = typer.Option(
+    None, "--base-frame", help="Odometry from dynamic TF: the robot's base frame (default: where the laser's static "
+    "TF ends, else base_footprint / base_link).")
 PROFILE = typer.Option(None, "--profile", "-p",
                        help="Profile name (profiles/NAME.yaml) or path, layered over the default.")
 MAP_PROFILE = typer.Option(
@@ -214,12 +220,8 @@ def map_(
     odom_topic: str | None = typer.Option(None, "--odom-topic"),
     imu_topic: str | None = typer.Option(None, "--imu-topic"),
     no_odometry: bool = typer.Option(False, "--no-odometry", help="Ignore odometry even when the recording has it."),
-    odom_frame: str | None = typer.Option(
-        None, "--odom-frame", help="Odometry from dynamic TF (/tf): the odometry frame (default: odom*, used when "
-        "the recording has no Odometry topic)."),
-    base_frame: str | None = typer.Option(
-        None, "--base-frame", help="Odometry from dynamic TF: the robot's base frame (default: where the laser's "
-                                   "static TF ends, else base_footprint / base_link)."),
+    odom_frame: str | None = ODOM_FRAME,
+    base_frame: str | None = BASE_FRAME,
     laser_pose: str | None = typer.Option(
         None, "--laser-pose",
         help="x,y,yaw of the laser on the robot (m, m, rad; 'deg' suffix for degrees). "
@@ -328,6 +330,8 @@ def profile_(
     overrides: list[str] | None = SET,
     scan_topic: str | None = typer.Option(None, "--scan-topic"),
     odom_topic: str | None = typer.Option(None, "--odom-topic"),
+    odom_frame: str | None = ODOM_FRAME,
+    base_frame: str | None = BASE_FRAME,
     as_json: bool = typer.Option(False, "--json", help="Print the report as JSON (schema carto.profile v1)."),
     output: Path | None = typer.Option(None, "--output", help="Also write the JSON report to this file."),
     baseline: Path | None = typer.Option(None, "--baseline", help="A previous --output to compare against."),
@@ -355,7 +359,8 @@ def profile_(
 
     options = _map_options(profile, _with_z(overrides, min_z, max_z))
     with progress(f"profiling {recording.name}", None, state.quiet) as bar:
-        run = run_profile(recording, options, scan_topic=scan_topic, odom_topic=odom_topic, output=output,
+        run = run_profile(recording, options, scan_topic=scan_topic, odom_topic=odom_topic, odom_frame=odom_frame,
+                          base_frame=base_frame, output=output,
                           baseline=baseline, calibrate_first=calibrate, max_scans=max_scans,
                           relocalize_map=relocalize_map, on_total=bar.set_total, on_scan=bar.advance,
                           algorithm=algorithm, force=force, repeat=repeat)
@@ -403,6 +408,8 @@ def relocalize_(
     output: Path | None = typer.Option(None, "--output", "-o", help="--track: output directory (default NAME_track "
                                        "next to the recording)."),
     odom_topic: str | None = typer.Option(None, "--odom-topic", help="--track: odometry topic for predictions."),
+    odom_frame: str | None = ODOM_FRAME,
+    base_frame: str | None = BASE_FRAME,
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
 ):
@@ -417,11 +424,12 @@ def relocalize_(
     if track:
         _track(map_file, recording, output, initial_pose=initial_pose, sigma_xy=sigma_xy,
                sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), scan_topic=scan_topic,
-               odom_topic=odom_topic, overrides=overrides, profile=profile, max_jump=max_jump, force=force,
+               odom_topic=odom_topic, odom_frame=odom_frame, base_frame=base_frame, overrides=overrides,
+               profile=profile, max_jump=max_jump, force=force,
                read=z_slice(min_z, max_z), as_json=as_json)
         return
-    if output is not None or odom_topic is not None:
-        raise CartoError("--output and --odom-topic go with --track")
+    if output is not None or odom_topic is not None or odom_frame is not None or base_frame is not None:
+        raise CartoError("--output, --odom-topic, --odom-frame and --base-frame go with --track")
     from carto_cli.commands.relocalize import run_relocalize
 
     run = run_relocalize(

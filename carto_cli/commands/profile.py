@@ -45,6 +45,8 @@ def run_profile(
     *,
     scan_topic: str | None = None,
     odom_topic: str | None = None,
+    odom_frame: str | None = None,
+    base_frame: str | None = None,
     output: Path | None = None,
     baseline: Path | None = None,
     calibrate_first: bool = False,
@@ -82,7 +84,8 @@ def run_profile(
         check_baseline(known)
     calibration = calibrate() if calibrate_first else None
     runs = []
-    with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic) as source:
+    with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic, odom_frame=odom_frame,
+                base_frame=base_frame) as source:
         configured = configure(options, source.recording, source.selection, algorithm)
         algorithm = configured.algorithm
         check_baseline(algorithm)

@@ -236,6 +236,8 @@ def run_track(
     sigma_yaw: float | None = None,
     scan_topic: str | None = None,
     odom_topic: str | None = None,
+    odom_frame: str | None = None,
+    base_frame: str | None = None,
     overrides: Sequence[str] | None = None,
     profile: str | Path | None = None,
     max_jump: float | None = None,
@@ -264,7 +266,7 @@ def run_track(
     warnings: list[str] = []
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning)
     with open_recording(recording, read) as rec:
-        selection = select_topics(rec, scan_topic, odom_topic)
+        selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
         mount = auto = None
         if relocalizer is None:
             mount, auto = _from_scans(loaded, rec, selection.scan, profile)

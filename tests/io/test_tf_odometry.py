@@ -107,3 +107,20 @@ def test_scans_and_transforms_keep_their_time_order(bags):
         times = [r.time for r in rec.records(["/scan", "/tf"])]
         kinds = {type(r) for r in rec.records(["/scan", "/tf"])}
     assert times == sorted(times) and kinds == {Scan, Transform}
+
+
+def test_the_frames_on_the_command_line(bags, tmp_path):
+    from typer.testing import CliRunner
+
+    from carto_cli.cli import app
+
+    _, only_tf = bags
+    run = CliRunner().invoke
+    r = run(app, ["map", str(only_tf), "-o", str(tmp_path / "m"), "--profile", "wheeled", "--odom-frame", "odom",
+                  "--base-frame", "base_link"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "m" / "summary.json").read_text())["odometry"] == "from TF /tf (odom -> base_link)"
+    r = run(app, ["profile", str(only_tf), "--base-frame", "base_footprint", "--max-scans", "20"])
+    assert r.exit_code == 2 and "no transform odom* -> base_footprint on /tf" in r.output
+    r = run(app, ["relocalize", str(tmp_path / "m" / "map.carto"), str(only_tf), "--global", "--odom-frame", "odom"])
+    assert r.exit_code == 2 and "go with --track" in r.output
