@@ -17,7 +17,7 @@ from carto_cli.core.records import Imu, Odometry, Scan, Transform
 from carto_cli.gmapping import ALGORITHMS
 from carto_cli.gmapping.filter import GMappingSlam
 from carto_cli.io.content import ContentCheck
-from carto_cli.io.recording import ReadOptions, Recording
+from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
@@ -169,13 +169,6 @@ def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit,
     return np.zeros(3), "identity (no static TF for the laser)"
 
 
-def _first_scan_frame(recording: Recording, topic: str) -> str | None:
-    for record in recording.records([topic]):
-        if isinstance(record, Scan):
-            return record.frame
-    return None
-
-
 def build(
     recording: Recording,
     options: Options,
@@ -205,7 +198,7 @@ def build(
     if algorithm == "gmapping" and graph is not None:
         raise CartoError("gmapping cannot continue a saved map (--load-state is for cartographer)", recording.path)
     selection = selection or select_topics(recording)
-    scan_frame = _first_scan_frame(recording, selection.scan)
+    scan_frame = first_scan_frame(recording, selection.scan)
     if scan_frame is None:
         raise CartoError(f"no scans on {selection.scan}", recording.path)
     mount, mount_source = resolve_laser_pose(recording, scan_frame, laser_pose,

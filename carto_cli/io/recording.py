@@ -1,12 +1,13 @@
 """The interface every recording source implements, and topic kinds."""
 from __future__ import annotations
 
+import itertools
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from carto_cli.core.records import Record, Transform
+from carto_cli.core.records import Record, Scan, Transform
 
 # Message types carto understands, by the kind of record they become.
 # Names are normalised to the ROS2 form 'pkg/msg/Type' (ROS1 'pkg/Type' is mapped).
@@ -62,6 +63,23 @@ class ReadOptions:
 
     min_z: float = -0.8
     max_z: float = 2.0
+
+
+def head(recording: Recording, topics: Iterable[str], n: int) -> list[Record]:
+    """The first ``n`` records of ``topics``, the reader's stream closed after them (its file handle goes with the
+    generator, not at garbage collection)."""
+    records = recording.records(topics)
+    try:
+        return list(itertools.islice(records, n))
+    finally:
+        close = getattr(records, "close", None)
+        if close is not None:
+            close()
+
+
+def first_scan_frame(recording: Recording, topic: str) -> str | None:
+    """The frame of the first scan on ``topic`` (None without one)."""
+    return next((r.frame for r in head(recording, [topic], 1) if isinstance(r, Scan)), None)
 
 
 class Recording(ABC):

@@ -8,13 +8,14 @@ use header stamps agree.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import itertools
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -82,9 +83,17 @@ def write_recording(
     The output appears only when everything was written: an exception (from
     the records, the callback or the disk) leaves nothing at ``out``.
     """
-    out = Path(out)
     if fmt not in FORMATS:
         raise CartoError(f"unknown output format {fmt!r} (choose one of {', '.join(FORMATS)})")
+    with _staged(out, overwrite) as staged:
+        return _write(records, staged, fmt, static_transforms, topics, on_record)
+
+
+@contextlib.contextmanager
+def _staged(out: str | Path, overwrite: bool) -> Iterator[Path]:
+    """A path to build ``out`` at, in a hidden sibling directory, moved into place when the block ends without
+    an exception; refused up front when ``out`` exists and not ``overwrite``."""
+    out = Path(out)
     if (out.exists() or out.is_symlink()) and not overwrite:
         raise CartoError("already exists (use --force to replace it)", out)
     parent = out.parent if str(out.parent) else Path(".")
@@ -98,9 +107,8 @@ def write_recording(
         # The output is built under its final name inside a hidden sibling directory:
         # a ROS2 bag names its storage file after its directory.
         staged = tmpdir / out.name
-        n = _write(records, staged, fmt, static_transforms, topics, on_record)
+        yield staged
         _move_into_place(staged, out, tmpdir, overwrite)
-        return n
     except OSError as e:
         raise CartoError(f"cannot write: {e.strerror or e}", out) from e
     finally:
@@ -114,25 +122,12 @@ def convert_bag(source: Path, out: Path, fmt: str, *, overwrite: bool = False) -
     from rosbags.convert import ConverterError, convert
     from rosbags.rosbag2 import Writer
 
-    out = Path(out)
-    if (out.exists() or out.is_symlink()) and not overwrite:
-        raise CartoError("already exists (use --force to replace it)", out)
-    parent = out.parent if str(out.parent) else Path(".")
-    if not parent.is_dir():
-        raise CartoError(f"directory {parent} does not exist", out)
-    tmpdir = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=parent))
-    try:
-        staged = tmpdir / out.name
+    with _staged(out, overwrite) as staged:
         storage = "mcap" if fmt == "ros2-mcap" else "sqlite3"
         try:
             convert([Path(source)], staged, storage, Writer.VERSION_LATEST, None, "file", None, None, [], [], [], [])
         except ConverterError as e:
             raise CartoError(f"cannot convert: {e}", source) from None
-        _move_into_place(staged, out, tmpdir, overwrite)
-    except OSError as e:
-        raise CartoError(f"cannot write: {e.strerror or e}", out) from e
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
 
 
 def _move_into_place(staged: Path, out: Path, tmpdir: Path, overwrite: bool) -> None:

@@ -9,14 +9,13 @@ transform is dropped. The transforms of /tf that never change (a laser mount bro
 """
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 from carto_cli.core.errors import TopicError
 from carto_cli.core.records import Odometry, Record, Transform, strip_frame
-from carto_cli.io.recording import Recording
+from carto_cli.io.recording import Recording, head
 from carto_cli.io.tf_tree import TRACKING_FRAMES, parent_map
 
 __all__ = ["TfOdometry", "find_tf_odometry", "tf_as_odometry"]
@@ -53,13 +52,7 @@ def find_tf_odometry(recording: Recording, *, odom_frame: str | None = None, bas
             raise TopicError("--odom-frame / --base-frame: the recording has no /tf topic", recording.path)
         return None
     topic = "/tf" if "/tf" in topics else topics[0]
-    records = recording.records([topic])
-    try:
-        sample = [r for r in itertools.islice(records, SAMPLE) if isinstance(r, Transform)]
-    finally:
-        close = getattr(records, "close", None)
-        if close is not None:
-            close()
+    sample = [r for r in head(recording, [topic], SAMPLE) if isinstance(r, Transform)]
     edges: dict[tuple[str, str], list[Transform]] = {}
     for tf in sample:
         edges.setdefault((strip_frame(tf.parent), strip_frame(tf.child)), []).append(tf)

@@ -5,8 +5,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 from carto_cli.core.errors import TopicError
-from carto_cli.core.records import Record, Scan
-from carto_cli.io.recording import Recording, TopicInfo
+from carto_cli.core.records import Record
+from carto_cli.io.recording import Recording, TopicInfo, first_scan_frame
 from carto_cli.io.tf_odometry import TfOdometry, find_tf_odometry, tf_as_odometry
 
 
@@ -79,21 +79,11 @@ def select_topics(
         raise TopicError("--odom-topic and --odom-frame / --base-frame exclude each other", recording.path)
     odom = None if (odom_frame or base_frame) else choose_topic(recording, topics, "odometry", odom_topic, False)
     if odom is None and odom_topic is None and (odom_frame or base_frame or any(t.kind == "tf" for t in topics)):
-        laser = _first_scan_frame(recording, scan)
+        laser = first_scan_frame(recording, scan)
         tf = find_tf_odometry(recording, odom_frame=odom_frame, base_frame=base_frame, laser_frame=laser)
         if tf is not None:
             return TopicSelection(scan=scan, odometry=tf.topic, imu=imu, tf_odometry=tf)
     return TopicSelection(scan=scan, odometry=odom, imu=imu)
-
-
-def _first_scan_frame(recording: Recording, topic: str) -> str | None:
-    records = recording.records([topic])
-    try:
-        return next((r.frame for r in records if isinstance(r, Scan)), None)
-    finally:
-        close = getattr(records, "close", None)
-        if close is not None:
-            close()  # the reader's file handle goes with the generator, not at garbage collection
 
 
 def selected_records(recording: Recording, selection: TopicSelection,

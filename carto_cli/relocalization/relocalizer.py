@@ -62,6 +62,7 @@ selection live in ``queries.py``, results, timings and the batch CSV in ``result
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -83,7 +84,7 @@ from carto_cli.relocalization.result import BatchSummary, QueryResult, Relocaliz
 from carto_cli.sensor.range_filter import crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
 
-__all__ = ["Candidate", "Relocalizer", "relocalize_many"]
+__all__ = ["MIN_KNOWN_FRACTION", "Candidate", "Fit", "Relocalizer", "relocalize_many"]
 
 # Search tuning (not options: the issue-6 benchmark, bench/relocalization.py, is what they are set on).
 _WINDOW_MARGIN = 1.25  # first window = window_sigmas x sigma x this (a prior at 3 sigma is inside, not on the edge)
@@ -102,12 +103,25 @@ _GLOBAL_BETS = 6
 # drag the plain score of the right pose below min_score (on bench-dense, every failure with a prior was such a
 # scan: docs/measurements.md).
 # The windowed passes therefore search down to _KNOWN_SEARCH_FLOOR and accept a refined pose whose plain score
-# misses the threshold when the points in known cells (at least _MIN_KNOWN_FRACTION of them) reach it on their own.
+# misses the threshold when the points in known cells (at least MIN_KNOWN_FRACTION of them) reach it on their own.
 # Only the first pass: in the wide one (4x the area) that let chance fits metres off through.
 _KNOWN_SEARCH_FLOOR = 0.35
-_MIN_KNOWN_FRACTION = 0.5
+MIN_KNOWN_FRACTION = 0.5
 # Not for whole-submap searches: there it turned more queries in places the map never saw into wrong answers than
 # it recovered missed ones (docs/measurements.md).
+
+
+@dataclass(frozen=True)
+class Fit:
+    """How well a scan fits the map at a pose (``Relocalizer.judge``), and whether that is good enough."""
+
+    ok: bool
+    reason: str  # '' when ok
+    score: float  # mean probability under the points, unknown cells 0.1
+    known_fraction: float  # share of the points on cells the map knows
+    known_score: float  # their mean probability
+    see_through: float  # share of the rays crossing a wall before their end
+    inlier_fraction: float  # share of the points on a wall (within a cell)
 
 
 @dataclass
@@ -490,15 +504,49 @@ class Relocalizer:
                 return c, pose
         return None
 
+    def judge(self, submap: int, points: np.ndarray, grid_pose: np.ndarray, threshold: float, *,
+              known_ok: bool = False, sensor=(0.0, 0.0)) -> Fit:
+        """How well ``points`` (tracking frame) fit submap ``submap`` at ``grid_pose`` (its grid frame), and
+        whether that is good enough: the score reaches ``threshold`` (with ``known_ok``, or the points on known
+        cells do, when at least ``MIN_KNOWN_FRACTION`` of them are); at most ``max_see_through`` of the rays from
+        ``sensor`` (the laser in the tracking frame) cross walls; at least ``min_inlier_fraction`` of the points
+        on known cells fall on walls. The one judgement of a match, for a search's answer and a tracked scan."""
+        grid = self.grids[submap]
+        score = score_at(grid, points, grid_pose)
+        known, kscore = known_score(grid, points, grid_pose)
+        see = see_through_fraction(grid, points, grid_pose, sensor)
+        inliers = inlier_fraction(grid, points, grid_pose)
+        # Points on cells the map never saw say nothing; of the others, a right answer puts >= 0.92 on walls
+        # (bench-dense's map images, every right answer), a scan of another building 0.5-0.87.
+        on_walls = inliers / known if known > 0 else 0.0
+        ro, reason = self.ro, ""
+        if score < threshold and not (known_ok and known >= MIN_KNOWN_FRACTION and kscore >= threshold):
+            reason = f"refined score {score:.3f} below {threshold:g}" + (
+                f" (known cells: {100 * known:.0f} % of the points, scoring {kscore:.3f})" if known_ok else "")
+        elif see > ro.max_see_through:
+            reason = (f"{100 * see:.0f} % of the scan's rays pass through walls of the map at the match "
+                      f"(more than relocalization.max_see_through = {ro.max_see_through:g})")
+        elif on_walls < ro.min_inlier_fraction:
+            reason = (f"only {100 * on_walls:.0f} % of the points on known cells fall on walls (less than "
+                      f"relocalization.min_inlier_fraction = {ro.min_inlier_fraction:g})")
+        return Fit(not reason, reason, score, known, kscore, see, inliers)
+
+    def covariance(self, submap: int, points: np.ndarray, grid_pose: np.ndarray) -> np.ndarray:
+        """3x3 covariance (map frame) of a match of ``points`` in submap ``submap`` (``least_squares.covariance``,
+        plus half a cell and half an angular step for the grid's quantisation)."""
+        grid = self.grids[submap]
+        cov = least_squares.covariance(grid, points, grid_pose, min_sigma_xy=0.5 * grid.resolution,
+                                       min_sigma_yaw=0.5 * branch_and_bound.angular_step(points, grid.resolution))
+        rot = np.eye(3)
+        c, si = math.cos(self.grid_to_map[submap, 2]), math.sin(self.grid_to_map[submap, 2])
+        rot[:2, :2] = [[c, -si], [si, c]]
+        return rot @ cov @ rot.T
+
     def refine(self, fine_points, cand: Candidate, threshold: float, tm: Timings, *, known_ok: bool = False,
-                sensor=(0.0, 0.0)):
-        """(map pose, score, success, reason, known fraction, known score, see-through fraction).
-
-        ``sensor``: the laser's position in the tracking frame, where the scan's rays start.
-
-        ``known_ok``: a score below ``threshold`` still succeeds when at least ``_MIN_KNOWN_FRACTION`` of the
-        points fall in known cells and their own mean reaches ``threshold`` (the rest see unmapped space).
-        """
+               sensor=(0.0, 0.0)) -> tuple[np.ndarray, Fit]:
+        """(map pose, its :meth:`judge`-ment) of ``cand`` refined by least squares; a refinement that wanders
+        from the search's pose (it has slid along a corridor) is not taken, and the search's pose is judged
+        'not ok' with that reason. ``sensor``: the laser's position in the tracking frame."""
         t = time.perf_counter()
         grid = self.grids[cand.submap]
         c = self.options.pose_graph.constraint_builder.ceres_scan_matcher
@@ -509,31 +557,14 @@ class Relocalizer:
         moved = transform.relative(cand.grid_pose, ls.pose)
         consistent = (math.hypot(moved[0], moved[1]) <= self.ro.max_refinement_translation
                       and abs(moved[2]) <= self.ro.max_refinement_rotation)
-        reason = ""
-        if consistent:
-            grid_pose = ls.pose
-        else:
-            grid_pose = cand.grid_pose
-            reason = (f"refinement moved {math.hypot(moved[0], moved[1]):.2f} m / "
-                      f"{math.degrees(abs(moved[2])):.1f} deg from the search's pose")
-        score = score_at(grid, fine_points, grid_pose)
-        known, kscore = known_score(grid, fine_points, grid_pose)
-        see_through = see_through_fraction(grid, fine_points, grid_pose, sensor)
+        grid_pose = ls.pose if consistent else cand.grid_pose
+        fit = self.judge(cand.submap, fine_points, grid_pose, threshold, known_ok=known_ok, sensor=sensor)
+        if not consistent:
+            fit = dataclasses.replace(fit, ok=False, reason=(
+                f"refinement moved {math.hypot(moved[0], moved[1]):.2f} m / {math.degrees(abs(moved[2])):.1f} deg "
+                "from the search's pose"))
         tm.add("scan scoring", t)
-        ok = consistent and score >= threshold
-        if consistent and not ok and known_ok:
-            ok = known >= _MIN_KNOWN_FRACTION and kscore >= threshold
-            if not ok:
-                reason = (f"refined score {score:.3f} below {threshold:g} (known cells: {100 * known:.0f} % of the "
-                          f"points, scoring {kscore:.3f})")
-        elif consistent and not ok:
-            reason = f"refined score {score:.3f} below {threshold:g}"
-        if ok and see_through > self.ro.max_see_through:
-            ok = False
-            reason = (f"{100 * see_through:.0f} % of the scan's rays pass through walls of the map at the match "
-                      f"(more than relocalization.max_see_through = {self.ro.max_see_through:g})")
-        return (transform.compose(self.grid_to_map[cand.submap], grid_pose), score, ok, reason, known,
-                kscore, see_through)
+        return transform.compose(self.grid_to_map[cand.submap], grid_pose), fit
 
     # ------------------------------------------------------------------ the query
 
@@ -730,25 +761,10 @@ class Relocalizer:
             return RelocalizationResult(np.asarray(fallback_pose, dtype=np.float64), 0.0, path, False,
                                         s.considered, timings, total, None, 0.0,
                                         "; ".join(s.reasons + ["no match above the threshold"]), threshold)
-        pose, score, ok, reason, known, kscore, see = self.refine(
-            s.fine_pts, cand, threshold, s.tm, known_ok=known_ok, sensor=s.mount[:2])
+        pose, fit = self.refine(s.fine_pts, cand, threshold, s.tm, known_ok=known_ok, sensor=s.mount[:2])
+        ok, reason = fit.ok, fit.reason
         t = time.perf_counter()
-        grid = self.grids[cand.submap]
-        grid_pose = transform.compose(self.map_to_grid[cand.submap], pose)
-        cov = least_squares.covariance(grid, s.fine_pts, grid_pose, min_sigma_xy=0.5 * grid.resolution,
-                                       min_sigma_yaw=0.5 * branch_and_bound.angular_step(s.fine_pts, grid.resolution))
-        rot = np.eye(3)
-        c, si = math.cos(self.grid_to_map[cand.submap, 2]), math.sin(self.grid_to_map[cand.submap, 2])
-        rot[:2, :2] = [[c, -si], [si, c]]
-        cov = rot @ cov @ rot.T
-        inliers = inlier_fraction(grid, s.fine_pts, grid_pose)
-        # Points on cells the map never saw say nothing; of the others, a right answer puts >= 0.92 on walls
-        # (bench-dense's map images, every right answer), a scan of another building 0.5-0.87.
-        on_walls = inliers / known if known > 0 else 0.0
-        if ok and on_walls < self.ro.min_inlier_fraction:
-            ok = False
-            reason = (f"only {100 * on_walls:.0f} % of the points on known cells fall on walls (less than "
-                      f"relocalization.min_inlier_fraction = {self.ro.min_inlier_fraction:g})")
+        cov = self.covariance(cand.submap, s.fine_pts, transform.compose(self.map_to_grid[cand.submap], pose))
         verdict = "ok" if ok else "lost"
         ambiguity, rival_pose, rival_note = self._ambiguity(s, cand, pose, rivals, path)
         s.tm.add("scan scoring", t)
@@ -763,11 +779,13 @@ class Relocalizer:
         if reason:
             s.reasons.append(f"{label}: {reason}" if label else reason)
         timings, total = s.tm.finish()
-        result = RelocalizationResult(pose, score, path, verdict == "ok", s.considered, timings, total, cand.submap,
-                                      cand.score, "; ".join(s.reasons), threshold, known, kscore, see, verdict, cov,
-                                      ambiguity, rival_pose, inliers)
+        result = RelocalizationResult(pose, fit.score, path, verdict == "ok", s.considered, timings, total,
+                                      cand.submap, cand.score, "; ".join(s.reasons), threshold, fit.known_fraction,
+                                      fit.known_score, fit.see_through, verdict, cov, ambiguity, rival_pose,
+                                      fit.inlier_fraction)
         rank = {"lost": 0, "ambiguous": 1}
-        if verdict != "ok" and (s.failed is None or (rank[verdict], score) > (rank[s.failed.verdict], s.failed.score)):
+        if verdict != "ok" and (s.failed is None or (rank[verdict], fit.score) > (rank[s.failed.verdict],
+                                                                                  s.failed.score)):
             s.failed = result  # an ambiguous answer says more than a lost one, a better score more than a worse
         return result
 

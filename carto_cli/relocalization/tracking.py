@@ -30,15 +30,12 @@ from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan
 from carto_cli.matching import correlative, least_squares
-from carto_cli.matching.ray_consistency import see_through_fraction
-from carto_cli.matching.scoring import inlier_fraction, known_score, score_at
 from carto_cli.relocalization.relocalizer import Relocalizer
 
 __all__ = ["TRACK_COLUMNS", "TrackSummary", "TrackedScan", "Tracker", "summarize_track"]
 
 TRACK_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "verdict", "source", "score", "inlier_fraction", "sigma_x",
                  "sigma_y", "sigma_yaw", "ms", "reason")
-_MIN_KNOWN_FRACTION = 0.5  # as the relocalizer: part of a scan may see what the map never saw
 # Without odometry the prediction is the previous motion repeated, and least squares from it alone is held back
 # by its pull towards the prediction: along a corridor the track fell behind by 0.1 m a scan (3 m in 6 s, every
 # scan still scoring 0.75) on the loop building. A small correlative search first (as local SLAM's online one).
@@ -99,14 +96,12 @@ class Tracker:
         c = relocalizer.options.pose_graph.constraint_builder.ceres_scan_matcher
         self._ceres = c
         self.min_score = relocalizer.ro.min_score
-        self.min_inliers = relocalizer.ro.min_inlier_fraction
-        self.max_see_through = relocalizer.ro.max_see_through
         self.timings = {"preprocessing": 0.0, "refinement": 0.0, "judging": 0.0, "relocalization": 0.0}
         self.relocalizations = 0  # searches run by the last track() (its first fix included)
 
     def _refine(self, scan_pts: np.ndarray, predicted: np.ndarray, search_pts: np.ndarray | None
-                ) -> tuple[np.ndarray, float, float, float, int]:
-        """(map pose, score, known share, known score, submap) of the scan refined from ``predicted``; with
+                ) -> tuple[np.ndarray, int]:
+        """(map pose, submap) of the scan refined from ``predicted`` against the submap nearest it; with
         ``search_pts``, a correlative search around the prediction first (for a prediction without odometry)."""
         r = self.reloc
         i = r.nearest_submap(predicted[:2])
@@ -120,9 +115,7 @@ class Tracker:
                                  occupied_space_weight=c.occupied_space_weight, translation_weight=c.translation_weight,
                                  rotation_weight=c.rotation_weight,
                                  max_num_iterations=c.ceres_solver_options.max_num_iterations)
-        score = score_at(grid, scan_pts, ls.pose)
-        known, kscore = known_score(grid, scan_pts, ls.pose)
-        return transform.compose(r.grid_to_map[i], ls.pose), score, known, kscore, i
+        return transform.compose(r.grid_to_map[i], ls.pose), i
 
     def track(self, records: Iterable[Record], *, initial_pose=None, sigma_xy: float | None = None,
               sigma_yaw: float | None = None,
@@ -185,34 +178,18 @@ class Tracker:
         if len(fine) == 0:
             return TrackedScan(index, scan.time, predicted, "lost", "none", reason="no returns in range")
         with_odometry = prev_odom is not None and odom is not None
-        found, score, known, kscore, submap = self._refine(fine, predicted, None if with_odometry else search)
+        found, submap = self._refine(fine, predicted, None if with_odometry else search)
         t = self._add("refinement", t)
-        slide = math.hypot(*(found[:2] - predicted[:2]))
-        grid = self.reloc.grids[submap]
         grid_pose = transform.compose(self.reloc.map_to_grid[submap], found)
-        inliers = inlier_fraction(grid, fine, grid_pose)
-        on_walls = inliers / known if known > 0 else 0.0
-        good = score >= self.min_score or (known >= _MIN_KNOWN_FRACTION and kscore >= self.min_score)
-        reason = ""
-        if not good:
-            reason = f"score {score:.3f} (known cells {100 * known:.0f} %: {kscore:.3f}) below {self.min_score:g}"
-        elif on_walls < self.min_inliers:
-            # A scan of another place (a kidnapped robot) still scores 0.7 against a corridor's walls, but a
-            # quarter of its points miss them: right matches put >= 0.92 of their points on walls.
-            good = False
-            reason = f"only {100 * on_walls:.0f} % of the points on known cells fall on walls"
-        elif slide > self.max_slide:
-            good = False
-            reason = f"refinement slid {slide:.2f} m from the prediction"
-        else:
-            see = see_through_fraction(grid, fine, grid_pose, self.mount[:2])
-            if see > self.max_see_through:
-                good = False
-                reason = f"{100 * see:.0f} % of the rays pass through walls of the map"
-        cov = least_squares.covariance(grid, fine, grid_pose, min_sigma_xy=0.5 * grid.resolution)
+        fit = self.reloc.judge(submap, fine, grid_pose, self.min_score, known_ok=True, sensor=self.mount[:2])
+        good, reason = fit.ok, fit.reason
+        slide = math.hypot(*(found[:2] - predicted[:2]))
+        if good and slide > self.max_slide:
+            good, reason = False, f"refinement slid {slide:.2f} m from the prediction"
+        cov = self.reloc.covariance(submap, fine, grid_pose)
         sig = tuple(float(v) for v in np.sqrt(np.maximum(np.diag(cov), 0.0)))
         self._add("judging", t)
-        return TrackedScan(index, scan.time, found, "ok" if good else "lost", "track", score, inliers,
+        return TrackedScan(index, scan.time, found, "ok" if good else "lost", "track", fit.score, fit.inlier_fraction,
                            (sig[0], sig[1], sig[2]), reason=reason)
 
     def _search(self, scan: Scan, index: int, prior, sigma_xy, sigma_yaw, why: str) -> TrackedScan:

@@ -271,13 +271,15 @@ def test_points_in_unmapped_space_do_not_sink_a_right_pose(mapped, queries):
     far = fine + np.array([500.0, 500.0])
     pts = np.vstack([fine, far[: int(0.6 * len(fine))]])
     cand = Candidate(i, grid_pose, 0.5, grid_pose)
-    _, plain, ok, reason, _, _, _ = relocalizer.refine(pts, cand, 0.55, Timings())
+    _, fit = relocalizer.refine(pts, cand, 0.55, Timings())
+    plain, ok, reason = fit.score, fit.ok, fit.reason
     assert plain < 0.55 and not ok and "below" in reason
-    _, _, ok, _, known, kscore, _ = relocalizer.refine(pts, cand, 0.55, Timings(), known_ok=True)
+    _, fit = relocalizer.refine(pts, cand, 0.55, Timings(), known_ok=True)
+    ok, known, kscore = fit.ok, fit.known_fraction, fit.known_score
     assert ok and 0.55 < known < 0.7 and kscore >= 0.55
     # Mostly unmapped: not enough of the scan to judge on.
     pts = np.vstack([fine, far, far])
-    assert not relocalizer.refine(pts, cand, 0.55, Timings(), known_ok=True)[2]
+    assert not relocalizer.refine(pts, cand, 0.55, Timings(), known_ok=True)[1].ok
 
 
 def test_fallback_submap_limit_bounds_a_confident_prior_no_window_confirms(mapped, queries):
@@ -304,11 +306,13 @@ def test_a_match_whose_rays_cross_walls_is_rejected(relocalizer, queries):
     i = relocalizer.filter_by_distance(truth, 1.0)[0]
     grid_pose = transform.compose(relocalizer.map_to_grid[i], np.asarray(truth, float))
     cand = Candidate(i, grid_pose, 0.7, grid_pose)
-    _, _, ok, _, _, _, see = relocalizer.refine(fine, cand, 0.55, Timings())
+    fit = relocalizer.refine(fine, cand, 0.55, Timings())[1]
+    ok, see = fit.ok, fit.see_through
     assert ok and see < 0.05
     # The same endpoints seen from a sensor 3 m away through the wall: most rays now cross it.
     for offset in ([-3.0, 0.0], [0.0, -3.0], [3.0, 0.0], [0.0, 3.0]):
-        _, _, ok, reason, _, _, see = relocalizer.refine(fine, cand, 0.55, Timings(), sensor=offset)
+        fit = relocalizer.refine(fine, cand, 0.55, Timings(), sensor=offset)[1]
+        ok, reason, see = fit.ok, fit.reason, fit.see_through
         if see > relocalizer.ro.max_see_through:
             assert not ok and "pass through walls" in reason
             break
