@@ -179,6 +179,9 @@ SET = typer.Option(None, "--set", "-s",
                    help="Override an option: dotted.key=value (repeatable; angles in radians, or '20deg').")
 # The names are carto_cli.gmapping.ALGORITHMS, checked by the command (importing it here would load numba
 # for `carto --help`).
+JOBS = typer.Option(None, "--jobs", "-j", min=1, help="Threads for independent work (Cartographer: the pose graph "
+                    "beside local SLAM and its loop-closure searches; GMapping: the particles and final searches); "
+                    "default: every core. The map is the same for any number.")
 ALGORITHM = typer.Option(
     None, "--algorithm",
     help="Mapping system: cartographer or gmapping (a Rao-Blackwellized particle filter). Default: what auto "
@@ -240,9 +243,7 @@ def map_(
     force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
     min_z: float | None = MAP_MIN_Z,
     max_z: float | None = MAP_MAX_Z,
-    jobs: int | None = typer.Option(None, "--jobs", "-j", min=1, help="Threads for independent work (GMapping's "
-                                    "particles and final searches); default: every core. The map is the same "
-                                    "for any number."),
+    jobs: int | None = JOBS,
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
 
@@ -348,6 +349,7 @@ def profile_(
     max_z: float | None = MAP_MAX_Z,
     repeat: int = typer.Option(1, "--repeat", help="Map the recording N times; each stage keeps its lowest CPU "
                                "time and the spread, which widens the gates' allowance (3 for CI baselines)."),
+    jobs: int | None = JOBS,
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates.
 
@@ -363,7 +365,7 @@ def profile_(
                           base_frame=base_frame, output=output,
                           baseline=baseline, calibrate_first=calibrate, max_scans=max_scans,
                           relocalize_map=relocalize_map, on_total=bar.set_total, on_scan=bar.advance,
-                          algorithm=algorithm, force=force, repeat=repeat)
+                          algorithm=algorithm, force=force, repeat=repeat, jobs=jobs)
     report = run.report
     typer.echo(json.dumps(report, indent=2) if as_json else format_report(report))
     if not as_json and "relocalization" in report:

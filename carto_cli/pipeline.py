@@ -190,8 +190,9 @@ def build(
     """Map one recording. With ``graph`` (e.g. from a loaded map.carto) the recording becomes trajectory
     ``trajectory_id`` of that graph, linked to the earlier ones by loop closures, as Cartographer's
     offline node does with --load_state_filename. ``algorithm`` "gmapping" maps with the particle filter
-    (``options.gmapping``) instead of Cartographer. ``jobs``: threads where work is independent (GMapping's
-    particles and final searches; None: every core); the map is the same for any number."""
+    (``options.gmapping``) instead of Cartographer. ``jobs``: threads where work is independent (Cartographer's
+    pose graph beside local SLAM and its loop-closure searches, GMapping's particles and final searches; None: every
+    core); the map is the same for any number."""
     wall0 = _time.perf_counter()
     if algorithm not in ALGORITHMS:
         raise CartoError(f"unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
@@ -209,7 +210,7 @@ def build(
         slam = GMappingSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)
     else:
         slam = Slam(options, laser_pose=mount, timer=timer, loop_closure=loop_closure, graph=graph,
-                    trajectory_id=trajectory_id, started=wall0)
+                    trajectory_id=trajectory_id, started=wall0, jobs=jobs)
 
     topics = [selection.scan]
     if use_odometry and selection.odometry:
@@ -218,21 +219,23 @@ def build(
         topics.append(selection.imu)
 
     content = ContentCheck()
-    for record in content.filter(selected_records(recording, selection, topics)):
-        if isinstance(record, Scan):
-            if max_scans is not None and slam.num_scans >= max_scans:
-                break
-            slam.add_scan(record)
-            if on_scan is not None:
-                on_scan(1)
-        elif isinstance(record, Odometry):
-            slam.add_odometry(record)
-        elif isinstance(record, Imu):
-            slam.add_imu(record)
-
-    if slam.num_poses == 0:
-        raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
-    core = slam.finish()
+    try:
+        for record in content.filter(selected_records(recording, selection, topics)):
+            if isinstance(record, Scan):
+                if max_scans is not None and slam.num_scans >= max_scans:
+                    break
+                slam.add_scan(record)
+                if on_scan is not None:
+                    on_scan(1)
+            elif isinstance(record, Odometry):
+                slam.add_odometry(record)
+            elif isinstance(record, Imu):
+                slam.add_imu(record)
+        if slam.num_poses == 0:
+            raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
+        core = slam.finish()
+    finally:
+        slam.close()
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
                        warnings=content.warnings())
     if judge and result.graph is not None:

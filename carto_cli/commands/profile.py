@@ -57,13 +57,16 @@ def run_profile(
     algorithm: str | None = None,
     force: bool = False,
     repeat: int = 1,
+    jobs: int | None = None,
 ) -> ProfileRun:
     """Map ``recording`` (its first ``max_scans`` scans) with ``algorithm`` under a StageTimer and build the
     report; with ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with
     ``output`` write the report there (an existing file only with ``force``, refused before any work).
     ``on_total`` hears how many scans will be mapped. Every stage's CPU time (the whole process's) is
     recorded beside its wall time; with ``repeat`` > 1 the recording is mapped that many times and each stage
-    keeps its lowest CPU time and the spread of the repeats (what the gates compare, and their noise floor)."""
+    keeps its lowest CPU time and the spread of the repeats (what the gates compare, and their noise floor).
+    ``jobs``: threads (None: every core); compare a baseline profiled with as many, since the graph's stages move
+    to a concurrent branch of the tree with more than one."""
     if repeat < 1:
         raise CartoError(f"--repeat must be at least 1, got {repeat}")
     if algorithm is not None:
@@ -96,7 +99,7 @@ def run_profile(
         for _ in range(repeat):
             timer = StageTimer(cpu_clock=time.process_time_ns)
             result, configured = build_configured(source.recording, chosen, options, selection=source.selection,
-                                                  timer=timer, on_scan=on_scan, max_scans=max_scans)
+                                                  timer=timer, on_scan=on_scan, max_scans=max_scans, jobs=jobs)
             timer.stop()
             runs.append(build_report(result, timer, configured.options, recording, calibration))
     report = merge_repeats(runs)

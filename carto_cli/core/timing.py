@@ -23,14 +23,16 @@ self time, so each level adds up to its parent and the whole tree to the wall ti
 
 Stages are meant for pieces of work of tens of microseconds or more (one enter and
 exit costs about a microsecond); time inner loops with a sampling profiler instead.
-Not thread-safe: time background work in the thread that owns the timer.
+Not thread-safe: a thread of its own gets a timer of its own from ``concurrent(name)``, whose tree the
+report shows beside the main one (marked as running concurrently, so it is not part of the wall-time sum);
+work measured on worker threads is added after the fact with ``add`` (thread time, summed over workers).
 ``NullTimer`` has the same interface and does nothing, for runs without profiling.
 """
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -145,6 +147,7 @@ class StageTimer:
         self._touched: list[_Node] = []
         self._t0 = clock()
         self._t_stop: int | None = None
+        self._concurrent: list[tuple[str, StageTimer]] = []
 
     # -- recording
 
@@ -155,6 +158,26 @@ class StageTimer:
     def scan(self) -> _Scan:
         """Context manager delimiting one scan's sample."""
         return _Scan(self)
+
+    def add(self, name: str, ns: int, count: int = 1) -> None:
+        """Record ``count`` runs of ``name`` lasting ``ns`` in all, measured elsewhere (e.g. on worker threads),
+        as a child of the innermost open stage. Summed over threads, children may outlast their parent."""
+        node = self._stack[-1].child(name)
+        node.total_ns += int(ns)
+        node.count += int(count)
+        if self._in_scan:
+            if node.scan_mark != self._num_scans:
+                node.scan_mark = self._num_scans
+                node.scan_ns = 0
+                self._touched.append(node)
+            node.scan_ns += int(ns)
+
+    def concurrent(self, name: str) -> StageTimer:
+        """A timer for a thread of its own (e.g. the pose graph's background worker); its stages appear under
+        ``name`` at the top of this timer's report, marked concurrent."""
+        timer = StageTimer(self._clock, self._cpu_clock)
+        self._concurrent.append((name, timer))
+        return timer
 
     def begin_scan(self) -> None:
         if self._in_scan:
@@ -234,14 +257,28 @@ class StageTimer:
                 total, count = wall, 1
             else:
                 total, count = node.total_ns + extra, node.count + int(is_open)
+            if node is self._root:
+                children += [_graft(name, timer.snapshot().root) for name, timer in self._concurrent]
             return StageStats(
                 name=node.name, path=path, total_ns=total, cpu_ns=node.cpu_ns if self._cpu_clock else None,
-                self_ns=total - sum(c.total_ns for c in children), count=count, in_scan=in_scan,
-                samples_ns=np.asarray(node.samples, dtype=np.int64),
+                self_ns=max(0, total - sum(c.total_ns for c in children if not c.concurrent)), count=count,
+                in_scan=in_scan, samples_ns=np.asarray(node.samples, dtype=np.int64),
                 sample_scans=np.asarray(node.sample_scans, dtype=np.int64),
                 children=children)
 
         return Snapshot(wall_ns=wall, scans=scans, root=build(self._root, "", False))
+
+
+def _graft(name: str, root: StageStats) -> StageStats:
+    """A concurrent timer's tree as one top-level stage ``name``: its total is the thread's busy time."""
+    def repath(s: StageStats, path: str) -> StageStats:
+        return replace(s, path=path, children=[repath(c, f"{path}{SEP}{c.name}") for c in s.children])
+
+    children = [repath(c, f"{name}{SEP}{c.name}") for c in root.children]
+    total = sum(c.total_ns for c in children)
+    cpu = sum(c.cpu_ns or 0 for c in children) if root.cpu_ns is not None else None
+    return StageStats(name=name, path=name, total_ns=total, self_ns=0, count=1, in_scan=False, cpu_ns=cpu,
+                      children=children, concurrent=True)
 
 
 class _Null:
@@ -268,6 +305,12 @@ class NullTimer:
 
     def scan(self) -> _Null:
         return _NULL
+
+    def add(self, name: str, ns: int, count: int = 1) -> None:
+        pass
+
+    def concurrent(self, name: str) -> NullTimer:
+        return self
 
     def begin_scan(self) -> None:
         pass
@@ -300,6 +343,7 @@ class StageStats:
     samples_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # per scan where it ran
     sample_scans: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     children: list[StageStats] = field(default_factory=list)
+    concurrent: bool = False       # ran on a thread of its own, beside the stages the wall time adds up
 
     def percentile_ms(self, q: float) -> float | None:
         if self.samples_ns.size == 0:
@@ -369,6 +413,7 @@ def report_json(timer: StageTimer | NullTimer | Snapshot) -> dict:
             "share_of_scan": ratio(s.total_ns, scan_total) if s.in_scan else None,
             "calls": s.count,
             "in_scan": s.in_scan,
+            "concurrent": s.concurrent,
             "ms_per_scan": (s.total_ns / 1e6 / snap.scans) if s.in_scan and snap.scans else None,
             "scans_with_stage": int(s.samples_ns.size) if s.in_scan else None,
             "p50_ms": s.percentile_ms(50),
@@ -429,6 +474,8 @@ def report_tree_text(timer: StageTimer | NullTimer | Snapshot) -> str:
         name = s.name if s.path else "total (wall)"
         if s.path == SCAN_STAGE:
             name = f"{SCAN_STAGE} ({snap.scans} scans)"
+        elif s.concurrent:
+            name = f"{s.name} (concurrent: its own thread, not in the sum)"
         row(prefix + branch + name, s.total_ns, s.in_scan, str(s.count) if s.path else "",
             s.percentile_ms(50), s.percentile_ms(95))
         if not s.children:

@@ -35,7 +35,7 @@ def wrap_angle_scalar(theta: float) -> float:
     return (theta + math.pi) % _TWO_PI - math.pi
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def wrap_angle_kernel(theta: float) -> float:
     """:func:`wrap_angle_scalar` callable from numba kernels."""
     return (theta + math.pi) % _TWO_PI - math.pi
@@ -50,6 +50,13 @@ def compose(a, b) -> np.ndarray:
     """a ∘ b: first b, then a (b expressed in a's child frame)."""
     a = as_pose(a)
     b = as_pose(b)
+    if a.shape == (3,) and b.shape == (3,):
+        # One pose each (most calls, several per scan and per search): plain floats skip numpy's per-call cost,
+        # which is the GIL time that other threads wait for.
+        ax, ay, at = a.tolist()
+        bx, by, bt = b.tolist()
+        c, s = math.cos(at), math.sin(at)
+        return np.array([ax + c * bx - s * by, ay + s * bx + c * by, wrap_angle_scalar(at + bt)])
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
@@ -58,6 +65,10 @@ def compose(a, b) -> np.ndarray:
 
 def inverse(a) -> np.ndarray:
     a = as_pose(a)
+    if a.shape == (3,):
+        ax, ay, at = a.tolist()
+        c, s = math.cos(at), math.sin(at)
+        return np.array([-(c * ax + s * ay), -(-s * ax + c * ay), wrap_angle_scalar(-at)])
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = -(c * a[..., 0] + s * a[..., 1])
     y = -(-s * a[..., 0] + c * a[..., 1])

@@ -297,6 +297,9 @@ class GMappingSlam:
             j = int(self._step_parents[k][j])
         return out
 
+    def close(self) -> None:
+        """Nothing runs between scans (the particles' threads are numba's), so there is nothing to stop."""
+
     def finish(self) -> SlamResult:
         """The best particle's trajectory (a pose for every scan), its map, and the same map as submaps
         (the processed scans inserted at its poses) so map.carto and ``carto relocalize`` work as for

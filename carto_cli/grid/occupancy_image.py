@@ -49,7 +49,7 @@ def _logodds_table() -> np.ndarray:
 _LOGODDS = _logodds_table()
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _accumulate(total, count, gox, goy, res, cells, logodds, sox, soy, sres, c, s, tx, ty, x0, y0, x1, y1):
     """Pull every output cell in [x0, x1) × [y0, y1) from the submap by inverse transform (no holes under rotation)."""
     ny, nx = cells.shape

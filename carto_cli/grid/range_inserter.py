@@ -60,7 +60,7 @@ def compute_lookup_table_to_apply_odds(update_odds: float) -> np.ndarray:
     return table
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ray_cells(bx, by, ex, ey, subpixel_scale, include_end, out):
     """Write the cells crossed by the segment between two sub-pixel indices into ``out``.
 
@@ -108,7 +108,7 @@ def ray_cells(bx, by, ex, ey, subpixel_scale, include_end, out):
     return k
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _subpixel(points, ox, oy, sub):
     n = points.shape[0]
     out = np.empty((n, 2), dtype=np.int64)
@@ -118,7 +118,7 @@ def _subpixel(points, ox, oy, sub):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cast_rays(ox, oy, resolution, sensor_x, sensor_y, returns, misses, insert_free_space):
     """Ray-casting pass: the cells to update, on the lattice of cells ``resolution`` wide from (ox, oy).
 
@@ -179,7 +179,7 @@ def _cast_rays(ox, oy, resolution, sensor_x, sensor_y, returns, misses, insert_f
     return hits, free, box
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _apply_updates(cells, known_box, off_x, off_y, hits, free, box, hit_table, miss_table):
     """Update pass: hits, then free cells, each cell at most once (update marker); then unmark.
 

@@ -1,8 +1,7 @@
 """Loop-closure search: which node–submap pairs to try, branch and bound, refinement, acceptance.
 
-Cartographer's ConstraintBuilder2D, inline rather than on a thread pool: a pair is
-searched when the node is within ``max_constraint_distance`` of the submap and the
-submap's fixed-ratio sampler fires; nodes of a trajectory not yet linked to the
+Cartographer's ConstraintBuilder2D: a pair is searched when the node is within
+``max_constraint_distance`` of the submap and the submap's fixed-ratio sampler fires; nodes of a trajectory not yet linked to the
 submap's one get a whole-submap search at ``global_sampling_ratio``. The fast
 matcher's pose is refined by least squares, then kept only if the refined pose
 still scores (geometric check) and stayed near the fast matcher's answer
@@ -10,15 +9,24 @@ still scores (geometric check) and stayed near the fast matcher's answer
 
 As Cartographer's ``MaybeAddConstraint``, it never sees the pose graph: the graph hands
 it the node and the submap to try (:class:`NodeData`, :class:`SubmapData`).
+
+Searches are independent, so ``submit`` starts them on a thread pool (the kernels release the GIL)
+and ``record`` takes their outcomes back in the order they were submitted: the statistics, the
+trajectory links and the closures handed back are the same for any number of workers. Choosing the
+pairs (the samplers) and recording stay on the caller's thread.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from carto_cli.core import transform
+from carto_cli.core.parallel import available_cores
 from carto_cli.core.timing import NullTimer
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching import branch_and_bound, least_squares
@@ -79,6 +87,31 @@ class LoopClosure:
     global_search: bool
 
 
+@dataclass(frozen=True)
+class SearchOutcome:
+    """One pair's search, before it is recorded: the closure (None if none passed) and why not, and how long
+    each step took on whichever thread ran it."""
+
+    node: NodeData
+    submap: SubmapData
+    global_search: bool
+    closure: LoopClosure | None = None
+    outcome: str = "empty"  # empty | not found | refinement | see-through | accepted
+    ns: dict = field(default_factory=dict)  # stage name -> ns
+
+
+class _Done:
+    """A search run at once, with a future's ``result``."""
+
+    __slots__ = ("_outcome",)
+
+    def __init__(self, outcome: SearchOutcome):
+        self._outcome = outcome
+
+    def result(self) -> SearchOutcome:
+        return self._outcome
+
+
 @dataclass
 class ConstraintBuilderStats:
     candidates: int = 0
@@ -91,7 +124,8 @@ class ConstraintBuilderStats:
 
 
 class ConstraintBuilder:
-    def __init__(self, options: Options, timer=None, seed: int = 0):
+    def __init__(self, options: Options, timer=None, seed: int = 0, jobs: int | None = 1):
+        """``jobs``: threads for ``search_many`` (None: every available core; 1: the caller's thread)."""
         self.cb = options.pose_graph.constraint_builder
         self.global_sampling_ratio = options.pose_graph.global_sampling_ratio
         self.timer = timer or NullTimer()
@@ -100,6 +134,15 @@ class ConstraintBuilder:
         self._stacks: dict[int, PrecomputationGridStack] = {}
         self.stats = ConstraintBuilderStats()
         self.connected: set[frozenset] = set()  # trajectory pairs linked by a loop closure
+        self.jobs = available_cores() if jobs is None else max(1, int(jobs))
+        self._pool: ThreadPoolExecutor | None = None
+        self._stacks_lock = threading.Lock()
+
+    def close(self) -> None:
+        """Stop the worker threads (a later search_many starts them again)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
 
     def stack(self, index: int, grid) -> PrecomputationGridStack:
         """Precomputation grids are built once per finished submap and kept."""
@@ -107,17 +150,22 @@ class ConstraintBuilder:
         if stack is None:
             with self.timer.stage("precomputation"):
                 stack = PrecomputationGridStack(grid, self.cb.fast_correlative_scan_matcher.branch_and_bound_depth)
-            self._stacks[index] = stack
+            with self._stacks_lock:
+                self._stacks[index] = stack
         return stack
 
     @property
     def memory_bytes(self) -> int:
         return sum(s.memory_bytes for s in self._stacks.values())
 
-    def maybe_add(self, node: NodeData, submap: SubmapData) -> LoopClosure | None:
-        """Search ``node`` in ``submap`` if the candidate rules pick the pair; the loop closure found, or None."""
-        linked = node.trajectory == submap.trajectory or \
+    def linked(self, node: NodeData, submap: SubmapData) -> bool:
+        """Whether the node's trajectory is the submap's or linked to it (else only a whole-submap search)."""
+        return node.trajectory == submap.trajectory or \
             frozenset((node.trajectory, submap.trajectory)) in self.connected
+
+    def select(self, node: NodeData, submap: SubmapData) -> bool | None:
+        """Whether the candidate rules pick the pair: None if not, else whether it is a whole-submap search."""
+        linked = self.linked(node, submap)
         with self.timer.stage("candidate selection"):
             self.stats.candidates += 1
             if linked:
@@ -132,57 +180,104 @@ class ConstraintBuilder:
                                                            FixedRatioSampler(self.global_sampling_ratio))
                 if not sampler.pulse():
                     return None
-        return self.search(node, submap, global_search=not linked)
+        return not linked
+
+    def maybe_add(self, node: NodeData, submap: SubmapData) -> LoopClosure | None:
+        """Search ``node`` in ``submap`` if the candidate rules pick the pair; the loop closure found, or None."""
+        global_search = self.select(node, submap)
+        if global_search is None:
+            return None
+        return self.search(node, submap, global_search=global_search)
 
     def search(self, node: NodeData, submap: SubmapData, global_search: bool = False) -> LoopClosure | None:
         """Match ``node`` against ``submap`` (near its current pose, or the whole submap) and check the result."""
+        return self.search_many([(node, submap, global_search)])[0]
+
+    def search_many(self, pairs: list[tuple[NodeData, SubmapData, bool]]) -> list[LoopClosure | None]:
+        """``search`` for every (node, submap, global_search) of ``pairs``, on the worker threads; recorded in
+        order, so the result does not depend on their number."""
+        return [self.record(p) for p in self.submit(pairs)]
+
+    def submit(self, pairs: list[tuple[NodeData, SubmapData, bool]]) -> list:
+        """Start the searches of ``pairs`` (on the worker threads, or now with one job); hand each of the returned
+        handles to ``record``, in order. Precomputation grids are built here, in the caller's thread."""
+        for _, submap, _ in pairs:
+            self.stack(submap.index, submap.grid)
+        if self.jobs == 1:
+            return [_Done(self._match(*pair)) for pair in pairs]
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=self.jobs, thread_name_prefix="carto-search")
+        return [self._pool.submit(self._match, *pair) for pair in pairs]
+
+    def record(self, handle) -> LoopClosure | None:
+        """A submitted search's closure (None if it found none), counted in the statistics; waits for it."""
+        return self._record(handle.result())
+
+    def _match(self, node: NodeData, submap: SubmapData, global_search: bool) -> SearchOutcome:
+        """The search itself: no shared state is written, so workers run it side by side."""
         grid = submap.grid
         points = node.points
         if len(points) == 0:
-            return None
-        stack = self.stack(submap.index, grid)
+            return SearchOutcome(node, submap, global_search)
+        stack = self._stacks[submap.index]
         fc = self.cb.fast_correlative_scan_matcher
-        self.stats.searched += 1
-        with self.timer.stage("branch and bound"):
-            if global_search:
-                self.stats.global_searches += 1
-                result = branch_and_bound.match_full_submap(stack, points,
-                                                            min_score=self.cb.global_localization_min_score)
-            else:
-                # Where the graph currently believes the node is, in the submap's grid frame.
-                estimate = transform.compose(
-                    submap.local_pose,
-                    transform.compose(transform.inverse(submap.global_pose), node.global_pose))
-                matcher = branch_and_bound.match_multilevel if fc.multilevel else branch_and_bound.match
-                result = matcher(stack, points, estimate,
-                                 linear_search_window=fc.linear_search_window,
-                                 angular_search_window=fc.angular_search_window,
-                                 min_score=self.cb.min_score)
+        ns: dict[str, int] = {}
+        t0 = time.perf_counter_ns()
+        if global_search:
+            result = branch_and_bound.match_full_submap(stack, points, min_score=self.cb.global_localization_min_score)
+        else:
+            # Where the graph currently believes the node is, in the submap's grid frame.
+            estimate = transform.compose(
+                submap.local_pose,
+                transform.compose(transform.inverse(submap.global_pose), node.global_pose))
+            matcher = branch_and_bound.match_multilevel if fc.multilevel else branch_and_bound.match
+            result = matcher(stack, points, estimate,
+                             linear_search_window=fc.linear_search_window,
+                             angular_search_window=fc.angular_search_window,
+                             min_score=self.cb.min_score)
+        t1 = time.perf_counter_ns()
+        ns["branch and bound"] = t1 - t0
         if not result.found:
-            return None
-        self.stats.found += 1
-        with self.timer.stage("refinement"):
-            c = self.cb.ceres_scan_matcher
-            ls = least_squares.match(grid, points, result.pose, target_translation=result.pose[:2],
-                                     occupied_space_weight=c.occupied_space_weight,
-                                     translation_weight=c.translation_weight, rotation_weight=c.rotation_weight,
-                                     max_num_iterations=c.ceres_solver_options.max_num_iterations)
-            moved = transform.relative(result.pose, ls.pose)
-            min_score = self.cb.global_localization_min_score if global_search else self.cb.min_score
-            if (np.hypot(moved[0], moved[1]) > MAX_REFINEMENT_TRANSLATION
-                    or abs(moved[2]) > MAX_REFINEMENT_ROTATION
-                    or score_at(grid, points, ls.pose) < min_score):
-                self.stats.rejected_refinement += 1
-                return None
+            return SearchOutcome(node, submap, global_search, outcome="not found", ns=ns)
+        c = self.cb.ceres_scan_matcher
+        ls = least_squares.match(grid, points, result.pose, target_translation=result.pose[:2],
+                                 occupied_space_weight=c.occupied_space_weight,
+                                 translation_weight=c.translation_weight, rotation_weight=c.rotation_weight,
+                                 max_num_iterations=c.ceres_solver_options.max_num_iterations)
+        moved = transform.relative(result.pose, ls.pose)
+        min_score = self.cb.global_localization_min_score if global_search else self.cb.min_score
+        refined = not (np.hypot(moved[0], moved[1]) > MAX_REFINEMENT_TRANSLATION
+                       or abs(moved[2]) > MAX_REFINEMENT_ROTATION
+                       or score_at(grid, points, ls.pose) < min_score)
+        t2 = time.perf_counter_ns()
+        ns["refinement"] = t2 - t1
+        if not refined:
+            return SearchOutcome(node, submap, global_search, outcome="refinement", ns=ns)
         if self.cb.max_see_through < 1.0:
             # Endpoints on walls are all the score sees; at an aliased pose some rays also cross walls the
             # submap knows (matching/ray_consistency.py), which a right match's rays do not.
-            with self.timer.stage("free-space check"):
-                if see_through_fraction(grid, points, ls.pose) > self.cb.max_see_through:
-                    self.stats.rejected_see_through += 1
-                    return None
-        self.stats.accepted += 1
-        if global_search:
-            self.connected.add(frozenset((node.trajectory, submap.trajectory)))
+            see_through = see_through_fraction(grid, points, ls.pose) > self.cb.max_see_through
+            ns["free-space check"] = time.perf_counter_ns() - t2
+            if see_through:
+                return SearchOutcome(node, submap, global_search, outcome="see-through", ns=ns)
         relative = transform.compose(transform.inverse(submap.local_pose), ls.pose)
-        return LoopClosure(node.index, submap.index, relative, result.score, global_search)
+        closure = LoopClosure(node.index, submap.index, relative, result.score, global_search)
+        return SearchOutcome(node, submap, global_search, closure, "accepted", ns)
+
+    def _record(self, o: SearchOutcome) -> LoopClosure | None:
+        for name, ns in o.ns.items():
+            self.timer.add(name, ns)
+        if o.outcome == "empty":
+            return None
+        stats = self.stats
+        stats.searched += 1
+        stats.global_searches += int(o.global_search)
+        stats.found += int(o.outcome != "not found")
+        stats.rejected_refinement += int(o.outcome == "refinement")
+        stats.rejected_see_through += int(o.outcome == "see-through")
+        if o.closure is None:
+            return None
+        stats.accepted += 1
+        if o.global_search:
+            self.connected.add(frozenset((o.node.trajectory, o.submap.trajectory)))
+        return o.closure

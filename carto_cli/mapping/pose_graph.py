@@ -68,7 +68,9 @@ class PoseGraphStats:
 
 
 class PoseGraph:
-    def __init__(self, options: Options, timer=None, loop_closure: bool = True, seed: int = 0):
+    def __init__(self, options: Options, timer=None, loop_closure: bool = True, seed: int = 0,
+                 jobs: int | None = 1):
+        """``jobs``: threads for loop-closure searches (None: every core); the graph is the same for any number."""
         self.options = options
         self.pg = options.pose_graph
         self.timer = timer or NullTimer()
@@ -86,18 +88,24 @@ class PoseGraph:
         self.submaps: list[SubmapEntry] = []
         self._submap_index: dict[tuple[int, int], int] = {}  # (trajectory, local submap index) → graph index
         self.constraints = ConstraintSet()
-        self.builder = ConstraintBuilder(options, timer=self.timer, seed=seed)
+        self.builder = ConstraintBuilder(options, timer=self.timer, seed=seed, jobs=jobs)
+        # Submaps this graph has been told are finished. Local SLAM may run ahead of the graph (Slam's
+        # background worker), so a submap's own flag can already be set for a node that came before it.
+        self._finished: set[int] = set()
         self.stats = PoseGraphStats()
         self._nodes_since_optimization = 0
         # confirm_loop_closures: per submap, [node, relative pose, added] of every closure found
         self._pending_closures: dict[int, list[list]] = {}
         self.unconfirmed_loop_closures = 0
+        self._in_flight: list = []  # searches started, in order, whose closures are not yet added
 
     # ------------------------------------------------------------------ state in and out
 
     def to_state(self) -> PoseGraphState:
-        """The graph's data. Arrays are copies; submaps (grids) and node points are shared, so an
-        unfinished submap of a graph still mapping goes on changing in the state too."""
+        """The graph's data (with the closures of every search started). Arrays are copies; submaps (grids) and
+        node points are shared, so an unfinished submap of a graph still mapping goes on changing in the state
+        too."""
+        self.flush_searches()
         return PoseGraphState(
             node_times=np.asarray(self.node_times, dtype=np.float64).reshape(self.num_nodes),
             node_trajectories=np.asarray(self.node_trajectory, dtype=np.int64).reshape(self.num_nodes),
@@ -119,10 +127,10 @@ class PoseGraph:
 
     @classmethod
     def from_state(cls, options: Options, state: PoseGraphState, *, timer=None, loop_closure: bool = True,
-                   seed: int = 0) -> PoseGraph:
+                   seed: int = 0, jobs: int | None = 1) -> PoseGraph:
         """A graph holding ``state``, ready to grow (e.g. by a new trajectory). It owns copies of
         everything in ``state``, so building on it never changes the state or whatever it came from."""
-        graph = cls(options, timer=timer, loop_closure=loop_closure, seed=seed)
+        graph = cls(options, timer=timer, loop_closure=loop_closure, seed=seed, jobs=jobs)
         graph._adopt(state.copy())
         return graph
 
@@ -144,6 +152,7 @@ class PoseGraph:
         self.removed_loop_closures = list(state.removed_loop_closures)
         self.submaps = list(state.submaps)
         self._submap_index = {(e.trajectory, e.submap.index): i for i, e in enumerate(self.submaps)}
+        self._finished = {i for i, e in enumerate(self.submaps) if e.finished}
         self.constraints = state.constraints
         self.builder.connected = set(state.connected)
         self._nodes_since_optimization = int(state.nodes_since_optimization)
@@ -223,16 +232,32 @@ class PoseGraph:
             self.submaps.append(SubmapEntry(submap, trajectory, transform.compose(correction, submap.local_pose)))
         return index
 
+    def close(self) -> None:
+        """Stop the search threads, if any."""
+        self.builder.close()
+
+    def use_threads(self, jobs: int, timer=None) -> None:
+        """Search on ``jobs`` threads from now on, and time the graph's work with ``timer`` (e.g. the timer of
+        the thread it now runs on)."""
+        self.builder.close()
+        self.builder.jobs = max(1, int(jobs))
+        if timer is not None:
+            self.timer = self.builder.timer = timer
+
     def add_node(self, time: float, local_pose, points: np.ndarray, insertion_submaps: list[Submap],
-                 odometry_pose=None, trajectory: int = 0) -> int:
-        """A node local SLAM inserted into ``insertion_submaps`` (oldest first); returns its id."""
+                 odometry_pose=None, trajectory: int = 0, finished: list[bool] | None = None) -> int:
+        """A node local SLAM inserted into ``insertion_submaps`` (oldest first); returns its id.
+        ``finished``: which of them local SLAM had finished when it made the node (default: their flags now)."""
         local_pose = transform.as_pose(local_pose)
+        if finished is None:
+            finished = [s.finished for s in insertion_submaps]
         front_key = (trajectory, insertion_submaps[0].index)
         if front_key in self._submap_index:
             correction = self.local_to_global(self._submap_index[front_key])
         else:
             correction = self._trajectory_correction(trajectory)
         indices = [self._register_submap(s, trajectory, correction) for s in insertion_submaps]
+        self._finished.update(i for i, done in zip(indices, finished) if done)
 
         node = self._local.append(local_pose)
         self._global.append(transform.compose(correction, local_pose))
@@ -252,7 +277,7 @@ class PoseGraph:
         if self.loop_closure:
             with self.timer.stage("loop closure"):
                 front = self.submaps[indices[0]]
-                if front.finished and not front.searched:
+                if indices[0] in self._finished and not front.searched:
                     # A newly finished submap is searched by every earlier node not already in it.
                     front.searched = True
                     self._search_submap_against_nodes(indices[0])
@@ -305,8 +330,12 @@ class PoseGraph:
         if not agreeing and not confirming:
             # The samplers search only a share of the pairs, so the neighbours that could confirm this closure
             # may never be tried: search the nearest ones against this submap now.
-            for other in self._confirming_neighbours(lc.node, lc.submap):
-                found = self.builder.search(self._node_data(other), self._submap_data(lc.submap))
+            neighbours = self._confirming_neighbours(lc.node, lc.submap)
+            pairs = []
+            if neighbours:
+                submap = self._submap_data(lc.submap)
+                pairs = [(self._node_data(other), submap, False) for other in neighbours]
+            for found in self.builder.search_many(pairs):
                 if found is not None:
                     self._add_loop_closure(found, confirming=True)
             agreeing = [entry for entry in pending
@@ -342,20 +371,40 @@ class PoseGraph:
         entry = self.submaps[index]
         return SubmapData(index, entry.trajectory, entry.submap.grid, entry.local_pose, entry.global_pose)
 
-    def _search_node_against_submaps(self, node: int) -> None:
-        node_data = self._node_data(node)
-        for index, entry in enumerate(self.submaps):
-            if not entry.finished or node in entry.nodes:
-                continue
-            lc = self.builder.maybe_add(node_data, self._submap_data(index))
+    def _search_pairs(self, pairs) -> None:
+        """Start the searches of the (NodeData, SubmapData) pairs the candidate rules pick; ``flush_searches``
+        adds what they find."""
+        chosen = []
+        for node_data, submap_data in pairs:
+            global_search = self.builder.select(node_data, submap_data)
+            if global_search is not None:
+                chosen.append((node_data, submap_data, global_search))
+        self._in_flight.extend(self.builder.submit(chosen))
+
+    def flush_searches(self) -> None:
+        """Add the closures of every search started, in the order they were started.
+
+        Searches run while the graph goes on taking nodes, and their closures are added only here, before each
+        optimization (the only reader of the constraints) and at the end: a search needs the node's and the
+        submap's poses, which change only when the graph is optimized, so it finds the same thing whenever it
+        runs, and adding closures at these fixed points keeps the graph the same for any number of workers.
+        """
+        in_flight, self._in_flight = self._in_flight, []
+        for handle in in_flight:
+            lc = self.builder.record(handle)
             if lc is not None:
                 self._add_loop_closure(lc)
+
+    def _search_node_against_submaps(self, node: int) -> None:
+        node_data = self._node_data(node)
+        self._search_pairs((node_data, self._submap_data(index)) for index, entry in enumerate(self.submaps)
+                           if index in self._finished and node not in entry.nodes)
 
     def _search_submap_against_nodes(self, index: int) -> None:
         entry = self.submaps[index]
         # Every earlier node is a candidate for a newly finished submap; the distance rule that rejects
         # most of them is applied to all at once here rather than per node in Python. Links between
-        # trajectories only ever get added, so a node linked now is still linked in maybe_add.
+        # trajectories only ever get added, so a node linked now is still linked when it is chosen.
         searching = np.asarray(self.node_searches, dtype=bool)
         searching[entry.nodes] = False
         traj = np.asarray(self.node_trajectory)
@@ -364,14 +413,14 @@ class PoseGraph:
         offset = self.global_poses[:, :2] - entry.global_pose[:2]
         far = np.hypot(offset[:, 0], offset[:, 1]) > self.pg.constraint_builder.max_constraint_distance
         submap_data = self._submap_data(index)
-        for node in np.flatnonzero(searching & ~(linked & far)).tolist():
-            lc = self.builder.maybe_add(self._node_data(node), submap_data)
-            if lc is not None:
-                self._add_loop_closure(lc)
+        self._search_pairs((self._node_data(node), submap_data)
+                           for node in np.flatnonzero(searching & ~(linked & far)).tolist())
 
     # ------------------------------------------------------------------ optimization
 
     def optimize(self, final: bool = False) -> OptimizationSummary | None:
+        with self.timer.stage("loop closure"):
+            self.flush_searches()
         summary = self._optimize(final)
         limit = self.pg.constraint_builder.max_loop_closure_residual
         if final and summary is not None and limit > 0 and self.remove_bad_loop_closures(limit):

@@ -193,7 +193,7 @@ class MapQuality:
 # ------------------------------------------------------------------ rays through walls seen from elsewhere
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _first_at_least(values, a, b, x):
     """Index of the first of the sorted ``values[a:b]`` that is >= ``x`` (``b`` when none)."""
     while a < b:
@@ -205,7 +205,7 @@ def _first_at_least(values, a, b, x):
     return a
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _first_above(values, a, b, x):
     """Index of the first of the sorted ``values[a:b]`` that is > ``x`` (``b`` when none)."""
     while a < b:
@@ -217,7 +217,7 @@ def _first_above(values, a, b, x):
     return a
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _see_through(start, travel, gox, goy, cell, ny, nx, near_start, near_travel, nox, noy, near_cell, nny, nnx, disk,
                  radius, points, offsets, poses, node_travel, sensor, window, margin, min_other):
     """Per node: rays longer than ``margin``, and rays crossing a wall of nodes more than ``window`` away
@@ -283,7 +283,7 @@ def _see_through(start, travel, gox, goy, cell, ny, nx, near_start, near_travel,
     return hits, checked
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _buckets(points, ox, oy, cell, nx, ny, nodes, travel):
     """Counting sort of the points into their cells, one entry per node and cell: (start, travel)."""
     cells = np.empty(points.shape[0], np.int64)
@@ -309,7 +309,7 @@ def _buckets(points, ox, oy, cell, nx, ny, nodes, travel):
     return start, out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _bounds(points):
     """(min, max) of the points: numpy's reductions along the short axis are strided and slow."""
     low = points[0].copy()
@@ -396,7 +396,7 @@ def node_travel(local_poses: np.ndarray, trajectories: np.ndarray, gap: float) -
     return np.concatenate([[0.0], np.cumsum(step)])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _place(points, node, poses):
     """Every node's points (node frame) at its pose."""
     c = np.cos(poses[:, 2])

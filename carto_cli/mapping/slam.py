@@ -2,14 +2,24 @@
 
 Like kiss-icp's ``KissICP``: the caller owns reading (``carto_cli.pipeline`` feeds a recording,
 tests feed arrays); this object only turns time-ordered measurements into a map.
+
+With more than one job the pose graph runs on a thread of its own, as Cartographer's global SLAM runs
+beside local SLAM: local SLAM never reads the graph, so the caller's thread goes on matching scans while
+the graph searches and optimizes. The graph gets its nodes and odometry in the order local SLAM made them,
+with each submap's "finished" flag as it was when the node was made, so it does exactly what it would do
+inline and the map is the same for any number of jobs.
 """
 from __future__ import annotations
 
+import queue
+import threading
 import time as _time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
 from carto_cli.grid.occupancy_image import OccupancyImage, assemble
@@ -37,15 +47,66 @@ class SlamResult:
     unrefined_node_poses: np.ndarray | None = None
 
 
+# Nodes and odometry samples local SLAM may run ahead of the graph's thread by; then it waits. Bounds the
+# memory the queue holds (a node's points) on a recording where the graph is the slower side.
+BACKLOG = 2000
+
+
+class _Background:
+    """One thread running queued calls in order; the first error is raised again in the caller's thread."""
+
+    def __init__(self, timer):
+        self.timer = timer
+        self._queue: queue.Queue = queue.Queue(maxsize=BACKLOG)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="carto-global", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is not None:
+                continue  # drain without running: the caller raises the first error
+            stage, fn, args, kwargs = item
+            try:
+                if stage:
+                    with self.timer.stage(stage):
+                        fn(*args, **kwargs)
+                else:
+                    fn(*args, **kwargs)
+            except BaseException as e:  # handed to the caller's thread
+                self._error = e
+
+    def submit(self, stage: str | None, fn: Callable, *args, **kwargs) -> None:
+        self._raise()
+        self._queue.put((stage, fn, args, kwargs))
+
+    def join(self) -> None:
+        """Wait until every queued call has run; raise the first error."""
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
+        self._raise()
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+
 class Slam:
     """Local SLAM feeding a pose graph, as Cartographer's MapBuilder wires them for one trajectory.
 
     With ``graph`` (e.g. restored from a map.carto) the measurements become trajectory
-    ``trajectory_id`` of that graph, linked to the earlier ones by loop closures.
+    ``trajectory_id`` of that graph, linked to the earlier ones by loop closures. ``jobs`` > 1 (None: every
+    core) runs the graph on a thread of its own and its searches on ``jobs`` threads; call ``finish`` or
+    ``close`` to stop them.
     """
 
     def __init__(self, options: Options, *, laser_pose=(0.0, 0.0, 0.0), timer=None, loop_closure: bool = True,
-                 graph: PoseGraph | None = None, trajectory_id: int = 0, started: float | None = None):
+                 graph: PoseGraph | None = None, trajectory_id: int = 0, started: float | None = None,
+                 jobs: int | None = 1):
         self.options = options
         self.timer = timer or NullTimer()
         self.loop_closure = loop_closure
@@ -60,6 +121,11 @@ class Slam:
         self._scan_node: list[int] = []  # latest node at or before each posed scan
         self._node_scans: list[int] = []
         self.num_scans = 0
+        self.jobs = available_cores() if jobs is None else max(1, int(jobs))
+        self._background: _Background | None = None
+        if self.jobs > 1 and loop_closure:
+            self._background = _Background(self.timer.concurrent("global"))
+            self.graph.use_threads(self.jobs, timer=self._background.timer)
 
     @property
     def num_poses(self) -> int:
@@ -75,9 +141,16 @@ class Slam:
                 ins = result.insertion
                 # The node's odometry is interpolated at its time from the samples around it
                 # when the graph is optimized (Cartographer's InterpolateOdometry).
-                with timer.stage("global"):
-                    self.graph.add_node(result.time, result.local_pose, ins.loop_closure_points, ins.submaps,
-                                        trajectory=self.trajectory_id)
+                finished = [s.finished for s in ins.submaps]
+                if self._background is not None:
+                    with timer.stage("global queue"):
+                        self._background.submit("node", self.graph.add_node, result.time, result.local_pose,
+                                                ins.loop_closure_points, list(ins.submaps),
+                                                trajectory=self.trajectory_id, finished=finished)
+                else:
+                    with timer.stage("global"):
+                        self.graph.add_node(result.time, result.local_pose, ins.loop_closure_points, ins.submaps,
+                                            trajectory=self.trajectory_id, finished=finished)
                 self._node_scans.append(len(self._times))
         if result is None or not self._node_scans:
             return result  # nothing to anchor a scan to before the first node
@@ -87,14 +160,32 @@ class Slam:
         return result
 
     def add_odometry(self, odometry: Odometry) -> None:
-        self.graph.add_odometry(odometry.time, (odometry.x, odometry.y, odometry.yaw), trajectory=self.trajectory_id)
+        pose = (odometry.x, odometry.y, odometry.yaw)
+        if self._background is not None:  # in order with the nodes: the graph reads the samples when optimizing
+            with self.timer.stage("global queue"):
+                self._background.submit(None, self.graph.add_odometry, odometry.time, pose,
+                                        trajectory=self.trajectory_id)
+        else:
+            self.graph.add_odometry(odometry.time, pose, trajectory=self.trajectory_id)
         self.local.add_odometry(odometry)
 
     def add_imu(self, imu: Imu) -> None:
         self.local.add_imu(imu)
 
+    def close(self) -> None:
+        """Wait for the graph's thread and stop the search threads (raises the graph's error, if any)."""
+        background, self._background = self._background, None
+        try:
+            if background is not None:
+                with self.timer.stage("global wait"):
+                    background.join()
+                self.graph.use_threads(1, timer=self.timer)
+        finally:
+            self.graph.close()
+
     def finish(self) -> SlamResult:
         """The final optimization, every scan's pose and the assembled map. Call once, with at least one pose."""
+        self.close()
         if not self._times:
             raise ValueError("no scan got a pose")
         timer, graph = self.timer, self.graph

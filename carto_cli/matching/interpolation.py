@@ -15,12 +15,12 @@ from numba import njit
 from carto_cli.grid.probability_grid import MAX_CORRESPONDENCE_COST, VALUE_TO_CORRESPONDENCE_COST
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _masked(valid, value):
     return value if valid else MAX_CORRESPONDENCE_COST
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _hermite(p0, p1, p2, p3, x):
     a = 0.5 * (-p0 + 3.0 * p1 - 3.0 * p2 + p3)
     b = 0.5 * (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3)
@@ -30,7 +30,7 @@ def _hermite(p0, p1, p2, p3, x):
     return f, dfdx
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cost_and_gradient(cells, table, ox, oy, inv_resolution, x, y):
     """Interpolated cost at world (x, y) and its gradient in world units (per metre)."""
     # Cell (ix, iy) has its centre at continuous index (ix, iy).
@@ -65,7 +65,7 @@ def cost_and_gradient(cells, table, ox, oy, inv_resolution, x, y):
     return f, dfdc * inv_resolution, dfdr * inv_resolution
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _interpolate_many(cells, table, ox, oy, inv_resolution, points):
     n = points.shape[0]
     values = np.empty(n)

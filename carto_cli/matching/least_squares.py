@@ -35,7 +35,7 @@ class LeastSquaresResult(NamedTuple):
     initial_cost: float
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _evaluate(cells, table, ox, oy, inv_res, points, x, y, th, tx, ty, th0, s_occ, w_t, w_r,
               derivatives, h, g):
     c = np.cos(th)
@@ -79,7 +79,7 @@ def _evaluate(cells, table, ox, oy, inv_res, points, x, y, th, tx, ty, th0, s_oc
     return 0.5 * total
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _solve3(a, b):
     """Cramer's rule; ``a`` is symmetric positive definite here (damped normal equations)."""
     m00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]

@@ -29,7 +29,7 @@ WALL_PROBABILITY = 0.8
 WALL_MARGIN = 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _see_through(cells, table, ox, oy, resolution, sx, sy, points, occupied, margin):
     ny, nx = cells.shape
     step = 0.5 * resolution

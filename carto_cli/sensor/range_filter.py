@@ -47,7 +47,7 @@ class RangeData:
         )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _transform_points(points, x, y, c, s):
     """(n, 2) points mapped by the rigid transform (x, y, rotation with cos c, sin s); runs per node."""
     n = points.shape[0]
@@ -60,7 +60,7 @@ def _transform_points(points, x, y, c, s):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _crop_polar(ranges, angles, min_range, max_range, missing_data_ray_length):
     n = ranges.shape[0]
     returns = np.empty((n, 2))
@@ -84,7 +84,7 @@ def _crop_polar(ranges, angles, min_range, max_range, missing_data_ray_length):
     return returns[:nr].copy(), misses[:nm].copy()
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _crop_points(points, ox, oy, min_range, max_range, missing_data_ray_length):
     n = points.shape[0]
     returns = np.empty((n, 2))
@@ -110,7 +110,7 @@ def _crop_points(points, ox, oy, min_range, max_range, missing_data_ray_length):
     return returns[:nr].copy(), misses[:nm].copy()
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _crop_polar_moving(ranges, angles, min_range, max_range, missing_data_ray_length, mx, my, mth,
                        time_increment, ux, uy, w):
     """``_crop_polar`` with the sensor mounted at (mx, my, mth) on a body moving at (ux, uy, w).

@@ -17,7 +17,7 @@ from numba import njit
 _HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _table_bits(n):
     bits = 4
     while (1 << bits) < 2 * n:
@@ -25,7 +25,7 @@ def _table_bits(n):
     return bits
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _first_in_voxel(points, inv_length, keep, keys, used, bits):
     """Mark in ``keep`` the first point of every voxel; returns how many were marked.
 
@@ -56,7 +56,7 @@ def _first_in_voxel(points, inv_length, keep, keys, used, bits):
     return count
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _voxel_mask(points, length):
     n = points.shape[0]
     bits = _table_bits(n)
@@ -65,7 +65,7 @@ def _voxel_mask(points, length):
     return keep
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _adaptive_mask(points, max_length, min_num_points, max_range):
     """Mask over ``points`` of the adaptive filter's result (see ``adaptive_voxel_filter``)."""
     n = points.shape[0]
