@@ -1,8 +1,8 @@
 """Loop-closure search: which node–submap pairs to try, branch and bound, refinement, acceptance.
 
 Cartographer's ConstraintBuilder2D: a pair is searched when the node is within
-``max_constraint_distance`` of the submap and the submap's fixed-ratio sampler fires; nodes of a trajectory not yet linked to the
-submap's one get a whole-submap search at ``global_sampling_ratio``. The fast
+``max_constraint_distance`` of the submap and the submap's fixed-ratio sampler fires; nodes of a
+trajectory not yet linked to the submap's one get a whole-submap search at ``global_sampling_ratio``. The fast
 matcher's pose is refined by least squares, then kept only if the refined pose
 still scores (geometric check) and stayed near the fast matcher's answer
 (consistency check: a refinement that wanders has slid along a corridor).
