@@ -8,6 +8,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -15,7 +16,6 @@ from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
 from carto_cli.gmapping import ALGORITHMS
-from carto_cli.gmapping.filter import GMappingSlam
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
@@ -26,6 +26,9 @@ from carto_cli.mapping.quality import LEVELS, MapQuality, assess
 from carto_cli.mapping.slam import Slam, SlamResult
 from carto_cli.options import Options, load_options
 from carto_cli.regime import AutoChoice, Regime, choose, survey
+
+if TYPE_CHECKING:
+    from carto_cli.gmapping.filter import GMappingSlam
 
 
 @dataclass
@@ -207,6 +210,8 @@ def build(
     tb = options.trajectory_builder_2d
     slam: Slam | GMappingSlam
     if algorithm == "gmapping":
+        from carto_cli.gmapping.filter import GMappingSlam  # a Cartographer run never loads it (0.4 s)
+
         slam = GMappingSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)
     else:
         slam = Slam(options, laser_pose=mount, timer=timer, loop_closure=loop_closure, graph=graph,

@@ -132,6 +132,9 @@ def run_map(
                 imu_topic=imu_topic, odom_frame=odom_frame, base_frame=base_frame) as source:
         # --no-odometry: the survey must not count on odometry local SLAM will not get.
         surveyed = source.selection if use_odometry else dataclasses.replace(source.selection, odometry=None)
+        # Before the survey, which needs the matchers: on a cold cache every kernel the run will use is compiled
+        # here at once, on every core (GMapping's only if it was asked for: auto rarely picks it).
+        kernels.warm_up(timer, systems=(algorithm or "cartographer",))
         configured = configure(options, source.recording, surveyed, algorithm)
         if on_configured is not None:
             on_configured(configured)

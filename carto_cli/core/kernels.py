@@ -7,35 +7,102 @@ on toy data; :func:`warm_up` runs every registered one that has not run yet, so 
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+import subprocess
+import sys
+from collections.abc import Callable, Collection
 
 from carto_cli.core.timing import NullTimer
 
 STAGE = "jit warm-up"
+_HELPER_ENV = "CARTO_KERNEL_HELPER"  # set in a helper process: it must not start helpers of its own
 
-_registered: list[Callable[[], None]] = []
+_registered: list[tuple[Callable[[], None], str | None]] = []
 _done: set[Callable[[], None]] = set()
 
 
-def register_warm_up(fn: Callable[[], None]) -> Callable[[], None]:
-    """Decorator: ``fn`` runs the kernels of its module once on toy data."""
-    if fn not in _registered:
-        _registered.append(fn)
+def register_warm_up(fn: Callable[[], None] | None = None, *, system: str | None = None):
+    """Decorator (``@register_warm_up`` or ``@register_warm_up(system="gmapping")``): ``fn`` runs the kernels of its
+    module once on toy data. ``system``: only a run of that mapping system needs them (None: every run). The first
+    run after installing compiles what it warms up (GMapping's kernels alone take half a minute), so a
+    Cartographer run must not pay for GMapping's."""
+    if fn is None:
+        return lambda f: register_warm_up(f, system=system)
+    if all(fn is not g for g, _ in _registered):
+        _registered.append((fn, system))
     return fn
 
 
-def pending() -> bool:
-    """Whether a registered warm-up has not run in this process."""
-    return any(fn not in _done for fn in _registered)
+def _wanted(systems: Collection[str] | None) -> list[Callable[[], None]]:
+    return [fn for fn, s in _registered if fn not in _done and (systems is None or s is None or s in systems)]
 
 
-def warm_up(timer=None) -> None:
-    """Run every registered warm-up not yet run, inside ``timer``'s ``jit warm-up`` stage."""
-    if not pending():
+def pending(systems: Collection[str] | None = None) -> bool:
+    """Whether a registered warm-up (the shared ones and those of ``systems``; None: any) has not run here."""
+    return bool(_wanted(systems))
+
+
+def warm_up(timer=None, systems: Collection[str] | None = None) -> None:
+    """Run every registered warm-up not yet run (the shared ones and those of ``systems``; None: all), inside
+    ``timer``'s ``jit warm-up`` stage. On a cold cache (the first run after installing) the kernels are compiled
+    by this process and helper processes at once, one per further core, each writing its share to the on-disk
+    cache this process then loads: compiling is single-threaded, and it is most of a first run's time."""
+    wanted = _wanted(systems)
+    if not wanted:
         return
     timer = timer or NullTimer()
     with timer.stage(STAGE):
-        for fn in list(_registered):
+        helpers = _start_helpers(wanted)
+        mine = wanted[::len(helpers) + 1]
+        for fn in mine:
+            fn()
+            _done.add(fn)
+        for helper in helpers:
+            helper.wait()  # a helper that failed only means this process compiles its share below
+        for fn in wanted:
             if fn not in _done:
                 fn()
                 _done.add(fn)
+
+
+def _cold(fn: Callable[[], None]) -> bool:
+    """Whether no kernel of ``fn``'s module is in numba's on-disk cache yet (as after installing). Kernels only
+    ever called from other kernels have no entry of their own, so one entry in the module means warm."""
+    from numba.core.registry import CPUDispatcher
+
+    module = sys.modules.get(fn.__module__)
+    indexes = []
+    for value in vars(module).values() if module is not None else ():
+        if isinstance(value, CPUDispatcher) and value.__module__ == fn.__module__:
+            try:
+X
+            except AttributeError:
+                return False  # unknown layout: never guess "cold"
+    return bool(indexes) and not any(os.path.exists(i) for i in indexes)
+
+
+def _start_helpers(wanted: list[Callable[[], None]]) -> list[subprocess.Popen]:
+    from carto_cli.core.parallel import available_cores
+
+    if os.environ.get(_HELPER_ENV) or len(wanted) < 2 or not any(_cold(fn) for fn in wanted):
+        return []
+    n = min(available_cores(), len(wanted)) - 1
+    helpers = []
+    for k in range(1, n + 1):
+        names = [f"{fn.__module__}:{fn.__qualname__}" for fn in wanted[k::n + 1]]
+        code = f"from carto_cli.core.kernels import _helper; _helper({names!r})"
+        try:
+            helpers.append(subprocess.Popen([sys.executable, "-c", code], env={**os.environ, _HELPER_ENV: "1"},
+                                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        except OSError:
+            break
+    return helpers
+
+
+def _helper(names: list[str]) -> None:
+    """In a helper process: run the named warm-ups (compiling their kernels into the on-disk cache)."""
+    import importlib
+
+    for name in names:
+        module, qualname = name.split(":")
+        getattr(importlib.import_module(module), qualname)()

@@ -45,7 +45,7 @@ OCCUPIED_THRESH = 0.65
 MAX_SWEEP = math.radians(45.0)  # beyond this a scan's own symmetries compete with its true heading
 
 
-@register_warm_up
+@register_warm_up(system="gmapping")
 def warm_up() -> None:
     """The filter's kernels (map update, matching, proposal) on a toy scan."""
     maps = TiledMaps(2, 0.05, capacity=4)
@@ -91,7 +91,7 @@ class GMappingSlam:
                 pass
         self.g = options.gmapping
         self.timer = timer or NullTimer()
-        kernels.warm_up(self.timer)
+        kernels.warm_up(self.timer, systems=("gmapping",))
         self.laser_pose = transform.as_pose(laser_pose)
         self._started = _time.perf_counter() if started is None else started
         self.rng = np.random.Generator(np.random.PCG64(self.g.seed))

@@ -15,6 +15,7 @@ import numpy as np
 from numba import njit
 
 from carto_cli.core import transform
+from carto_cli.core.kernels import register_warm_up
 from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
 
 
@@ -113,3 +114,13 @@ def assemble(grids: Sequence, corrections: Sequence, resolution: float | None = 
     prob = np.full((ny, nx), np.nan, np.float32)
     prob[known] = (1.0 / (1.0 + np.exp(-total[known] / count[known]))).astype(np.float32)
     return OccupancyImage(prob, res, (float(lo[0]), float(lo[1])))
+
+
+@register_warm_up
+def warm_up() -> None:
+    """Assembling the map image from a toy grid."""
+    from carto_cli.grid.probability_grid import ProbabilityGrid
+
+    grid = ProbabilityGrid(0.05, (0.0, 0.0), (8, 8))
+    grid.set_probability(np.array([[2, 3], [4, 4]]), 0.8)
+    assemble([grid], [np.array([0.1, 0.0, 0.2])])

@@ -88,7 +88,7 @@ class LocalSlam:
         self.options = options
         self.laser_pose = transform.as_pose(laser_pose)
         self.timer = timer or NullTimer()
-        kernels.warm_up(self.timer)
+        kernels.warm_up(self.timer, systems=("cartographer",))
         o = options
         self.extrapolator = PoseExtrapolator(
             pose_queue_duration=o.pose_extrapolator.constant_velocity.pose_queue_duration,

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from carto_cli.core import transform
+from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.timing import NullTimer
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure, NodeData, SubmapData
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
@@ -505,3 +506,16 @@ class PoseGraph:
     @property
     def num_loop_closures(self) -> int:
         return int(self.constraints.num_loop_closures)
+
+
+@register_warm_up(system="cartographer")
+def warm_up() -> None:
+    """The optimization's kernels on a toy graph: three nodes in one submap, with odometry."""
+    from carto_cli.options import load_options
+
+    graph = PoseGraph(load_options(None))
+    submap = Submap((0.0, 0.0))
+    for i in range(3):
+        graph.add_odometry(float(i), (0.1 * i, 0.0, 0.0))
+        graph.add_node(float(i), (0.1 * i, 0.01 * i, 0.0), np.zeros((0, 2)), [submap])
+    graph.optimize(final=True)

@@ -98,6 +98,7 @@ import numpy as np
 from numba import njit
 
 from carto_cli.core import transform
+from carto_cli.core.kernels import register_warm_up
 
 if TYPE_CHECKING:
     from carto_cli.mapping.pose_graph import PoseGraph
@@ -533,3 +534,16 @@ def assess(result: SlamResult, odometry: np.ndarray | None = None) -> MapQuality
         checks.append(odometry_check(np.asarray(result.times)[nodes], np.asarray(result.local_poses)[nodes],
                                      np.asarray(odometry, np.float64)))
     return MapQuality.of([c for c in checks if c is not None])
+
+
+@register_warm_up
+def warm_up() -> None:
+    """The see-through check's kernels (return index, rays through walls) on three toy nodes."""
+    points = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    node = np.arange(3, dtype=np.int64)
+    travel = np.array([0.0, 5.0, 10.0])
+    poses = np.zeros((3, 3))
+    placed = _place(points, node, poses)
+    walls = ReturnIndex.build(placed, node, travel, cell=CELL_M)
+    near = ReturnIndex.build(placed, node, travel, cell=NEAR_CELL_M)
+    rays_through_walls(walls, near, [points[:2]] * 3, poses, travel, np.zeros(2))

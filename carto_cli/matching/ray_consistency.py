@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from carto_cli.core import transform
+from carto_cli.core.kernels import register_warm_up
 from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
 
 __all__ = ["WALL_MARGIN", "WALL_PROBABILITY", "see_through_fraction"]
@@ -73,3 +74,13 @@ def see_through_fraction(grid, points: np.ndarray, pose, sensor=(0.0, 0.0), *, o
                                  float(grid.resolution), float(s[0]), float(s[1]), pts, float(occupied),
                                  float(margin))
     return hits / checked if checked else 0.0
+
+
+@register_warm_up
+def warm_up() -> None:
+    """The free-space check on a toy grid."""
+    from carto_cli.grid.probability_grid import ProbabilityGrid
+
+    grid = ProbabilityGrid(0.05, (0.0, 0.0), (20, 20))
+    grid.set_probability(np.array([[10, 10]]), 0.9)
+    see_through_fraction(grid, np.array([[0.8, 0.8], [0.2, 0.9]]), np.zeros(3))
