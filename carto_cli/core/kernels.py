@@ -75,7 +75,8 @@ def _cold(fn: Callable[[], None]) -> bool:
     for value in vars(module).values() if module is not None else ():
         if isinstance(value, CPUDispatcher) and value.__module__ == fn.__module__:
             try:
-X
+                cache = getattr(value, "_cache")  # numba's own layout, not typed
+                indexes.append(cache._cache_file._index_path)
             except AttributeError:
                 return False  # unknown layout: never guess "cold"
     return bool(indexes) and not any(os.path.exists(i) for i in indexes)
