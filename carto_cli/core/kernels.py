@@ -75,7 +75,7 @@ def _cold(fn: Callable[[], None]) -> bool:
     for value in vars(module).values() if module is not None else ():
         if isinstance(value, CPUDispatcher) and value.__module__ == fn.__module__:
             try:
-                cache = getattr(value, "_cache")  # numba's own layout, not typed
+                cache = value._cache  # type: ignore[attr-defined]  # numba's own layout
                 indexes.append(cache._cache_file._index_path)
             except AttributeError:
                 return False  # unknown layout: never guess "cold"
