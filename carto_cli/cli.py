@@ -95,9 +95,15 @@ MAP_MAX_Z = typer.Option(None, "--max-z", help="PointCloud2: highest z kept when
                          "the profile's trajectory_builder_2d.max_z, 2.0).")
 
 
-def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | None) -> list[str]:
-    """--min-z / --max-z as option overrides, after --set so that they win."""
+def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | None,
+            memory_budget: str | None = None) -> list[str]:
+    """--min-z / --max-z (and --memory-budget) as option overrides, after --set so that they win."""
     out = list(overrides or [])
+    if memory_budget is not None:
+        from carto_cli.core.parse import megabytes
+
+        mb = megabytes(memory_budget, "--memory-budget")
+        out.append(f"pose_graph.constraint_builder.precomputation_memory={mb!r}")
     if min_z is not None:
         out.append(f"trajectory_builder_2d.min_z={min_z!r}")
     if max_z is not None:
@@ -179,6 +185,11 @@ SET = typer.Option(None, "--set", "-s",
                    help="Override an option: dotted.key=value (repeatable; angles in radians, or '20deg').")
 # The names are carto_cli.gmapping.ALGORITHMS, checked by the command (importing it here would load numba
 # for `carto --help`).
+MEMORY_BUDGET = typer.Option(None, "--memory-budget", help="Memory for the loop-closure search's precomputation "
+                             "grids (e.g. 512MB, 1GB; default 256MB: "
+                             "pose_graph.constraint_builder.precomputation_memory); the least recently searched "
+                             "are rebuilt when needed. The map is the same for any budget; peak memory is "
+                             "reported.")
 JOBS = typer.Option(None, "--jobs", "-j", min=1, help="Threads for independent work (Cartographer: the pose graph "
                     "beside local SLAM and its loop-closure searches; GMapping: the particles and final searches); "
                     "default: every core. The map is the same for any number.")
@@ -244,6 +255,7 @@ def map_(
     min_z: float | None = MAP_MIN_Z,
     max_z: float | None = MAP_MAX_Z,
     jobs: int | None = JOBS,
+    memory_budget: str | None = MEMORY_BUDGET,
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
 
@@ -258,7 +270,7 @@ def map_(
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
 
-    options = _map_options(profile, _with_z(overrides, min_z, max_z))
+    options = _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget))
     mount = parse.pose(laser_pose, "--laser-pose") if laser_pose else None
     timer = StageTimer()
     with progress(f"mapping {recording.name}", None, state.quiet) as bar:
@@ -350,6 +362,7 @@ def profile_(
     repeat: int = typer.Option(1, "--repeat", help="Map the recording N times; each stage keeps its lowest CPU "
                                "time and the spread, which widens the gates' allowance (3 for CI baselines)."),
     jobs: int | None = JOBS,
+    memory_budget: str | None = MEMORY_BUDGET,
 ):
     """Per-stage timing tree of the whole pipeline (ms/scan, share, p50/p95/p99), with CI regression gates.
 
@@ -359,7 +372,7 @@ def profile_(
     from carto_cli.core.progress import progress
     from carto_cli.evaluation.profiling import format_relocalization, format_report
 
-    options = _map_options(profile, _with_z(overrides, min_z, max_z))
+    options = _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget))
     with progress(f"profiling {recording.name}", None, state.quiet) as bar:
         run = run_profile(recording, options, scan_topic=scan_topic, odom_topic=odom_topic, odom_frame=odom_frame,
                           base_frame=base_frame, output=output,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time as _time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -154,6 +155,17 @@ def opened(path: str | Path, read: ReadOptions | None = None, *, scan_topic: str
                                                  base_frame=base_frame))
 
 
+def peak_memory_mb() -> float | None:
+    """The process's peak resident memory so far (MB; None where the platform does not say)."""
+    try:
+        import resource
+    except ImportError:  # not on a POSIX system
+        return None
+    # ru_maxrss is in kilobytes on Linux and in bytes on macOS.
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (2**20 if sys.platform == "darwin" else 2**10)
+
+
 def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit,
                        fixed_tf: Sequence[Transform] = ()) -> tuple[np.ndarray, str]:
     """--laser-pose wins; else static TF; else transforms of /tf that never moved (``fixed_tf``: a mount broadcast
@@ -243,6 +255,7 @@ def build(
         slam.close()
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
                        warnings=content.warnings())
+    result.stats["peak_memory_mb"] = peak_memory_mb()
     if judge and result.graph is not None:
         with slam.timer.stage("quality"):
             result.quality = assess(result, result.graph.odometry_samples(trajectory_id))

@@ -163,13 +163,14 @@ def run_map(
 
 def summary_line(result: MapResult) -> str:
     s = result.stats
+    peak = f", {s['peak_memory_mb']:.0f} MB peak memory" if s.get("peak_memory_mb") else ""
     if s.get("algorithm") == "gmapping":
         return (f"gmapping: {s['scans']} scans ({s['processed_scans']} processed), {s['particles']} particles, "
                 f"{s['resamplings']} resamplings, {s['map_memory_peak_bytes'] / 2**20:.0f} MB peak map, "
-                f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s")
+                f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s{peak}")
     return (f"{s['scans']} scans, {s['nodes']} nodes, {s['submaps']} submaps, "
             f"{s.get('loop_closures', 0)} loop closures, "
-            f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s")
+            f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s{peak}")
 
 
 def compile_note(timer) -> str:

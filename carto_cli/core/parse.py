@@ -10,10 +10,13 @@ from collections.abc import Callable
 
 from carto_cli.core.errors import CartoError
 
-__all__ = ["NUMBER", "angle", "number", "pose"]
+__all__ = ["NUMBER", "angle", "megabytes", "number", "pose"]
 
 NUMBER = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
 _ANGLE = re.compile(rf"^({NUMBER})(deg)?$")
+_SIZE = re.compile(rf"^({NUMBER})\s*(b|kb|k|mb|m|gb|g|kib|mib|gib)?$")
+_SIZE_MB = {None: 1.0, "b": 2.0**-20, "k": 2.0**-10, "kb": 2.0**-10, "kib": 2.0**-10, "m": 1.0, "mb": 1.0,
+            "mib": 1.0, "g": 1024.0, "gb": 1024.0, "gib": 1024.0}
 
 Fail = Callable[[str], CartoError]
 
@@ -34,6 +37,14 @@ def angle(text: str, what: str, fail: Fail) -> float:
         raise fail(f"{what} must be a number of radians (or degrees with a 'deg' suffix), got {text!r}")
     v = float(m.group(1))
     return math.radians(v) if m.group(2) else v
+
+
+def megabytes(text: str, what: str) -> float:
+    """A memory size ('512', '512MB', '1.5GB'; plain numbers are MB; K/M/G are powers of 1024) in MB."""
+    m = _SIZE.match(text.strip().lower())
+    if not m or float(m.group(1)) <= 0:
+        raise CartoError(f"{what} must be a positive size such as 512MB or 1GB, got {text!r}")
+    return float(m.group(1)) * _SIZE_MB[m.group(2)]
 
 
 def pose(text: str, what: str) -> tuple[float, float, float]:

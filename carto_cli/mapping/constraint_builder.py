@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -121,6 +122,9 @@ class ConstraintBuilderStats:
     rejected_refinement: int = 0
     rejected_see_through: int = 0
     accepted: int = 0
+    precomputations: int = 0  # stacks built, rebuilt ones included
+    evictions: int = 0  # stacks dropped to stay within the memory budget
+    peak_precomputation_bytes: int = 0
 
 
 class ConstraintBuilder:
@@ -131,7 +135,10 @@ class ConstraintBuilder:
         self.timer = timer or NullTimer()
         self._samplers: dict[int, FixedRatioSampler] = {}
         self._global_samplers: dict[int, FixedRatioSampler] = {}
-        self._stacks: dict[int, PrecomputationGridStack] = {}
+        # Least recently searched first; held to cb.precomputation_memory. Evicting changes nothing but time: a
+        # stack is a function of its finished (immutable) grid, rebuilt the same when searched again.
+        self._stacks: OrderedDict[int, PrecomputationGridStack] = OrderedDict()
+        self._stack_bytes = 0
         self.stats = ConstraintBuilderStats()
         self.connected: set[frozenset] = set()  # trajectory pairs linked by a loop closure
         self.jobs = available_cores() if jobs is None else max(1, int(jobs))
@@ -145,18 +152,31 @@ class ConstraintBuilder:
             self._pool = None
 
     def stack(self, index: int, grid) -> PrecomputationGridStack:
-        """Precomputation grids are built once per finished submap and kept."""
-        stack = self._stacks.get(index)
-        if stack is None:
-            with self.timer.stage("precomputation"):
-                stack = PrecomputationGridStack(grid, self.cb.fast_correlative_scan_matcher.branch_and_bound_depth)
-            with self._stacks_lock:
-                self._stacks[index] = stack
+        """The precomputation grids of finished submap ``index``: built on first use, kept while the memory
+        budget allows (least recently used dropped first), rebuilt when needed again."""
+        with self._stacks_lock:
+            stack = self._stacks.get(index)
+            if stack is not None:
+                self._stacks.move_to_end(index)
+                return stack
+        with self.timer.stage("precomputation"):
+            stack = PrecomputationGridStack(grid, self.cb.fast_correlative_scan_matcher.branch_and_bound_depth)
+        budget = self.cb.precomputation_memory * 2**20
+        with self._stacks_lock:
+            self._stacks[index] = stack
+            self._stack_bytes += stack.memory_bytes
+            self.stats.precomputations += 1
+            while self._stack_bytes > budget and len(self._stacks) > 1:
+                _, dropped = self._stacks.popitem(last=False)
+                self._stack_bytes -= dropped.memory_bytes
+                self.stats.evictions += 1
+            self.stats.peak_precomputation_bytes = max(self.stats.peak_precomputation_bytes, self._stack_bytes)
         return stack
 
     @property
     def memory_bytes(self) -> int:
-        return sum(s.memory_bytes for s in self._stacks.values())
+        """Bytes of the precomputation grids held now."""
+        return self._stack_bytes
 
     def linked(self, node: NodeData, submap: SubmapData) -> bool:
         """Whether the node's trajectory is the submap's or linked to it (else only a whole-submap search)."""
@@ -201,25 +221,26 @@ class ConstraintBuilder:
     def submit(self, pairs: list[tuple[NodeData, SubmapData, bool]]) -> list:
         """Start the searches of ``pairs`` (on the worker threads, or now with one job); hand each of the returned
         handles to ``record``, in order. Precomputation grids are built here, in the caller's thread."""
-        for _, submap, _ in pairs:
-            self.stack(submap.index, submap.grid)
+        # Each search holds its stack: the cache may drop it before a worker gets to the search.
+        work = [(node, submap, global_search, self.stack(submap.index, submap.grid))
+                for node, submap, global_search in pairs]
         if self.jobs == 1:
-            return [_Done(self._match(*pair)) for pair in pairs]
+            return [_Done(self._match(*item)) for item in work]
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=self.jobs, thread_name_prefix="carto-search")
-        return [self._pool.submit(self._match, *pair) for pair in pairs]
+        return [self._pool.submit(self._match, *item) for item in work]
 
     def record(self, handle) -> LoopClosure | None:
         """A submitted search's closure (None if it found none), counted in the statistics; waits for it."""
         return self._record(handle.result())
 
-    def _match(self, node: NodeData, submap: SubmapData, global_search: bool) -> SearchOutcome:
+    def _match(self, node: NodeData, submap: SubmapData, global_search: bool,
+               stack: PrecomputationGridStack) -> SearchOutcome:
         """The search itself: no shared state is written, so workers run it side by side."""
         grid = submap.grid
         points = node.points
         if len(points) == 0:
             return SearchOutcome(node, submap, global_search)
-        stack = self._stacks[submap.index]
         fc = self.cb.fast_correlative_scan_matcher
         ns: dict[str, int] = {}
         t0 = time.perf_counter_ns()

@@ -59,6 +59,7 @@ class _Background:
         self.timer = timer
         self._queue: queue.Queue = queue.Queue(maxsize=BACKLOG)
         self._error: BaseException | None = None
+        self._last_raised: BaseException | None = None  # raised once in the caller's thread, not at every call
         self._thread = threading.Thread(target=self._run, name="carto-global", daemon=True)
         self._thread.start()
 
@@ -91,8 +92,14 @@ class _Background:
         self._raise()
 
     def _raise(self) -> None:
-        if self._error is not None:
-            raise self._error
+        error = self._error
+        if error is not None and not self._reported_before(error):
+            raise error
+
+    def _reported_before(self, error: BaseException) -> bool:
+        seen = error is self._last_raised
+        self._last_raised = error
+        return seen
 
 
 class Slam:
@@ -214,7 +221,9 @@ class Slam:
             "optimizations": graph.stats.optimizations,
             "optimization_time_s": graph.stats.optimization_time_s,
             "loop_closure_searches": graph.builder.stats.searched,
-            "precomputation_bytes": graph.builder.memory_bytes,
+            "precomputation_bytes": graph.builder.stats.peak_precomputation_bytes,  # the most held at once
+            "precomputations": graph.builder.stats.precomputations,
+            "precomputation_evictions": graph.builder.stats.evictions,
         }
         return SlamResult(
             times=np.array(self._times), poses=poses, local_poses=local_arr,

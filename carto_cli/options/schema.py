@@ -239,6 +239,11 @@ class ConstraintBuilder:
                                               "to the same submap agrees with it (Karto's chain rule)")
     max_see_through: float = _opt(1.0, "carto: a loop closure is rejected when more than this share of the "
                                   "node's rays would pass through a wall of the submap (1: no check)", ge=0, le=1)
+    precomputation_memory: float = _opt(256.0, "carto: memory for the finished submaps' precomputation grids "
+                                        "(branch and bound); beyond it the least recently searched are dropped "
+                                        "and rebuilt when searched again (the map does not change; the "
+                                        "seed's submap cache). carto map --memory-budget sets it",
+                                        unit="MB", gt=0)
 
 
 @dataclass(frozen=True)

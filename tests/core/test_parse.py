@@ -15,3 +15,17 @@ def test_pose_accepts_commas_spaces_and_degrees():
 def test_pose_errors_name_the_option(bad):
     with pytest.raises(CartoError, match="^--laser-pose: "):
         parse.pose(bad, "--laser-pose")
+
+
+def test_megabytes_reads_sizes_people_type():
+    assert parse.megabytes("512", "--memory-budget") == 512.0
+    assert parse.megabytes("1GB", "--memory-budget") == 1024.0
+    assert parse.megabytes("1.5g", "--memory-budget") == 1536.0
+    assert parse.megabytes("256 MB", "--memory-budget") == 256.0
+    assert parse.megabytes("2048KB", "--memory-budget") == 2.0
+
+
+@pytest.mark.parametrize("bad", ["", "lots", "-1GB", "0", "1TB"])
+def test_megabytes_errors_name_the_option(bad):
+    with pytest.raises(CartoError, match="--memory-budget"):
+        parse.megabytes(bad, "--memory-budget")

@@ -230,3 +230,23 @@ def test_cpu_time_is_recorded_beside_wall_time():
     assert stages["scan/matching"]["cpu_ms_per_scan"] == pytest.approx(4.0)
     assert stages["scan"]["cpu_ms"] == pytest.approx(10.0) and stages["scan"]["total_ms"] == pytest.approx(22.0)
     assert "cpu_ms" not in report_json(StageTimer(FakeClock()))["stages"].get("scan", {})
+
+
+def test_work_of_other_threads_is_added_and_shown_beside_the_wall_time():
+    clock = iter(range(0, 10_000, 10)).__next__
+    timer = StageTimer(clock=clock)
+    background = timer.concurrent("global")
+    with background.stage("search"):
+        pass
+    with timer.stage("loop closure"):
+        timer.add("branch and bound", 50, count=2)  # thread time, longer than the stage itself
+    timer.stop()
+    snap = timer.snapshot()
+    lc = snap.find("loop closure")
+    bnb = next(c for c in lc.children if c.name == "branch and bound")
+    assert (bnb.total_ns, bnb.count) == (50, 2) and lc.self_ns == 0
+    g = snap.find("global")
+    assert g.concurrent and g.total_ns == snap.find("global/search").total_ns == 10
+    # The concurrent branch is not part of the wall-time sum: the root's untimed time ignores it.
+    assert snap.root.self_ns == snap.wall_ns - lc.total_ns
+    assert "concurrent" in report_tree_text(snap)

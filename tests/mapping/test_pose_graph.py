@@ -262,3 +262,19 @@ def test_mapping_profiles_load_and_keep_loop_closure_cheap(profile):
         # just under the bench-dense sensor's 30 m, so 'no return' readings are not hits
         assert o.trajectory_builder_2d.max_range < 30.0
         assert o.pose_graph.constraint_builder.min_search_distance > 0
+
+
+def test_the_graph_is_the_same_for_any_number_of_jobs_and_any_memory_budget(two_laps):
+    """Searches on worker threads and the graph on its own thread (jobs > 1), or all inline (jobs 1); a budget
+    that keeps one precomputation stack at a time, so stacks are dropped and rebuilt: the same graph, bit for bit."""
+    sim, _, mapped = two_laps
+    options = load_options(None, [CB + "fast_correlative_scan_matcher.multilevel=true"])
+    tight = load_options(None, [CB + "fast_correlative_scan_matcher.multilevel=true",
+                                CB + "precomputation_memory=0.001"])
+    inline = build(sim.recording(), options, jobs=1)
+    threaded = build(sim.recording(), tight, jobs=3)
+    assert threaded.stats["precomputation_evictions"] > 0 and inline.stats["precomputation_evictions"] == 0
+    assert inline.stats["loop_closures"] == mapped.stats["loop_closures"] > 20
+    for other in (mapped, threaded):
+        assert_states_equal(inline.graph.to_state(), other.graph.to_state())
+        np.testing.assert_array_equal(inline.poses, other.poses)

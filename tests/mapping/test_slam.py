@@ -49,3 +49,19 @@ def test_every_posed_scan_follows_the_first_node(simulation):
 def test_finishing_without_a_pose_is_an_error():
     with pytest.raises(ValueError, match="no scan got a pose"):
         Slam(load_options(None)).finish()
+
+
+def test_an_error_on_the_graphs_thread_reaches_the_caller(simulation, monkeypatch):
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("graph failed")
+
+    monkeypatch.setattr(slam.graph, "add_node", broken)
+    with simulation.recording() as rec:
+        scans = [r for r in rec.records() if isinstance(r, Scan)][:20]
+    with pytest.raises(RuntimeError, match="graph failed"):
+        for scan in scans:
+            slam.add_scan(scan)
+        slam.finish()
+    slam.close()  # after the error: nothing left running, nothing raised twice
