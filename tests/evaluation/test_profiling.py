@@ -24,9 +24,24 @@ def report():
     sim = simulate(world, loop_trajectory(world), duration=15.0, beams=270)
     options = load_options(None, ["trajectory_builder_2d.submaps.num_range_data=20"])
     timer = StageTimer()
-    result = build(sim.recording(), options, timer=timer)
+    result = build(sim.recording(), options, timer=timer, jobs=1)  # one thread: every level sums to its parent
     timer.stop()
     return build_report(result, timer, options, "simulated", calibration={"kernel": "k", "ms": 10.0})
+
+
+def test_with_threads_the_graphs_thread_is_a_concurrent_branch_outside_the_sum():
+    world = loop_building()
+    sim = simulate(world, loop_trajectory(world), duration=15.0, beams=270)
+    options = load_options(None, ["trajectory_builder_2d.submaps.num_range_data=20"])
+    timer = StageTimer()
+    result = build(sim.recording(), options, timer=timer, jobs=2)
+    timer.stop()
+    tree = build_report(result, timer, options, "simulated")["timing"]["tree"]
+    concurrent = [c for c in tree["children"] if c["concurrent"]]
+    assert [c["name"] for c in concurrent] == ["global"]
+    assert any(c["name"] == "node" for c in concurrent[0]["children"])
+    inline = sum(c["total_ms"] for c in tree["children"] if not c["concurrent"])
+    assert inline + tree["self_ms"] == pytest.approx(tree["total_ms"], abs=1e-6)
 
 
 def test_report_validates_against_its_schema(report):
