@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+CULL_ABOVE = 256  # segments; beyond this, walls out of every pose's reach are left out before casting
+
 
 @numba.njit(cache=True, nogil=True)
 def _cast(poses, angles, segments, max_range):
@@ -54,8 +56,16 @@ def cast(poses, angles, segments, max_range: float = np.inf) -> np.ndarray:
     """
     p = np.ascontiguousarray(poses, dtype=np.float64)
     single = p.ndim == 1
-    out = _cast(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64),
-                np.ascontiguousarray(segments, dtype=np.float64).reshape(-1, 4), float(max_range))
+    seg = np.ascontiguousarray(segments, dtype=np.float64).reshape(-1, 4)
+    if math.isfinite(max_range) and len(seg) > CULL_ABOVE:
+        # A large world (a campus): only walls within max_range of some pose can be hit. Keeping their order
+        # keeps every range exactly what the whole list gives.
+        xy = p.reshape(-1, 3)[:, :2]
+        lo, hi = xy.min(axis=0) - max_range, xy.max(axis=0) + max_range
+        near = ((np.minimum(seg[:, 0], seg[:, 2]) <= hi[0]) & (np.maximum(seg[:, 0], seg[:, 2]) >= lo[0])
+                & (np.minimum(seg[:, 1], seg[:, 3]) <= hi[1]) & (np.maximum(seg[:, 1], seg[:, 3]) >= lo[1]))
+        seg = np.ascontiguousarray(seg[near])
+    out = _cast(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64), seg, float(max_range))
     return out[0] if single else out
 
 

@@ -192,3 +192,112 @@ def office(
     route.append((L - 0.7, c / 2))
     return World(merge(*segs), route=np.array(route), closed=False, name="office",
                  meta={"corridor_width": c, "doors": door_at})
+
+
+# Campus route: grid nodes (column, row) driven in this order. Each block perimeter is closed once and later
+# revisited, so the recording holds several loops of increasing age (the first closes after ~23 min at 1 m/s).
+CAMPUS_ROUTE = ((0, 0), (1, 0), (1, 1), (0, 1), (0, 0), (1, 0), (2, 0), (2, 1), (1, 1), (1, 2), (2, 2), (2, 1),
+                (3, 1), (3, 2), (2, 2), (2, 3), (1, 3), (1, 2), (0, 2), (0, 1), (1, 1), (1, 0), (0, 0))
+CAMPUS_PLAZAS = (((1, 1), (1, 2)), ((2, 0), (2, 1)))  # corridor edges whose middle is an open area
+
+
+def campus(spacing: float = 340.0, corridor_width: float = 4.0, hall: float = 24.0, plaza: float = 60.0,
+           seed: int = 0) -> World:
+    """A campus of about 1 km² (``3 × spacing`` square): long corridors between halls at the nodes of a grid,
+    two open plazas, and the route :data:`CAMPUS_ROUTE` (≈ 7.5 km, several loops).
+
+    Corridors get a feature every 5-15 m on each wall, at random (``seed``): a pillar beside the wall, a door
+    into a small room, or an alcove, so that no stretch matches another and scan matching is well posed along
+    the corridor. Halls (``hall`` m square, a door where each corridor enters) hold four pillars off their
+    axes; a plaza (``plaza`` m square) holds sparse pillars ("trees") away from the route, most walls of which
+    are out of a 30 m scanner's reach."""
+    rng = np.random.default_rng(seed)
+    c, h, half = corridor_width, hall / 2, corridor_width / 2
+    edges = {tuple(sorted((a, b))) for a, b in zip(CAMPUS_ROUTE[:-1], CAMPUS_ROUTE[1:])}
+    plazas = {tuple(sorted(e)) for e in CAMPUS_PLAZAS}
+    nodes = sorted({n for e in edges for n in e})
+    segs: list[np.ndarray] = []
+
+    def xy(node) -> np.ndarray:
+        return np.array(node, float) * spacing
+
+    def features(p0, p1, outward) -> tuple[list[tuple[float, float]], list[np.ndarray]]:
+        """Openings in the wall p0 -> p1 and what lies at them (rooms, alcoves), plus pillars inside."""
+        p0, p1, n = np.asarray(p0, float), np.asarray(p1, float), np.asarray(outward, float)
+        length = float(np.hypot(*(p1 - p0)))
+        d = (p1 - p0) / length
+        gaps, parts = [], []
+        s = rng.uniform(2.0, 8.0)
+        while s < length - 4.0:
+            kind = rng.random()
+            at = p0 + s * d
+            if kind < 0.5:  # a pillar 0.4 m square, 0.3 m off the wall
+                size = rng.uniform(0.3, 0.6)
+                centre = at - n * (0.3 + size / 2)
+                parts.append(box(centre[0], centre[1], size, size))
+            elif kind < 0.8:  # a door and a room behind it
+                w, depth = rng.uniform(3.0, 5.0), rng.uniform(2.5, 4.0)
+                gaps.append((s, 1.0))
+                a, b = at - d * w / 2, at + d * w / 2
+                parts.append(polyline([a, a + n * depth, b + n * depth, b]))
+            else:  # an alcove
+                w, depth = rng.uniform(1.5, 2.5), rng.uniform(0.5, 1.0)
+                gaps.append((s, w))
+                a, b = at - d * w / 2, at + d * w / 2
+                parts.append(polyline([a, a + n * depth, b + n * depth, b]))
+            s += rng.uniform(5.0, 15.0)
+        return gaps, parts
+
+    def corridor_walls(a, b) -> None:
+        """Both walls of a corridor from point a to point b (axis-aligned), with features."""
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        d = (b - a) / float(np.hypot(*(b - a)))
+        n = np.array([-d[1], d[0]])
+        for side in (1.0, -1.0):
+            p0, p1 = a + side * half * n, b + side * half * n
+            gaps, parts = features(p0, p1, side * n)
+            segs.append(wall(p0, p1, gaps))
+            segs.extend(parts)
+
+    def square_with_doors(centre, size, doors) -> None:
+        """A square room of ``size`` at ``centre`` with a corridor-wide door in each wall facing ``doors``."""
+        s = size / 2
+        corners = [centre + (-s, -s), centre + (s, -s), centre + (s, s), centre + (-s, s)]
+        for k, direction in enumerate(((0, -1), (1, 0), (0, 1), (-1, 0))):
+            p0, p1 = corners[k], corners[(k + 1) % 4]
+            gaps = [(s, c)] if direction in doors else []
+            segs.append(wall(p0, p1, gaps))
+
+    for node in nodes:
+        centre = xy(node)
+        doors = {tuple(int(v) for v in np.subtract(other, node)) for e in edges if node in e
+                 for other in e if other != node}
+        square_with_doors(centre, hall, doors)
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                off = rng.uniform(4.0, h - 3.0, size=2)
+                segs.append(box(centre[0] + sx * off[0], centre[1] + sy * off[1], 0.6, 0.6))
+
+    for a_node, b_node in sorted(edges):
+        a, b = xy(a_node), xy(b_node)
+        d = (b - a) / spacing
+        start, end = a + d * h, b - d * h
+        if (a_node, b_node) in plazas:
+            mid = (a + b) / 2
+            p = plaza / 2
+            corridor_walls(start, mid - d * p)
+            corridor_walls(mid + d * p, end)
+            axis = (int(d[0]), int(d[1]))
+            square_with_doors(mid, plaza, {axis, (-axis[0], -axis[1])})
+            n = np.array([-d[1], d[0]])
+            for _ in range(24):  # trees, at least 3 m off the route
+                along, across = rng.uniform(-p + 3, p - 3), rng.choice([-1, 1]) * rng.uniform(3.0, p - 3)
+                t = mid + d * along + n * across
+                segs.append(box(t[0], t[1], 0.5, 0.5))
+        else:
+            corridor_walls(start, end)
+
+    route = np.array([xy(n) for n in CAMPUS_ROUTE])
+    size = 3 * spacing + hall
+    return World(merge(*segs), route=route, closed=False, name="campus",
+                 meta={"area_km2": size * size / 1e6, "spacing": spacing, "corridor_width": c})
