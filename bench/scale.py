@@ -108,7 +108,7 @@ def one(minutes: float, jobs: int | None, budget: float | None) -> dict:
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "rss_before_mapping_mb": rss_before,
         "precomputation_mb": result.stats.get("precomputation_bytes", 0) / 2**20,
         "precomputation_evictions": int(result.stats.get("precomputation_evictions", 0)),
-        "relation_error_m": float(err.translation.mean), "relation_error_deg": float(math.degrees(err.rotation.mean)),
+        "relation_error_m": float(err.translation.mean), "relation_error_deg": float(err.rotation.mean),
         "relations": int(len(relations.t1)), "revisits": int(revisits),
         "quality": result.quality.verdict if result.quality is not None else None,
         "profile": configured.auto.profile if configured.auto is not None else None,

@@ -36,6 +36,8 @@ from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.matching.scoring import score_at
 from carto_cli.options import Options
 
+# max_drift's allowance before any travel: what a right closure may correct of a node next to its submap.
+DRIFT_BASE = 0.5  # m
 # A refinement that moves the fast matcher's pose by more than this is not trusted.
 MAX_REFINEMENT_TRANSLATION = 0.3  # m
 MAX_REFINEMENT_ROTATION = math.radians(5.0)
@@ -65,6 +67,7 @@ class NodeData:
     trajectory: int
     global_pose: np.ndarray  # (3,)
     points: np.ndarray  # (n, 2) in the tracking frame
+    travel: float = math.nan  # local-SLAM path length from its trajectory's start (m)
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,6 +80,7 @@ class SubmapData:
     grid: ProbabilityGrid
     local_pose: np.ndarray  # (3,)
     global_pose: np.ndarray  # (3,)
+    travel: tuple[float, float] = (math.nan, math.nan)  # local-SLAM path length at its first and last node
 
 
 @dataclass(frozen=True)
@@ -97,7 +101,7 @@ class SearchOutcome:
     submap: SubmapData
     global_search: bool
     closure: LoopClosure | None = None
-    outcome: str = "empty"  # empty | not found | refinement | see-through | accepted
+    outcome: str = "empty"  # empty | not found | refinement | drift | see-through | accepted
     ns: dict = field(default_factory=dict)  # stage name -> ns
 
 
@@ -121,6 +125,7 @@ class ConstraintBuilderStats:
     found: int = 0
     rejected_refinement: int = 0
     rejected_see_through: int = 0
+    rejected_drift: int = 0
     accepted: int = 0
     precomputations: int = 0  # stacks built, rebuilt ones included
     evictions: int = 0  # stacks dropped to stay within the memory budget
@@ -260,6 +265,8 @@ class ConstraintBuilder:
         ns["branch and bound"] = t1 - t0
         if not result.found:
             return SearchOutcome(node, submap, global_search, outcome="not found", ns=ns)
+        if not global_search and self._drifted(node, submap, result.pose, estimate):
+            return SearchOutcome(node, submap, global_search, outcome="drift", ns=ns)
         c = self.cb.ceres_scan_matcher
         ls = least_squares.match(grid, points, result.pose, target_translation=result.pose[:2],
                                  occupied_space_weight=c.occupied_space_weight,
@@ -285,6 +292,18 @@ class ConstraintBuilder:
         closure = LoopClosure(node.index, submap.index, relative, result.score, global_search)
         return SearchOutcome(node, submap, global_search, closure, "accepted", ns)
 
+    def _drifted(self, node: NodeData, submap: SubmapData, pose: np.ndarray, estimate: np.ndarray) -> bool:
+        """Whether the match moves the node further from the graph's estimate than local SLAM can have drifted
+        over the travel between node and submap (``max_drift``; only within one trajectory)."""
+        if self.cb.max_drift <= 0 or node.trajectory != submap.trajectory:
+            return False
+        lo, hi = submap.travel
+        if not (math.isfinite(node.travel) and math.isfinite(lo) and math.isfinite(hi)):
+            return False
+        travel = max(0.0, lo - node.travel, node.travel - hi)
+        moved = math.hypot(pose[0] - estimate[0], pose[1] - estimate[1])
+        return moved > DRIFT_BASE + self.cb.max_drift * travel
+
     def _record(self, o: SearchOutcome) -> LoopClosure | None:
         for name, ns in o.ns.items():
             self.timer.add(name, ns)
@@ -296,6 +315,7 @@ class ConstraintBuilder:
         stats.found += int(o.outcome != "not found")
         stats.rejected_refinement += int(o.outcome == "refinement")
         stats.rejected_see_through += int(o.outcome == "see-through")
+        stats.rejected_drift += int(o.outcome == "drift")
         if o.closure is None:
             return None
         stats.accepted += 1

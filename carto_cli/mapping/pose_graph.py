@@ -42,6 +42,16 @@ CONFIRM_MAX_ROTATION = math.radians(2.0)
 CONFIRM_NEIGHBOURS = 2  # nodes searched at once to confirm a new closure
 
 
+def _travel(local_poses: np.ndarray, trajectories: np.ndarray) -> np.ndarray:
+    """(N,) local-SLAM path length of every node from its trajectory's first node."""
+    out = np.zeros(len(local_poses))
+    for t in np.unique(trajectories):
+        idx = np.flatnonzero(trajectories == t)
+        steps = np.hypot(*np.diff(local_poses[idx, :2], axis=0).T) if len(idx) > 1 else np.zeros(0)
+        out[idx] = np.concatenate([[0.0], np.cumsum(steps)])
+    return out
+
+
 class _Growing:
     """An (n, k) float array with amortised O(1) append."""
 
@@ -79,6 +89,7 @@ class PoseGraph:
         self.node_times: list[float] = []
         self.node_trajectory: list[int] = []
         self.node_points: list[np.ndarray] = []
+        self.node_travel: list[float] = []  # local-SLAM path length from the node's trajectory's start (m)
         self._local = _Growing(3)
         self._global = _Growing(3)
         self._odometry = _Growing(3)  # explicit per-node odometry poses; NaN rows: interpolate
@@ -143,6 +154,7 @@ class PoseGraph:
         self.node_times = [float(t) for t in state.node_times]
         self.node_trajectory = [int(t) for t in state.node_trajectories]
         self.node_points = list(state.node_points)
+        self.node_travel = _travel(state.node_local_poses, state.node_trajectories).tolist()
         self.node_searches = [bool(v) for v in state.node_searches]
         for trajectory, (times, poses) in state.odometry_samples.items():
             grown = self._odometry_samples[int(trajectory)] = (_Growing(1), _Growing(3))
@@ -260,7 +272,14 @@ class PoseGraph:
         indices = [self._register_submap(s, trajectory, correction) for s in insertion_submaps]
         self._finished.update(i for i, done in zip(indices, finished) if done)
 
+        travel = 0.0
+        for previous in range(self.num_nodes - 1, -1, -1):  # the trajectory's last node: nearly always the last
+            if self.node_trajectory[previous] == trajectory:
+                step = self._local.array[previous, :2] - local_pose[:2]
+                travel = self.node_travel[previous] + math.hypot(step[0], step[1])
+                break
         node = self._local.append(local_pose)
+        self.node_travel.append(travel)
         self._global.append(transform.compose(correction, local_pose))
         self._odometry.append(np.full(3, np.nan) if odometry_pose is None else transform.as_pose(odometry_pose))
         self.node_times.append(float(time))
@@ -366,11 +385,14 @@ class PoseGraph:
                              cb.loop_closure_rotation_weight, ConstraintKind.INTER_SUBMAP)
 
     def _node_data(self, node: int) -> NodeData:
-        return NodeData(node, self.node_trajectory[node], self.global_poses[node], self.node_points[node])
+        return NodeData(node, self.node_trajectory[node], self.global_poses[node], self.node_points[node],
+                        self.node_travel[node])
 
     def _submap_data(self, index: int) -> SubmapData:
         entry = self.submaps[index]
-        return SubmapData(index, entry.trajectory, entry.submap.grid, entry.local_pose, entry.global_pose)
+        travel = (self.node_travel[entry.nodes[0]], self.node_travel[entry.nodes[-1]]) if entry.nodes else \
+            (math.nan, math.nan)
+        return SubmapData(index, entry.trajectory, entry.submap.grid, entry.local_pose, entry.global_pose, travel)
 
     def _search_pairs(self, pairs) -> None:
         """Start the searches of the (NodeData, SubmapData) pairs the candidate rules pick; ``flush_searches``

@@ -239,6 +239,11 @@ class ConstraintBuilder:
                                               "to the same submap agrees with it (Karto's chain rule)")
     max_see_through: float = _opt(1.0, "carto: a loop closure is rejected when more than this share of the "
                                   "node's rays would pass through a wall of the submap (1: no check)", ge=0, le=1)
+    max_drift: float = _opt(0.0, "carto: a loop closure between a node and a submap of its own trajectory is "
+                            "rejected when it moves the node further from where the graph puts it than "
+                            "0.5 m + this share of the local-SLAM travel between them (0: no check): a node a "
+                            "few metres of travel from the submap cannot be metres off, only an aliased "
+                            "match (a corridor) says so", ge=0)
     precomputation_memory: float = _opt(256.0, "carto: memory for the finished submaps' precomputation grids "
                                         "(branch and bound); beyond it the least recently searched are dropped "
                                         "and rebuilt when searched again (the map does not change; the "
