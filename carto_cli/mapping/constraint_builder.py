@@ -18,9 +18,7 @@ pairs (the samplers) and recording stay on the caller's thread.
 from __future__ import annotations
 
 import math
-import threading
 import time
-from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -34,6 +32,7 @@ from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import PrecomputationGridStack
 from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.matching.scoring import score_at
+from carto_cli.matching.stack_cache import StackCache
 from carto_cli.options import Options
 
 # max_drift's allowance before any travel: what a right closure may correct of a node next to its submap.
@@ -127,9 +126,6 @@ class ConstraintBuilderStats:
     rejected_see_through: int = 0
     rejected_drift: int = 0
     accepted: int = 0
-    precomputations: int = 0  # stacks built, rebuilt ones included
-    evictions: int = 0  # stacks dropped to stay within the memory budget
-    peak_precomputation_bytes: int = 0
 
 
 class ConstraintBuilder:
@@ -140,15 +136,14 @@ class ConstraintBuilder:
         self.timer = timer or NullTimer()
         self._samplers: dict[int, FixedRatioSampler] = {}
         self._global_samplers: dict[int, FixedRatioSampler] = {}
-        # Least recently searched first; held to cb.precomputation_memory. Evicting changes nothing but time: a
-        # stack is a function of its finished (immutable) grid, rebuilt the same when searched again.
-        self._stacks: OrderedDict[int, PrecomputationGridStack] = OrderedDict()
-        self._stack_bytes = 0
+        # Held to cb.precomputation_memory, least recently searched dropped first. Evicting changes nothing but
+        # time: a stack is a function of its finished (immutable) grid, rebuilt the same when searched again.
+        self._stacks = StackCache(int(self.cb.precomputation_memory * 2**20),
+                                  self.cb.fast_correlative_scan_matcher.branch_and_bound_depth)
         self.stats = ConstraintBuilderStats()
         self.connected: set[frozenset] = set()  # trajectory pairs linked by a loop closure
         self.jobs = available_cores() if jobs is None else max(1, int(jobs))
         self._pool: ThreadPoolExecutor | None = None
-        self._stacks_lock = threading.Lock()
 
     def close(self) -> None:
         """Stop the worker threads (a later search_many starts them again)."""
@@ -159,29 +154,20 @@ class ConstraintBuilder:
     def stack(self, index: int, grid) -> PrecomputationGridStack:
         """The precomputation grids of finished submap ``index``: built on first use, kept while the memory
         budget allows (least recently used dropped first), rebuilt when needed again."""
-        with self._stacks_lock:
-            stack = self._stacks.get(index)
-            if stack is not None:
-                self._stacks.move_to_end(index)
-                return stack
+        if index in self._stacks:
+            return self._stacks.get(index, grid)
         with self.timer.stage("precomputation"):
-            stack = PrecomputationGridStack(grid, self.cb.fast_correlative_scan_matcher.branch_and_bound_depth)
-        budget = self.cb.precomputation_memory * 2**20
-        with self._stacks_lock:
-            self._stacks[index] = stack
-            self._stack_bytes += stack.memory_bytes
-            self.stats.precomputations += 1
-            while self._stack_bytes > budget and len(self._stacks) > 1:
-                _, dropped = self._stacks.popitem(last=False)
-                self._stack_bytes -= dropped.memory_bytes
-                self.stats.evictions += 1
-            self.stats.peak_precomputation_bytes = max(self.stats.peak_precomputation_bytes, self._stack_bytes)
-        return stack
+            return self._stacks.get(index, grid)
+
+    @property
+    def stacks(self) -> StackCache:
+        """The precomputation grids' cache (its statistics: misses = stacks built, evictions, peak_bytes)."""
+        return self._stacks
 
     @property
     def memory_bytes(self) -> int:
         """Bytes of the precomputation grids held now."""
-        return self._stack_bytes
+        return self._stacks.bytes
 
     def linked(self, node: NodeData, submap: SubmapData) -> bool:
         """Whether the node's trajectory is the submap's or linked to it (else only a whole-submap search)."""

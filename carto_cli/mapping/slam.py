@@ -221,9 +221,9 @@ class Slam:
             "optimizations": graph.stats.optimizations,
             "optimization_time_s": graph.stats.optimization_time_s,
             "loop_closure_searches": graph.builder.stats.searched,
-            "precomputation_bytes": graph.builder.stats.peak_precomputation_bytes,  # the most held at once
-            "precomputations": graph.builder.stats.precomputations,
-            "precomputation_evictions": graph.builder.stats.evictions,
+            "precomputation_bytes": graph.builder.stacks.peak_bytes,  # the most held at once
+            "precomputations": graph.builder.stacks.misses,  # stacks built, rebuilt ones included
+            "precomputation_evictions": graph.builder.stacks.evictions,
         }
         return SlamResult(
             times=np.array(self._times), poses=poses, local_poses=local_arr,

@@ -3,7 +3,7 @@
 ``relocalizer`` holds the search (an ordered list of stages), ``cache`` the LRU of precomputation
 stacks, ``queries`` the query files and scan selection, ``result`` what a query or a batch answers.
 """
-from carto_cli.relocalization.cache import StackCache
+from carto_cli.matching.stack_cache import StackCache
 from carto_cli.relocalization.queries import (
     Query,
     iter_scans,

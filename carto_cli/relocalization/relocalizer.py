@@ -57,7 +57,7 @@ answers: with a prior 'windowed' (pass 1), 'windowed-wide' (pass 2), 'fallback-f
 'fallback-all'; without one 'global' over the covering submaps, then over the others.
 
 Precomputation stacks are built on first use and kept in an LRU cache under a
-memory budget (:class:`~carto_cli.relocalization.cache.StackCache`); queries and scan
+memory budget (:class:`~carto_cli.matching.stack_cache.StackCache`); queries and scan
 selection live in ``queries.py``, results, timings and the batch CSV in ``result.py``.
 """
 from __future__ import annotations
@@ -77,8 +77,8 @@ from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import stack_bytes
 from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.matching.scoring import inlier_fraction, known_score, score_at
+from carto_cli.matching.stack_cache import StackCache
 from carto_cli.options import Options
-from carto_cli.relocalization.cache import StackCache
 from carto_cli.relocalization.queries import Query, scans_for_queries
 from carto_cli.relocalization.result import BatchSummary, QueryResult, RelocalizationResult, Timings, summarize
 from carto_cli.sensor.range_filter import crop_scan

@@ -1,0 +1,69 @@
+"""Precomputation stacks of a map's submaps, built on first use and kept under a memory budget (LRU).
+
+The one cache of stacks: relocalization's over a saved map, and the loop-closure search's over the finished
+submaps of a map being built (the seed's submap cache). A dropped stack is rebuilt identically from its grid.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+
+from carto_cli.matching.precomputation import PrecomputationGridStack
+
+__all__ = ["StackCache"]
+
+
+class StackCache:
+    """Precomputation stacks by submap id, least recently used dropped beyond ``budget_bytes``.
+
+    The stack just built or used is always kept, even alone above the budget. Safe to share between threads
+    (two threads missing the same submap at once may both build it; either copy is the same).
+    """
+
+    def __init__(self, budget_bytes: int, depth: int):
+        self.budget_bytes = int(budget_bytes)
+        self.depth = int(depth)
+        self._stacks: OrderedDict[int, PrecomputationGridStack] = OrderedDict()
+        self.bytes = 0
+        self.hits = 0
+        self.misses = 0
+        self.evictions = 0
+        self.build_ms = 0.0
+        self.peak_bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, index: int, grid) -> PrecomputationGridStack:
+        with self._lock:
+            stack = self._stacks.get(index)
+            if stack is not None:
+                self._stacks.move_to_end(index)
+                self.hits += 1
+                return stack
+            self.misses += 1
+        t0 = time.perf_counter()
+        stack = PrecomputationGridStack(grid, self.depth)
+        with self._lock:
+            self.build_ms += (time.perf_counter() - t0) * 1e3
+            old = self._stacks.pop(index, None)
+            if old is not None:
+                self.bytes -= old.memory_bytes
+            self._stacks[index] = stack
+            self.bytes += stack.memory_bytes
+            while self.bytes > self.budget_bytes and len(self._stacks) > 1:
+                _, dropped = self._stacks.popitem(last=False)
+                self.bytes -= dropped.memory_bytes
+                self.evictions += 1
+            self.peak_bytes = max(self.peak_bytes, self.bytes)
+        return stack
+
+    def __contains__(self, index: int) -> bool:
+        return index in self._stacks
+
+    def __len__(self) -> int:
+        return len(self._stacks)
+
+    def stats(self) -> dict:
+        return {"stacks": len(self._stacks), "bytes": self.bytes, "budget_bytes": self.budget_bytes,
+                "hits": self.hits, "misses": self.misses, "evictions": self.evictions,
+                "build_ms": round(self.build_ms, 3)}
