@@ -427,6 +427,9 @@ def relocalize_(
     base_frame: str | None = BASE_FRAME,
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
+    jobs: int | None = typer.Option(None, "--jobs", "-j", min=1, help="--queries: queries relocalized at once "
+                                    "(default: every core); the answers are the same for any number, each "
+                                    "query's timings include waiting for a core (1 for latency figures)."),
 ):
     """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search.
 
@@ -452,7 +455,7 @@ def relocalize_(
         sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), corridor=corridor, global_search=global_,
         queries=queries, csv_out=csv_out, scan_topic=scan_topic, overrides=overrides,
         on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force,
-        read=z_slice(min_z, max_z), profile=profile, max_jump=max_jump)
+        read=z_slice(min_z, max_z), profile=profile, max_jump=max_jump, jobs=jobs)
     if run.auto is not None and not as_json:
         typer.echo(f"auto: {run.auto.describe()}", err=True)
     if as_json:

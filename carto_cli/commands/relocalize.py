@@ -150,6 +150,7 @@ def run_relocalize(
     read: ReadOptions | None = None,
     profile: str | Path | None = None,
     max_jump: float | None = None,
+    jobs: int | None = 1,
 ) -> RelocalizeRun:
     """Relocalize one scan (``at`` / ``scan_index``, default the first) from ``initial_pose`` ('x,y,yaw' text or
     a pose) or globally, or every line of ``queries`` (results to ``csv_out``, default QUERIES.results.csv).
@@ -160,7 +161,8 @@ def run_relocalize(
     with ``force`` (refused before any work). ``read``: how point clouds are sliced (io.recording.ReadOptions).
     ``map_file`` is a map.carto or a map_server YAML (``load_relocalization_map``, with ``profile``); a map that
     does not know where the laser sits (a map_server image) takes it from the recording's static TF.
-    ``max_jump`` (m): an answer farther than this from its prior is 'lost'.
+    ``max_jump`` (m): an answer farther than this from its prior is 'lost'. ``jobs``: threads for a batch
+    (None: every core).
     """
     if max_jump is not None and not max_jump > 0:
         raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
@@ -189,7 +191,7 @@ def run_relocalize(
             with progress("relocalizing", len(qs), quiet) as bar:
                 run.results, run.summary = relocalize_many(relocalizer, rec, qs, scan_topic=scan_topic,
                                                            corridor=corridor, on_query=bar.advance,
-                                                           laser_pose=mount, max_jump=max_jump)
+                                                           laser_pose=mount, max_jump=max_jump, jobs=jobs)
             assert csv_out is not None
             run.csv = write_results_csv(csv_out, run.results)
             return run

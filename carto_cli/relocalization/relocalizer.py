@@ -66,12 +66,15 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
+from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Scan
 from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import stack_bytes
@@ -887,17 +890,28 @@ def _window_levels(depth: int) -> tuple[tuple[float, int], ...]:
 
 def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query], *, scan_topic: str | None = None,
                     laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
-                    on_query=None, max_jump: float | None = None) -> tuple[list[QueryResult], BatchSummary]:
-    """Run every query against its scan (nearest to its time, or at its index), in file order."""
+                    on_query=None, max_jump: float | None = None,
+                    jobs: int | None = 1) -> tuple[list[QueryResult], BatchSummary]:
+    """Run every query against its scan (nearest to its time, or at its index), in file order, on ``jobs``
+    threads (None: every core). Queries are independent and the stack cache is shared and thread-safe, so the
+    answers are the same for any number; each query's own timings then include waiting for a core."""
     if not queries:
         raise CartoError("no queries")
     scans = scans_for_queries(recording, queries, scan_topic, max_time_offset)
-    results = []
-    for k, q in enumerate(queries):
+
+    def run(k: int) -> QueryResult:
+        q = queries[k]
         i, scan = scans[k]
         r = relocalizer.relocalize(scan, q.prior, sigma_xy=q.sigma_xy, sigma_yaw=q.sigma_yaw, corridor=corridor,
                                    laser_pose=laser_pose, max_jump=max_jump)
-        results.append(QueryResult(q, i, scan.time, r))
-        if on_query is not None:
-            on_query(1)
+        return QueryResult(q, i, scan.time, r)
+
+    jobs = available_cores() if jobs is None else max(1, int(jobs))
+    results = []
+    with ThreadPoolExecutor(max_workers=jobs) if jobs > 1 else nullcontext() as pool:
+        answers = pool.map(run, range(len(queries))) if pool is not None else map(run, range(len(queries)))
+        for result in answers:  # in file order, as each is done
+            results.append(result)
+            if on_query is not None:
+                on_query(1)
     return results, summarize(results)

@@ -66,6 +66,19 @@ def test_run_relocalize_batch_writes_the_csv_next_to_the_queries(cli_files, tmp_
     assert other.csv == tmp_path / "sub" / "r.csv" and other.csv.is_file()
 
 
+def test_a_batch_on_threads_gives_the_answers_of_one_thread(cli_files, tmp_path):
+    map_path, bag, qs = cli_files
+    q = tmp_path / "q.txt"
+    lines = [f"{s.time} {t[0] + 0.3} {t[1] - 0.2} {t[2] + 0.05}" for s, t in qs[:12:2]] + [f"{qs[3][0].time} - - -"]
+    q.write_text("\n".join(lines) + "\n")
+    one = run_relocalize(map_path, bag, queries=q, csv_out=tmp_path / "one.csv", jobs=1)
+    three = run_relocalize(map_path, bag, queries=q, csv_out=tmp_path / "three.csv", jobs=3)
+    assert len(one.results) == len(three.results) == len(lines)
+    for a, b in zip(one.results, three.results):
+        assert (a.scan_index, a.result.path, a.result.verdict) == (b.scan_index, b.result.path, b.result.verdict)
+        assert a.result.pose is None and b.result.pose is None or (a.result.pose == b.result.pose).all()
+
+
 def test_run_relocalize_reports_warnings_before_reading_the_recording(cli_files, tmp_path):
     map_path, _, _ = cli_files
     warned = []
