@@ -76,7 +76,7 @@ def test_a_batch_on_threads_gives_the_answers_of_one_thread(cli_files, tmp_path)
     assert len(one.results) == len(three.results) == len(lines)
     for a, b in zip(one.results, three.results):
         assert (a.scan_index, a.result.path, a.result.verdict) == (b.scan_index, b.result.path, b.result.verdict)
-        assert a.result.pose is None and b.result.pose is None or (a.result.pose == b.result.pose).all()
+        assert (a.result.pose is None and b.result.pose is None) or (a.result.pose == b.result.pose).all()
 
 
 def test_run_relocalize_reports_warnings_before_reading_the_recording(cli_files, tmp_path):
