@@ -529,7 +529,7 @@ def render_(
 
     done = run_render(map_file, outdir, resolution=resolution, mode=mode, occupied_thresh=occupied_thresh,
                       free_thresh=free_thresh, png_scale=png_scale, force=force)
-    h, w = done.image.probability.shape
+    h, w = done.image.shape
     typer.echo(f"{w} x {h} cells at {done.image.resolution:g} m -> {done.image_file}, {done.yaml}, {done.png}")
 
 

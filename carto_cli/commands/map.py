@@ -42,7 +42,7 @@ def write_outputs(result: MapResult, outdir: Path, options: Options | None = Non
     place together, so an interrupted or failed write leaves the earlier set (or nothing) as it was. Whether
     an existing set may be replaced is :func:`check_outdir`'s question, asked before mapping."""
     outdir = Path(outdir)
-    if result.image.probability.size == 0:
+    if 0 in result.image.shape:
         raise CartoError("the map is empty: no scan was inserted", outdir)
     with output_set(outdir, OUTPUT_NAMES) as staging:
         write_map(staging, result.image)

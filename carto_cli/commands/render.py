@@ -9,7 +9,7 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
-from carto_cli.grid.occupancy_image import OccupancyImage, assemble
+from carto_cli.grid.occupancy_image import AssembledImage, OccupancyImage
 from carto_cli.io.atomic import existing_outputs, output_set
 from carto_cli.io.map_file import LoadedMap, load_map
 from carto_cli.io.map_image import render_png, write_map, write_png
@@ -24,15 +24,15 @@ class Rendered:
     image_file: Path  # map.pgm (trinary) or map.scale.png (scale)
     yaml: Path
     png: Path
-    image: OccupancyImage
+    image: OccupancyImage | AssembledImage
 
 
-def map_image_of(loaded: LoadedMap, resolution: float | None = None) -> OccupancyImage:
+def map_image_of(loaded: LoadedMap, resolution: float | None = None) -> AssembledImage:
     """The occupancy image of a saved map's submaps at their optimized poses (at ``resolution``, default the
     submaps' own), as `carto map` assembles it."""
     corrections = [transform.compose(g, transform.inverse(s.local_pose))
                    for s, g in zip(loaded.submaps, loaded.submap_global_poses)]
-    return assemble([s.grid for s in loaded.submaps], corrections, resolution)
+    return AssembledImage([s.grid for s in loaded.submaps], corrections, resolution)
 
 
 def run_render(map_file: Path, outdir: Path, *, resolution: float | None = None, mode: str = "trinary",
@@ -53,7 +53,7 @@ def run_render(map_file: Path, outdir: Path, *, resolution: float | None = None,
         raise CartoError(f"already holds a map ({', '.join(taken)}); --force replaces it, or give another -o", outdir)
     loaded = load_map(map_file)
     image = map_image_of(loaded, resolution)
-    if image.probability.size == 0:
+    if 0 in image.shape:
         raise CartoError("the map has no known cell to render", map_file)
     trajectory = None if loaded.trajectory is None else loaded.trajectory.poses
     if trajectory is None and loaded.num_nodes:

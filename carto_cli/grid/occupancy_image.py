@@ -8,7 +8,7 @@ space.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,12 +32,13 @@ class OccupancyImage:
     resolution: float
     origin: tuple[float, float]
 
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.probability.shape[0]), int(self.probability.shape[1]))
+
     def world_to_pixel(self, xy: np.ndarray) -> np.ndarray:
         """(n, 2) world points to (n, 2) float pixel coordinates of the output image (row 0 at the top)."""
-        h = self.probability.shape[0]
-        px = (xy[:, 0] - self.origin[0]) / self.resolution
-        py = h - (xy[:, 1] - self.origin[1]) / self.resolution
-        return np.stack([px, py], axis=1)
+        return _world_to_pixel(xy, self.origin, self.resolution, self.probability.shape[0])
 
 
 def _logodds_table() -> np.ndarray:
@@ -83,37 +84,136 @@ def _known_corners(grid) -> np.ndarray | None:
     return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
 
 
+# Rows of the map assembled at a time: the accumulators (12 bytes a cell) exist for one strip only.
+STRIP_ROWS = 256
+# Maps up to this many cells are assembled whole when mapping ends (4 bytes a cell: 200 MB); larger ones are
+# assembled strip by strip as they are written, so a campus-sized map never sits in memory at full resolution.
+EAGER_CELLS = 50_000_000
+
+
+class AssembledImage:
+    """The occupancy image of submaps at their corrected poses, assembled on demand: ``probability`` (the whole
+    float32 image, made once and kept), or ``rows()`` strip by strip from the top, which is how the PGM writer
+    reads a large map. Interchangeable with :class:`OccupancyImage` for the readers of ``probability``,
+    ``resolution``, ``origin``, ``shape`` and ``world_to_pixel``; a strip holds the same values as the rows of the
+    whole image."""
+
+    def __init__(self, grids: Sequence, corrections: Sequence, resolution: float | None = None,
+                 margin_cells: int = 10):
+        self._parts = []
+        for grid, corr in zip(grids, corrections):
+            corners = _known_corners(grid)
+            if corners is not None:
+                corr = transform.as_pose(corr)
+                self._parts.append((grid, corr, transform.apply(corr, corners)))
+        self.resolution = float(resolution or (grids[0].resolution if len(grids) else 0.05))
+        self._probability: np.ndarray | None = None
+        if not self._parts:
+            self.origin, self.shape = (0.0, 0.0), (0, 0)
+            return
+        res = self.resolution
+        pts = np.concatenate([box for _, _, box in self._parts])
+        lo = np.floor(pts.min(axis=0) / res) * res - margin_cells * res
+        hi = np.ceil(pts.max(axis=0) / res) * res + margin_cells * res
+        self.origin = (float(lo[0]), float(lo[1]))
+        self.shape = (int(round((hi[1] - lo[1]) / res)), int(round((hi[0] - lo[0]) / res)))
+
+    @property
+    def probability(self) -> np.ndarray:
+        if self._probability is None:
+            ny, nx = self.shape
+            prob = np.empty((ny, nx), np.float32)
+            for y0 in range(0, ny, STRIP_ROWS):
+                prob[y0:y0 + STRIP_ROWS] = self._strip(y0, min(y0 + STRIP_ROWS, ny))
+            self._probability = prob
+        return self._probability
+
+    def rows(self, strip: int = STRIP_ROWS) -> Iterator[np.ndarray]:
+        """The image in strips of up to ``strip`` rows, top first and each with row 0 at the top (as written)."""
+        ny = self.shape[0]
+        for y1 in range(ny, 0, -strip):
+            y0 = max(0, y1 - strip)
+            rows = self._probability[y0:y1] if self._probability is not None else self._strip(y0, y1)
+            yield rows[::-1]
+
+    def world_to_pixel(self, xy: np.ndarray) -> np.ndarray:
+        return _world_to_pixel(xy, self.origin, self.resolution, self.shape[0])
+
+    def _strip(self, y0: int, y1: int) -> np.ndarray:
+        """float32 probabilities of rows [y0, y1) (row 0 at the bottom), NaN where unknown."""
+        res, nx = self.resolution, self.shape[1]
+        gox, goy = self.origin[0], self.origin[1] + y0 * res
+        total = np.zeros((y1 - y0, nx), np.float64)
+        count = np.zeros((y1 - y0, nx), np.int32)
+        lo = np.array([self.origin[0], goy])
+        for grid, corr, box in self._parts:
+            bmin = np.floor((box.min(axis=0) - lo) / res).astype(int)
+            bmax = np.ceil((box.max(axis=0) - lo) / res).astype(int)
+            x0, ya = max(bmin[0], 0), max(bmin[1], 0)
+            x1, yb = min(bmax[0] + 1, nx), min(bmax[1] + 1, y1 - y0)
+            if ya >= yb or x0 >= x1:
+                continue
+            _accumulate(total, count, gox, goy, res, grid.cells, _LOGODDS, grid.origin[0], grid.origin[1],
+                        grid.resolution, math.cos(corr[2]), math.sin(corr[2]), corr[0], corr[1], x0, ya, x1, yb)
+        known = count > 0
+        prob = np.full(total.shape, np.nan, np.float32)
+        prob[known] = (1.0 / (1.0 + np.exp(-total[known] / count[known]))).astype(np.float32)
+        return prob
+
+
+def _world_to_pixel(xy: np.ndarray, origin, resolution: float, height: int) -> np.ndarray:
+    px = (xy[:, 0] - origin[0]) / resolution
+    py = height - (xy[:, 1] - origin[1]) / resolution
+    return np.stack([px, py], axis=1)
+
+
+def image_rows(image, strip: int = STRIP_ROWS) -> Iterator[np.ndarray]:
+    """Strips of ``image`` (an OccupancyImage or an AssembledImage), top first, row 0 at the top."""
+    if isinstance(image, AssembledImage):
+        yield from image.rows(strip)
+        return
+    p = image.probability
+    for y1 in range(p.shape[0], 0, -strip):
+        yield p[max(0, y1 - strip):y1][::-1]
+
+
+def coarsened(image, factor: int) -> OccupancyImage:
+    """``image`` with ``factor`` x ``factor`` cells made one, built strip by strip: a block is unknown when all of
+    its cells are, else it takes its most occupied known cell (walls stay walls when the map shrinks)."""
+    factor = int(factor)
+    if factor <= 1:
+        return image if isinstance(image, OccupancyImage) else OccupancyImage(image.probability, image.resolution,
+                                                                               image.origin)
+    ny, nx = image.shape
+    cy, cx = -(-ny // factor), -(-nx // factor)
+    out = np.full((cy, cx), np.nan, np.float32)
+    filled = 0  # coarse rows done, from the top
+    top_pad = cy * factor - ny  # the coarse grid's top row may cover fewer fine rows: pad them unknown
+    pending = np.full((top_pad, nx), np.nan, np.float32)
+    for rows in image_rows(image, STRIP_ROWS):
+        pending = np.concatenate([pending, rows])
+        whole = pending.shape[0] // factor * factor
+        if whole:
+            block = pending[:whole]
+            padded = np.full((whole, cx * factor), np.nan, np.float32)
+            padded[:, :nx] = block
+            # fmax ignores NaN (unknown) unless every cell of the block is
+            blocks = padded.reshape(whole // factor, factor, cx, factor)
+            reduced = np.fmax.reduce(np.fmax.reduce(blocks, axis=3), axis=1)
+            out[filled:filled + whole // factor] = reduced
+            filled += whole // factor
+            pending = pending[whole:]
+    # out is top-down here; OccupancyImage keeps row 0 at the bottom. The coarse grid keeps the lower-left corner.
+    return OccupancyImage(np.ascontiguousarray(out[::-1]), image.resolution * factor, image.origin)
+
+
 def assemble(grids: Sequence, corrections: Sequence, resolution: float | None = None,
              margin_cells: int = 10) -> OccupancyImage:
     """Merge grids; ``corrections[i]`` maps grid i's own frame into the map frame (x, y, theta)."""
-    boxes = []
-    for grid, corr in zip(grids, corrections):
-        corners = _known_corners(grid)
-        if corners is None:
-            continue
-        boxes.append(transform.apply(transform.as_pose(corr), corners))
-    if not boxes:
+    image = AssembledImage(grids, corrections, resolution, margin_cells)
+    if 0 in image.shape:
         return OccupancyImage(np.zeros((0, 0), np.float32), resolution or 0.05, (0.0, 0.0))
-    res = float(resolution or grids[0].resolution)
-    pts = np.concatenate(boxes)
-    lo = np.floor(pts.min(axis=0) / res) * res - margin_cells * res
-    hi = np.ceil(pts.max(axis=0) / res) * res + margin_cells * res
-    nx = int(round((hi[0] - lo[0]) / res))
-    ny = int(round((hi[1] - lo[1]) / res))
-    total = np.zeros((ny, nx), np.float64)
-    count = np.zeros((ny, nx), np.int32)
-    for grid, corr, box in zip(grids, corrections, boxes):
-        corr = transform.as_pose(corr)
-        bmin = np.floor((box.min(axis=0) - lo) / res).astype(int)
-        bmax = np.ceil((box.max(axis=0) - lo) / res).astype(int)
-        x0, y0 = max(bmin[0], 0), max(bmin[1], 0)
-        x1, y1 = min(bmax[0] + 1, nx), min(bmax[1] + 1, ny)
-        _accumulate(total, count, lo[0], lo[1], res, grid.cells, _LOGODDS, grid.origin[0], grid.origin[1],
-                    grid.resolution, math.cos(corr[2]), math.sin(corr[2]), corr[0], corr[1], x0, y0, x1, y1)
-    known = count > 0
-    prob = np.full((ny, nx), np.nan, np.float32)
-    prob[known] = (1.0 / (1.0 + np.exp(-total[known] / count[known]))).astype(np.float32)
-    return OccupancyImage(prob, res, (float(lo[0]), float(lo[1])))
+    return OccupancyImage(image.probability, image.resolution, image.origin)
 
 
 @register_warm_up

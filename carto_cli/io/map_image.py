@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from carto_cli.core.errors import CartoError
-from carto_cli.grid.occupancy_image import OccupancyImage
+from carto_cli.grid.occupancy_image import AssembledImage, OccupancyImage, coarsened, image_rows
 from carto_cli.io.atomic import atomic_output, write_text_atomic
 
 UNKNOWN = 205  # map_server's "unknown" grey; (255-205)/255 = 0.196 sits exactly on free_thresh, so it stays unknown
@@ -26,7 +26,11 @@ def to_pgm_pixels(image: OccupancyImage, trinary: bool = False) -> np.ndarray:
     call unknown, leaving a planner nothing to drive on; the evidence balance is what
     the grid actually knows.
     """
-    p = image.probability
+    return np.ascontiguousarray(_pgm_rows(image.probability, trinary)[::-1])
+
+
+def _pgm_rows(p: np.ndarray, trinary: bool) -> np.ndarray:
+    """``to_pgm_pixels`` of rows of probabilities, in their own order."""
     known = ~np.isnan(p)
     pixels = np.full(p.shape, UNKNOWN, dtype=np.uint8)
     if trinary:
@@ -36,15 +40,18 @@ def to_pgm_pixels(image: OccupancyImage, trinary: bool = False) -> np.ndarray:
         # map_server reads occupancy as (255 - value) / 255 with negate 0.
         values = np.clip(np.rint(255.0 * (1.0 - np.where(known, p, 0.5))), 0, 254).astype(np.uint8)
         pixels[known] = values[known]
-    return np.ascontiguousarray(pixels[::-1])
+    return pixels
+
+
+def _pgm_header(h: int, w: int) -> bytes:
+    return f"P5\n# carto map\n{w} {h}\n255\n".encode()
 
 
 def _pgm_bytes(pixels: np.ndarray) -> bytes:
-    h, w = pixels.shape
-    return f"P5\n# carto map\n{w} {h}\n255\n".encode() + pixels.tobytes()
+    return _pgm_header(*pixels.shape) + pixels.tobytes()
 
 
-def map_yaml(image_name: str, image: OccupancyImage, mode: str = "trinary") -> str:
+def map_yaml(image_name: str, image: OccupancyImage | AssembledImage, mode: str = "trinary") -> str:
     ox, oy = image.origin
     return (
         f"image: {image_name}\n"
@@ -59,15 +66,18 @@ def map_yaml(image_name: str, image: OccupancyImage, mode: str = "trinary") -> s
 
 def _thresholded_pixels(image: OccupancyImage, occupied_thresh: float, free_thresh: float) -> np.ndarray:
     """Trinary pixels by probability thresholds: >= occupied 0, <= free 254, between and never seen 205."""
-    p = image.probability
+    return np.ascontiguousarray(_thresholded_rows(image.probability, occupied_thresh, free_thresh)[::-1])
+
+
+def _thresholded_rows(p: np.ndarray, occupied_thresh: float, free_thresh: float) -> np.ndarray:
     known = ~np.isnan(p)
     pixels = np.full(p.shape, UNKNOWN, dtype=np.uint8)
     pixels[known & (p >= occupied_thresh)] = 0
     pixels[known & (p <= free_thresh)] = 254
-    return np.ascontiguousarray(pixels[::-1])
+    return pixels
 
 
-def _scale_bgra(image: OccupancyImage) -> np.ndarray:
+def _scale_bgra(image: OccupancyImage | AssembledImage) -> np.ndarray:
     """map_server 'scale' mode keeps the probability: grey 255 (1 - p); never-seen cells transparent, which is
     the only way scale mode reads a cell as unknown."""
     p = image.probability
@@ -77,7 +87,7 @@ def _scale_bgra(image: OccupancyImage) -> np.ndarray:
     return np.ascontiguousarray(bgra[::-1])
 
 
-def write_map(outdir: Path, image: OccupancyImage, stem: str = "map", *, mode: str = "trinary",
+def write_map(outdir: Path, image: OccupancyImage | AssembledImage, stem: str = "map", *, mode: str = "trinary",
               occupied_thresh: float | None = None, free_thresh: float | None = None) -> tuple[Path, Path]:
     """Write the map_server image and ``stem.yaml``; the YAML goes last so a reader never sees it without its image.
 
@@ -85,7 +95,7 @@ def write_map(outdir: Path, image: OccupancyImage, stem: str = "map", *, mode: s
     (``to_pgm_pixels``); with ``occupied_thresh`` / ``free_thresh`` by its probability, cells in between unknown.
     ``scale`` (``stem.scale.png``, grey and alpha): the probability itself, map_server reading it in scale mode.
     """
-    if image.probability.size == 0:
+    if 0 in image.shape:
         raise CartoError("the map is empty: no scan was inserted", outdir)
     if mode not in ("trinary", "scale"):
         raise CartoError(f"--mode must be trinary or scale, got {mode!r}")
@@ -101,15 +111,21 @@ def write_map(outdir: Path, image: OccupancyImage, stem: str = "map", *, mode: s
     else:
         img = outdir / f"{stem}.pgm"
         if occupied_thresh is None and free_thresh is None:
-            pixels = to_pgm_pixels(image, trinary=True)
+            def pixels(rows: np.ndarray) -> np.ndarray:
+                return _pgm_rows(rows, True)
         else:
             occ = OCCUPIED_THRESH if occupied_thresh is None else float(occupied_thresh)
             free = FREE_THRESH if free_thresh is None else float(free_thresh)
             if not 0.0 <= free < occ <= 1.0:
                 raise CartoError(f"need 0 <= --free-thresh ({free:g}) < --occupied-thresh ({occ:g}) <= 1")
-            pixels = _thresholded_pixels(image, occ, free)
-        with atomic_output(img) as tmp:
-            tmp.write_bytes(_pgm_bytes(pixels))
+
+            def pixels(rows: np.ndarray) -> np.ndarray:
+                return _thresholded_rows(rows, occ, free)
+        # Strip by strip, top first: a campus-sized map is never held whole (grid.occupancy_image.AssembledImage).
+        with atomic_output(img) as tmp, open(tmp, "wb") as f:
+            f.write(_pgm_header(*image.shape))
+            for rows in image_rows(image):
+                f.write(np.ascontiguousarray(pixels(rows)).tobytes())
     write_text_atomic(yml, map_yaml(img.name, image, mode))
     return img, yml
 
@@ -121,10 +137,11 @@ PNG_FREE = 255  # p = 0.1 (certainly free) ... PNG_FREE_EDGE at p = 0.5
 PNG_FREE_EDGE = 215
 PNG_WALL_EDGE = 110  # p just above 0.5 ... 0 at p = 0.9
 PNG_TARGET_PX = 900  # the longer side of map.png is scaled up towards this (whole multiples, at most 8x)
+PNG_MAX_PX = 4096  # a map longer than this (cells) is drawn with whole blocks of cells per pixel to fit
 _FOOTER_PX = 34
 
 
-def to_png_pixels(image: OccupancyImage) -> np.ndarray:
+def to_png_pixels(image: OccupancyImage | AssembledImage) -> np.ndarray:
     """uint8 grey levels for people (PNG_* above), row 0 at the top."""
     p = image.probability
     known = ~np.isnan(p)
@@ -137,9 +154,9 @@ def to_png_pixels(image: OccupancyImage) -> np.ndarray:
     return np.ascontiguousarray(pixels[::-1])
 
 
-def png_scale_for(image: OccupancyImage) -> int:
+def png_scale_for(image: OccupancyImage | AssembledImage) -> int:
     """The default upscaling of map.png: a whole factor bringing the longer side towards PNG_TARGET_PX."""
-    longest = max(image.probability.shape) if image.probability.size else 1
+    longest = max(image.shape) if 0 not in image.shape else 1
     return int(min(8, max(1, PNG_TARGET_PX // max(longest, 1))))
 
 
@@ -155,7 +172,7 @@ def _nice_length(metres: float) -> float:
 
 
 def render_png(
-    image: OccupancyImage,
+    image: OccupancyImage | AssembledImage,
     trajectory_xy: np.ndarray | None = None,
     constraints_xy: np.ndarray | None = None,
     scale: int | None = None,
@@ -164,6 +181,10 @@ def render_png(
     """BGR image for people: the map (``to_png_pixels``) scaled by ``scale`` (default ``png_scale_for``),
     loop-closure constraints in green, the trajectory in red with its start (green dot) and end (red square),
     and below it a footer with a scale bar and a legend."""
+    longest = max(image.shape) if 0 not in image.shape else 1
+    if longest > PNG_MAX_PX:
+        # A campus at 5 cm is 20,000 cells across: drawn whole it would take gigabytes, and no screen shows it.
+        image = coarsened(image, math.ceil(longest / PNG_MAX_PX))
     scale = png_scale_for(image) if scale is None else int(scale)
     if scale < 1:
         raise CartoError(f"--png-scale must be a whole number >= 1, got {scale}")

@@ -22,7 +22,7 @@ import numpy as np
 from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
-from carto_cli.grid.occupancy_image import OccupancyImage, assemble
+from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
 from carto_cli.mapping.local_slam import LocalSlam, LocalSlamResult
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.submaps import Submap
@@ -37,7 +37,7 @@ class SlamResult:
     node_scans: np.ndarray  # (N,) index into times/poses of every node
     submaps: list[Submap]
     submap_poses: np.ndarray  # (M, 3) global poses of the submaps' frames (local frame ↦ map frame)
-    image: OccupancyImage
+    image: OccupancyImage | AssembledImage  # a large map is assembled strip by strip as it is written
     laser_pose: np.ndarray
     stats: dict = field(default_factory=dict)
     loop_closures: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (K, 4) x1 y1 x2 y2 for drawing
@@ -205,7 +205,9 @@ class Slam:
         submap_poses = graph.submap_global_poses
         with timer.stage("assemble map"):
             corrections = [graph.local_to_global(i) for i in range(len(graph.submaps))]
-            image = assemble([sm.grid for sm in submaps], corrections)
+            image = AssembledImage([sm.grid for sm in submaps], corrections)
+            if image.shape[0] * image.shape[1] <= EAGER_CELLS:
+                image.probability  # noqa: B018 - assembled now, in this stage; a larger map as it is written
         wall = _time.perf_counter() - self._started
         n_scans = self.num_scans
         stats = {

@@ -60,3 +60,46 @@ def test_cells_are_averaged_not_summed():
 def test_no_known_cell_gives_an_empty_image():
     image = assemble([ProbabilityGrid(0.05, (0.0, 0.0), (10, 10))], [np.zeros(3)])
     assert isinstance(image, OccupancyImage) and image.probability.shape == (0, 0)
+
+
+def _random_grids(seed: int, n: int = 3):
+    rng = np.random.default_rng(seed)
+    grids, corrections = [], []
+    for k in range(n):
+        g = ProbabilityGrid(0.05, (k * 1.3, -0.7 * k), (320, 210))
+        g.set_probability(rng.integers(0, 210, size=(600, 2)), 0.85)
+        g.set_probability(rng.integers(0, 210, size=(600, 2)), 0.25)
+        grids.append(g)
+        corrections.append(np.array([0.4 * k, -0.3, 0.35 * k]))
+    return grids, corrections
+
+
+@pytest.mark.parametrize("strip", [1, 37, 256, 10_000])
+def test_strips_hold_exactly_the_rows_of_the_whole_image(strip):
+    from carto_cli.grid.occupancy_image import AssembledImage, image_rows
+
+    grids, corrections = _random_grids(1)
+    whole = assemble(grids, corrections)
+    lazy = AssembledImage(grids, corrections)
+    assert lazy.shape == whole.probability.shape and lazy.origin == whole.origin
+    top_down = whole.probability[::-1]
+    for rows in (list(lazy.rows(strip)), list(image_rows(whole, strip))):
+        assert sum(len(r) for r in rows) == len(top_down)
+        np.testing.assert_array_equal(np.concatenate(rows), top_down)
+
+
+def test_coarsening_keeps_walls_and_unknown():
+    from carto_cli.grid.occupancy_image import AssembledImage, coarsened
+
+    grids, corrections = _random_grids(2)
+    lazy = AssembledImage(grids, corrections)
+    p = lazy.probability
+    f = 6
+    ny, nx = p.shape
+    coarse = coarsened(lazy, f)
+    assert coarse.probability.shape == (-(-ny // f), -(-nx // f)) and coarse.resolution == pytest.approx(0.05 * f)
+    assert coarse.origin == lazy.origin
+    for cy, cx in [(0, 0), (3, 7), (coarse.probability.shape[0] - 1, coarse.probability.shape[1] - 1)]:
+        block = p[cy * f:(cy + 1) * f, cx * f:(cx + 1) * f]
+        expected = np.nan if np.isnan(block).all() else np.nanmax(block)
+        np.testing.assert_equal(coarse.probability[cy, cx], np.float32(expected))

@@ -1,0 +1,43 @@
+"""The map_server image written strip by strip, and map.png of a map too large to draw cell by cell."""
+import numpy as np
+
+from carto_cli.grid.occupancy_image import AssembledImage, assemble
+from carto_cli.grid.probability_grid import ProbabilityGrid
+from carto_cli.io import map_image
+
+
+def _grids():
+    rng = np.random.default_rng(4)
+    grids, corrections = [], []
+    for k in range(2):
+        g = ProbabilityGrid(0.05, (2.0 * k, 0.0), (400, 300))
+        g.set_probability(rng.integers(0, 300, size=(900, 2)), 0.9)
+        g.set_probability(rng.integers(0, 300, size=(900, 2)), 0.2)
+        grids.append(g)
+        corrections.append(np.array([0.5 * k, 0.2, 0.3 * k]))
+    return grids, corrections
+
+
+def test_the_pgm_written_in_strips_is_the_whole_images(tmp_path):
+    grids, corrections = _grids()
+    whole = assemble(grids, corrections)
+    lazy = AssembledImage(grids, corrections)
+    for kwargs in ({}, {"occupied_thresh": 0.7, "free_thresh": 0.3}):
+        a, _ = map_image.write_map(tmp_path / "a", whole, **kwargs)
+        b, _ = map_image.write_map(tmp_path / "b", lazy, **kwargs)
+        assert a.read_bytes() == b.read_bytes()
+    expected = map_image._pgm_bytes(map_image.to_pgm_pixels(whole, trinary=True))
+    assert (tmp_path / "a" / "map.pgm").read_bytes() != b"" and map_image.write_map(tmp_path / "c", whole)[0] \
+        .read_bytes() == expected
+
+
+def test_a_map_longer_than_png_max_px_is_drawn_with_blocks_of_cells(monkeypatch):
+    grids, corrections = _grids()
+    lazy = AssembledImage(grids, corrections)
+    monkeypatch.setattr(map_image, "PNG_MAX_PX", 100)
+    bgr = map_image.render_png(lazy, legend=False)
+    factor = -(-max(lazy.shape) // 100)
+    coarse = (-(-lazy.shape[0] // factor), -(-lazy.shape[1] // factor))
+    assert max(coarse) <= 100
+    up = min(8, map_image.PNG_TARGET_PX // max(coarse))  # then scaled up for people as any small map
+    assert bgr.shape[:2] == (coarse[0] * up, coarse[1] * up)
