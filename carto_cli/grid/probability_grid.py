@@ -11,6 +11,11 @@ arrays are indexed ``cells[iy, ix]`` so row 0 is the lowest y.
 """
 from __future__ import annotations
 
+import threading
+import weakref
+import zlib
+from collections import OrderedDict
+
 import numpy as np
 
 MIN_PROBABILITY = 0.1
@@ -46,8 +51,92 @@ VALUE_TO_PROBABILITY = 1.0 - VALUE_TO_CORRESPONDENCE_COST
 VALUE_TO_PROBABILITY.flags.writeable = False
 
 
+# Packed grids (finished submaps) are unpacked on access and the unpacked cells kept, least recently used
+# dropped first, up to this many bytes in all: the submaps searched around the robot stay unpacked.
+UNPACKED_BUDGET = 64 * 2**20
+
+
+class _UnpackedCells:
+    """The LRU of unpacked cells of packed grids, shared by every grid and thread."""
+
+    def __init__(self, budget: int):
+        self.budget = int(budget)
+        self.bytes = 0
+        # Reentrant: a grid collected while the lock is held runs _forget in the same thread.
+        self._lock = threading.RLock()
+        self._grids: OrderedDict[int, tuple[weakref.ref, int]] = OrderedDict()  # id -> (grid, unpacked bytes)
+
+    def get(self, grid: ProbabilityGrid) -> np.ndarray:
+        with self._lock:
+            cells = grid._unpacked
+            if cells is not None:
+                self._grids.move_to_end(id(grid))
+                return cells
+        assert grid._packed is not None
+        packed, shape = grid._packed
+        # A writable array (bytearray): numba compiles read-only arrays as another type.
+        cells = np.frombuffer(bytearray(zlib.decompress(packed)), dtype=np.uint16).reshape(shape)
+        with self._lock:
+            if grid._unpacked is not None:  # another thread unpacked it meanwhile: one copy is kept
+                return grid._unpacked
+            grid._unpacked = cells
+            key = id(grid)
+            self._grids[key] = (weakref.ref(grid, self._forgetter(key)), cells.nbytes)
+            self.bytes += cells.nbytes
+            while self.bytes > self.budget and len(self._grids) > 1:
+                _, (ref, nbytes) = self._grids.popitem(last=False)
+                self.bytes -= nbytes
+                dropped = ref()
+                if dropped is not None:
+                    dropped._unpacked = None  # a kernel still holding the array keeps it alive until done
+        return cells
+
+    def _forgetter(self, key: int):
+        def forget(_ref: weakref.ref) -> None:
+            self._forget(key)
+        return forget
+
+    def _forget(self, key: int) -> None:
+        """A grid was collected (its weakref's callback): its unpacked cells went with it."""
+        with self._lock:
+            entry = self._grids.pop(key, None)
+            if entry is not None:
+                self.bytes -= entry[1]
+
+
+_UNPACKED = _UnpackedCells(UNPACKED_BUDGET)
+
+
 class ProbabilityGrid:
     """A growable occupancy grid of one submap (or of a whole map)."""
+
+    _cells: np.ndarray | None = None
+    _packed: tuple[bytes, tuple[int, int]] | None = None
+    _unpacked: np.ndarray | None = None
+
+    @property
+    def cells(self) -> np.ndarray:
+        """(ny, nx) uint16 values (unpacked on access if the grid is packed)."""
+        cells = self._cells
+        return cells if cells is not None else _UNPACKED.get(self)
+
+    @cells.setter
+    def cells(self, value: np.ndarray) -> None:
+        self._cells = value
+        self._packed = self._unpacked = None
+
+    def pack(self) -> None:
+        """Keep the cells zlib-compressed from now on (a finished submap, mostly unknown cells: several times
+        smaller); reads unpack them through a shared LRU. The grid must not be written after this."""
+        cells = self.cells
+        self._packed = (zlib.compress(np.ascontiguousarray(cells).tobytes(), 1), (int(cells.shape[0]),
+                                                                                  int(cells.shape[1])))
+        self._cells = None
+
+    @property
+    def packed_bytes(self) -> int:
+        """Bytes the cells take at rest (packed or not)."""
+        return len(self._packed[0]) if self._packed is not None else int(self.cells.nbytes)
 
     def __init__(self, resolution: float = 0.05, origin=(0.0, 0.0), num_cells=(100, 100)):
         nx, ny = int(num_cells[0]), int(num_cells[1])

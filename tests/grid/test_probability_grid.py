@@ -70,3 +70,40 @@ def test_cropped_keeps_known_cells_only():
     assert c.num_cells == (21, 6)
     np.testing.assert_allclose(c.probability(c.cell_index(g.cell_center([[10, 20], [30, 25]]))), 0.8, atol=1e-4)
     assert c.known_bounds == (0, 0, 20, 5)
+
+
+def test_a_packed_grid_reads_the_same_cells_and_takes_less_memory():
+    import gc
+
+    from carto_cli.grid import probability_grid as pg
+
+    grid = ProbabilityGrid(0.05, (0.0, 0.0), (400, 300))
+    grid.set_probability(np.array([[3, 4], [100, 150], [399, 299]]), 0.8)
+    cells = grid.cells.copy()
+    grid.pack()
+    assert grid.packed_bytes < cells.nbytes / 20  # mostly unknown, as a corridor's submap
+    read = grid.cells
+    assert np.array_equal(read, cells) and read.flags.writeable and read.dtype == np.uint16
+    assert grid.cells is read  # kept unpacked while the budget allows
+    before = pg._UNPACKED.bytes
+    del grid, read
+    gc.collect()
+    assert pg._UNPACKED.bytes == before - cells.nbytes  # a collected grid's cells leave the count
+
+
+def test_unpacked_cells_stay_within_their_budget(monkeypatch):
+    from carto_cli.grid import probability_grid as pg
+
+    lru = pg._UnpackedCells(3 * 400 * 300 * 2)
+    monkeypatch.setattr(pg, "_UNPACKED", lru)
+    grids = []
+    for k in range(6):
+        g = ProbabilityGrid(0.05, (0.0, 0.0), (400, 300))
+        g.set_probability(np.array([[k, k]]), 0.8)
+        g.pack()
+        grids.append(g)
+    for g in grids:
+        assert g.cells[g.cells > 0].size == 1
+    assert lru.bytes <= lru.budget and sum(g._unpacked is not None for g in grids) == 3
+    for k, g in enumerate(grids):  # evicted ones unpack again, the same
+        assert g.cells[k, k] == grids[k].cells[k, k] > 0
