@@ -100,7 +100,7 @@ class SearchOutcome:
     submap: SubmapData
     global_search: bool
     closure: LoopClosure | None = None
-    outcome: str = "empty"  # empty | not found | refinement | drift | see-through | accepted
+    outcome: str = "empty"  # empty | not found | drift | window edge | refinement | see-through | accepted
     ns: dict = field(default_factory=dict)  # stage name -> ns
 
 
@@ -125,6 +125,7 @@ class ConstraintBuilderStats:
     rejected_refinement: int = 0
     rejected_see_through: int = 0
     rejected_drift: int = 0
+    rejected_window_edge: int = 0
     accepted: int = 0
 
 
@@ -253,6 +254,8 @@ class ConstraintBuilder:
             return SearchOutcome(node, submap, global_search, outcome="not found", ns=ns)
         if not global_search and self._drifted(node, submap, result.pose, estimate):
             return SearchOutcome(node, submap, global_search, outcome="drift", ns=ns)
+        if not global_search and self._on_window_edge(result.pose, estimate):
+            return SearchOutcome(node, submap, global_search, outcome="window edge", ns=ns)
         c = self.cb.ceres_scan_matcher
         ls = least_squares.match(grid, points, result.pose, target_translation=result.pose[:2],
                                  occupied_space_weight=c.occupied_space_weight,
@@ -278,6 +281,13 @@ class ConstraintBuilder:
         closure = LoopClosure(node.index, submap.index, relative, result.score, global_search)
         return SearchOutcome(node, submap, global_search, closure, "accepted", ns)
 
+    def _on_window_edge(self, pose: np.ndarray, estimate: np.ndarray) -> bool:
+        margin = self.cb.window_edge_margin
+        if margin <= 0:
+            return False
+        limit = self.cb.fast_correlative_scan_matcher.linear_search_window - margin
+        return abs(pose[0] - estimate[0]) > limit or abs(pose[1] - estimate[1]) > limit
+
     def _drifted(self, node: NodeData, submap: SubmapData, pose: np.ndarray, estimate: np.ndarray) -> bool:
         """Whether the match moves the node further from the graph's estimate than local SLAM can have drifted
         over the travel between node and submap (``max_drift``; only within one trajectory)."""
@@ -302,6 +312,7 @@ class ConstraintBuilder:
         stats.rejected_refinement += int(o.outcome == "refinement")
         stats.rejected_see_through += int(o.outcome == "see-through")
         stats.rejected_drift += int(o.outcome == "drift")
+        stats.rejected_window_edge += int(o.outcome == "window edge")
         if o.closure is None:
             return None
         stats.accepted += 1

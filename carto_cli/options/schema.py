@@ -244,6 +244,10 @@ class ConstraintBuilder:
                             "0.5 m + this share of the local-SLAM travel between them (0: no check): a node a "
                             "few metres of travel from the submap cannot be metres off, only an aliased "
                             "match (a corridor) says so", ge=0)
+    window_edge_margin: float = _opt(0.0, "carto: a windowed match this close to the edge of the search window "
+                                     "(in x or y) is rejected: the best pose inside a window that does not hold "
+                                     "the true one lies on its edge, and along a corridor it is an aliased match "
+                                     "(0: no check)", unit="m", ge=0)
     precomputation_memory: float = _opt(256.0, "carto: memory for the finished submaps' precomputation grids "
                                         "(branch and bound); beyond it the least recently searched are dropped "
                                         "and rebuilt when searched again (the map does not change; the "
