@@ -8,8 +8,10 @@ on toy data; :func:`warm_up` runs every registered one that has not run yet, so 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from collections.abc import Callable, Collection
 
 from carto_cli.core.timing import NullTimer
@@ -52,17 +54,45 @@ def warm_up(timer=None, systems: Collection[str] | None = None) -> None:
         return
     timer = timer or NullTimer()
     with timer.stage(STAGE):
-        helpers = _start_helpers(wanted)
-        mine = wanted[::len(helpers) + 1]
-        for fn in mine:
-            fn()
-            _done.add(fn)
-        for helper in helpers:
-            helper.wait()  # a helper that failed only means this process compiles its share below
+        claims = tempfile.mkdtemp(prefix="carto-jit-") if _is_cold(wanted) else None
+        helpers = _start_helpers(wanted, claims) if claims is not None else []
+        try:
+            # Whoever claims a warm-up first compiles it (this process from the front of the list, helpers from
+            # the back): the shares balance however unequal the warm-ups are (local SLAM's take 10 s, others 1 s).
+            for fn in wanted:
+                if claims is None or _claim(claims, fn):
+                    fn()
+                    _done.add(fn)
+            for helper in helpers:
+                helper.wait()  # a helper that failed only means this process compiles its share below
+        finally:
+            if claims is not None:
+                shutil.rmtree(claims, ignore_errors=True)
         for fn in wanted:
             if fn not in _done:
-                fn()
+                fn()  # compiled by a helper: loaded from the cache
                 _done.add(fn)
+
+
+def _name(fn: Callable[[], None]) -> str:
+    return f"{fn.__module__}:{fn.__qualname__}"
+
+
+def _claim(claims: str, fn_or_name) -> bool:
+    """Whether this process is the first to take the warm-up (an exclusive file create is atomic)."""
+    name = fn_or_name if isinstance(fn_or_name, str) else _name(fn_or_name)
+    try:
+        os.close(os.open(os.path.join(claims, name.replace(":", "-")), os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return False
+    return True
+
+
+def _is_cold(wanted: list[Callable[[], None]]) -> bool:
+    from carto_cli.core.parallel import available_cores
+
+    return (not os.environ.get(_HELPER_ENV) and len(wanted) >= 2 and available_cores() >= 2
+            and any(_cold(fn) for fn in wanted))
 
 
 def _cold(fn: Callable[[], None]) -> bool:
@@ -82,16 +112,15 @@ def _cold(fn: Callable[[], None]) -> bool:
     return bool(indexes) and not any(os.path.exists(i) for i in indexes)
 
 
-def _start_helpers(wanted: list[Callable[[], None]]) -> list[subprocess.Popen]:
+def _start_helpers(wanted: list[Callable[[], None]], claims: str) -> list[subprocess.Popen]:
     from carto_cli.core.parallel import available_cores
 
-    if os.environ.get(_HELPER_ENV) or len(wanted) < 2 or not any(_cold(fn) for fn in wanted):
-        return []
     n = min(available_cores(), len(wanted)) - 1
+    names = [_name(fn) for fn in wanted]
     helpers = []
     for k in range(1, n + 1):
-        names = [f"{fn.__module__}:{fn.__qualname__}" for fn in wanted[k::n + 1]]
-        code = f"from carto_cli.core.kernels import _helper; _helper({names!r})"
+        order = names[::-1] if k == 1 else names[k:] + names[:k]
+        code = f"from carto_cli.core.kernels import _helper; _helper({order!r}, {claims!r})"
         try:
             helpers.append(subprocess.Popen([sys.executable, "-c", code], env={**os.environ, _HELPER_ENV: "1"},
                                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
@@ -100,10 +129,11 @@ def _start_helpers(wanted: list[Callable[[], None]]) -> list[subprocess.Popen]:
     return helpers
 
 
-def _helper(names: list[str]) -> None:
-    """In a helper process: run the named warm-ups (compiling their kernels into the on-disk cache)."""
+def _helper(names: list[str], claims: str) -> None:
+    """In a helper process: run the named warm-ups nobody has claimed (compiling their kernels into the cache)."""
     import importlib
 
     for name in names:
-        module, qualname = name.split(":")
-        getattr(importlib.import_module(module), qualname)()
+        if _claim(claims, name):
+            module, qualname = name.split(":")
+            getattr(importlib.import_module(module), qualname)()

@@ -45,3 +45,18 @@ def test_a_systems_warm_up_runs_only_for_that_system(monkeypatch):
     assert calls == ["shared"] and not kernels.pending(("cartographer",)) and kernels.pending(("gmapping",))
     kernels.warm_up(systems=("gmapping",))
     assert calls == ["shared", "gmapping"] and not kernels.pending()
+
+
+def test_a_warm_up_is_claimed_by_one_process_only(tmp_path):
+    """On a cold cache this process and its helpers take warm-ups by an exclusive file create: one each."""
+    assert kernels._claim(str(tmp_path), "carto_cli.mapping.local_slam:warm_up")
+    assert not kernels._claim(str(tmp_path), "carto_cli.mapping.local_slam:warm_up")
+    assert kernels._claim(str(tmp_path), "carto_cli.matching.branch_and_bound:warm_up")
+
+
+def test_a_warm_cache_starts_no_helper(monkeypatch):
+    monkeypatch.setattr(kernels, "_cold", lambda fn: False)
+    assert not kernels._is_cold([lambda: None, lambda: None])
+    monkeypatch.setattr(kernels, "_cold", lambda fn: True)
+    monkeypatch.setenv(kernels._HELPER_ENV, "1")  # a helper never starts helpers of its own
+    assert not kernels._is_cold([lambda: None, lambda: None])
