@@ -250,9 +250,13 @@ def build(
                 slam.add_imu(record)
         if slam.num_poses == 0:
             raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
-        core = slam.finish()
-    finally:
-        slam.close()
+    except BaseException:
+        try:
+            slam.close(abandon=True)  # Ctrl-C or a bad recording: do not make the user wait for the graph
+        except Exception:
+            pass
+        raise
+    core = slam.finish()
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
                        warnings=content.warnings())
     result.stats["peak_memory_mb"] = peak_memory_mb()

@@ -297,7 +297,7 @@ class GMappingSlam:
             j = int(self._step_parents[k][j])
         return out
 
-    def close(self) -> None:
+    def close(self, abandon: bool = False) -> None:
         """Nothing runs between scans (the particles' threads are numba's), so there is nothing to stop."""
 
     def finish(self) -> SlamResult:

@@ -60,6 +60,7 @@ class _Background:
         self._queue: queue.Queue = queue.Queue(maxsize=BACKLOG)
         self._error: BaseException | None = None
         self._last_raised: BaseException | None = None  # raised once in the caller's thread, not at every call
+        self._abandoned = False
         self._thread = threading.Thread(target=self._run, name="carto-global", daemon=True)
         self._thread.start()
 
@@ -68,8 +69,8 @@ class _Background:
             item = self._queue.get()
             if item is None:
                 return
-            if self._error is not None:
-                continue  # drain without running: the caller raises the first error
+            if self._error is not None or self._abandoned:
+                continue  # drain without running: the caller raises the first error, or has given up
             stage, fn, args, kwargs = item
             try:
                 if stage:
@@ -84,8 +85,10 @@ class _Background:
         self._raise()
         self._queue.put((stage, fn, args, kwargs))
 
-    def join(self) -> None:
-        """Wait until every queued call has run; raise the first error."""
+    def join(self, abandon: bool = False) -> None:
+        """Wait until every queued call has run (``abandon``: the calls not yet started are dropped); raise the
+        first error."""
+        self._abandoned = self._abandoned or abandon
         if self._thread.is_alive():
             self._queue.put(None)
             self._thread.join()
@@ -179,13 +182,14 @@ class Slam:
     def add_imu(self, imu: Imu) -> None:
         self.local.add_imu(imu)
 
-    def close(self) -> None:
-        """Wait for the graph's thread and stop the search threads (raises the graph's error, if any)."""
+    def close(self, abandon: bool = False) -> None:
+        """Wait for the graph's thread and stop the search threads (raises the graph's error, if any);
+        ``abandon`` (mapping failed or was interrupted): drop the nodes the graph has not started on."""
         background, self._background = self._background, None
         try:
             if background is not None:
                 with self.timer.stage("global wait"):
-                    background.join()
+                    background.join(abandon)
                 self.graph.use_threads(1, timer=self.timer)
         finally:
             self.graph.close()

@@ -1,4 +1,7 @@
 """The SLAM core object on its own: measurements in, map out, no file or recording involved."""
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -65,3 +68,29 @@ def test_an_error_on_the_graphs_thread_reaches_the_caller(simulation, monkeypatc
             slam.add_scan(scan)
         slam.finish()
     slam.close()  # after the error: nothing left running, nothing raised twice
+
+
+def test_closing_after_a_failure_drops_the_nodes_the_graph_has_not_started(simulation, monkeypatch):
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+    started = []
+    release = threading.Event()
+
+    def slow(*args, **kwargs):
+        started.append(1)
+        release.wait(5)
+
+    monkeypatch.setattr(slam.graph, "add_node", slow)
+    with simulation.recording() as rec:
+        scans = [r for r in rec.records() if isinstance(r, Scan)][:60]
+    for scan in scans:
+        slam.add_scan(scan)
+    background = slam._background
+    while not started:  # the graph's thread is inside the first node
+        time.sleep(0.001)
+    closer = threading.Thread(target=slam.close, kwargs={"abandon": True})
+    closer.start()
+    while not background._abandoned:  # close() gives up on the queue before it waits
+        time.sleep(0.001)
+    release.set()
+    closer.join(10)
+    assert started == [1] and slam.num_poses > 1  # the node being added finished; the queued ones were dropped
