@@ -3,9 +3,12 @@
 Cartographer's ConstraintBuilder2D: a pair is searched when the node is within
 ``max_constraint_distance`` of the submap and the submap's fixed-ratio sampler fires; nodes of a
 trajectory not yet linked to the submap's one get a whole-submap search at ``global_sampling_ratio``. The fast
-matcher's pose is refined by least squares, then kept only if the refined pose
-still scores (geometric check) and stayed near the fast matcher's answer
-(consistency check: a refinement that wanders has slid along a corridor).
+matcher's pose is dropped if it moves the node further from the graph's estimate than local SLAM can have
+drifted over the travel between node and submap (``max_drift``) or lies on the search window's edge
+(``window_edge_margin``: the window then did not hold the true pose); it is refined by least squares,
+then kept only if the refined pose still scores (geometric check), stayed near the fast matcher's answer
+(consistency check: a refinement that wanders has slid along a corridor) and sends few rays through the
+submap's walls (``max_see_through``).
 
 As Cartographer's ``MaybeAddConstraint``, it never sees the pose graph: the graph hands
 it the node and the submap to try (:class:`NodeData`, :class:`SubmapData`).
