@@ -17,7 +17,7 @@ from collections.abc import Callable, Collection
 from carto_cli.core.timing import NullTimer
 
 STAGE = "jit warm-up"
-_HELPER_ENV = "CARTO_KERNEL_HELPER"  # set in a helper process: it must not start helpers of its own
+HELPER_ENV = "CARTO_KERNEL_HELPER"  # set in a helper process: it must not start helpers of its own
 
 _registered: list[tuple[Callable[[], None], str | None]] = []
 _done: set[Callable[[], None]] = set()
@@ -54,13 +54,13 @@ def warm_up(timer=None, systems: Collection[str] | None = None) -> None:
         return
     timer = timer or NullTimer()
     with timer.stage(STAGE):
-        claims = tempfile.mkdtemp(prefix="carto-jit-") if _is_cold(wanted) else None
+        claims = tempfile.mkdtemp(prefix="carto-jit-") if cold_cache(wanted) else None
         helpers = _start_helpers(wanted, claims) if claims is not None else []
         try:
             # Whoever claims a warm-up first compiles it (this process from the front of the list, helpers from
             # the back): the shares balance however unequal the warm-ups are (local SLAM's take 10 s, others 1 s).
             for fn in wanted:
-                if claims is None or _claim(claims, fn):
+                if claims is None or claim(claims, fn):
                     fn()
                     _done.add(fn)
             for helper in helpers:
@@ -78,7 +78,7 @@ def _name(fn: Callable[[], None]) -> str:
     return f"{fn.__module__}:{fn.__qualname__}"
 
 
-def _claim(claims: str, fn_or_name) -> bool:
+def claim(claims: str, fn_or_name) -> bool:
     """Whether this process is the first to take the warm-up (an exclusive file create is atomic)."""
     name = fn_or_name if isinstance(fn_or_name, str) else _name(fn_or_name)
     try:
@@ -88,10 +88,10 @@ def _claim(claims: str, fn_or_name) -> bool:
     return True
 
 
-def _is_cold(wanted: list[Callable[[], None]]) -> bool:
+def cold_cache(wanted: list[Callable[[], None]]) -> bool:
     from carto_cli.core.parallel import available_cores
 
-    return (not os.environ.get(_HELPER_ENV) and len(wanted) >= 2 and available_cores() >= 2
+    return (not os.environ.get(HELPER_ENV) and len(wanted) >= 2 and available_cores() >= 2
             and any(_cold(fn) for fn in wanted))
 
 
@@ -122,7 +122,7 @@ def _start_helpers(wanted: list[Callable[[], None]], claims: str) -> list[subpro
         order = names[::-1] if k == 1 else names[k:] + names[:k]
         code = f"from carto_cli.core.kernels import _helper; _helper({order!r}, {claims!r})"
         try:
-            helpers.append(subprocess.Popen([sys.executable, "-c", code], env={**os.environ, _HELPER_ENV: "1"},
+            helpers.append(subprocess.Popen([sys.executable, "-c", code], env={**os.environ, HELPER_ENV: "1"},
                                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         except OSError:
             break
@@ -134,6 +134,6 @@ def _helper(names: list[str], claims: str) -> None:
     import importlib
 
     for name in names:
-        if _claim(claims, name):
+        if claim(claims, name):
             module, qualname = name.split(":")
             getattr(importlib.import_module(module), qualname)()

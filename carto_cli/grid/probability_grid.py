@@ -56,7 +56,7 @@ VALUE_TO_PROBABILITY.flags.writeable = False
 UNPACKED_BUDGET = 64 * 2**20
 
 
-class _UnpackedCells:
+class UnpackedCells:
     """The LRU of unpacked cells of packed grids, shared by every grid and thread."""
 
     def __init__(self, budget: int):
@@ -104,7 +104,7 @@ class _UnpackedCells:
                 self.bytes -= entry[1]
 
 
-_UNPACKED = _UnpackedCells(UNPACKED_BUDGET)
+UNPACKED_CELLS = UnpackedCells(UNPACKED_BUDGET)
 
 
 class ProbabilityGrid:
@@ -118,7 +118,7 @@ class ProbabilityGrid:
     def cells(self) -> np.ndarray:
         """(ny, nx) uint16 values (unpacked on access if the grid is packed)."""
         cells = self._cells
-        return cells if cells is not None else _UNPACKED.get(self)
+        return cells if cells is not None else UNPACKED_CELLS.get(self)
 
     @cells.setter
     def cells(self, value: np.ndarray) -> None:

@@ -47,10 +47,6 @@ def _pgm_header(h: int, w: int) -> bytes:
     return f"P5\n# carto map\n{w} {h}\n255\n".encode()
 
 
-def _pgm_bytes(pixels: np.ndarray) -> bytes:
-    return _pgm_header(*pixels.shape) + pixels.tobytes()
-
-
 def map_yaml(image_name: str, image: OccupancyImage | AssembledImage, mode: str = "trinary") -> str:
     ox, oy = image.origin
     return (

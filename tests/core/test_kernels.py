@@ -49,14 +49,14 @@ def test_a_systems_warm_up_runs_only_for_that_system(monkeypatch):
 
 def test_a_warm_up_is_claimed_by_one_process_only(tmp_path):
     """On a cold cache this process and its helpers take warm-ups by an exclusive file create: one each."""
-    assert kernels._claim(str(tmp_path), "carto_cli.mapping.local_slam:warm_up")
-    assert not kernels._claim(str(tmp_path), "carto_cli.mapping.local_slam:warm_up")
-    assert kernels._claim(str(tmp_path), "carto_cli.matching.branch_and_bound:warm_up")
+    assert kernels.claim(str(tmp_path), "carto_cli.mapping.local_slam:warm_up")
+    assert not kernels.claim(str(tmp_path), "carto_cli.mapping.local_slam:warm_up")
+    assert kernels.claim(str(tmp_path), "carto_cli.matching.branch_and_bound:warm_up")
 
 
 def test_a_warm_cache_starts_no_helper(monkeypatch):
     monkeypatch.setattr(kernels, "_cold", lambda fn: False)
-    assert not kernels._is_cold([lambda: None, lambda: None])
+    assert not kernels.cold_cache([lambda: None, lambda: None])
     monkeypatch.setattr(kernels, "_cold", lambda fn: True)
-    monkeypatch.setenv(kernels._HELPER_ENV, "1")  # a helper never starts helpers of its own
-    assert not kernels._is_cold([lambda: None, lambda: None])
+    monkeypatch.setenv(kernels.HELPER_ENV, "1")  # a helper never starts helpers of its own
+    assert not kernels.cold_cache([lambda: None, lambda: None])

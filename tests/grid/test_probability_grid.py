@@ -85,17 +85,17 @@ def test_a_packed_grid_reads_the_same_cells_and_takes_less_memory():
     read = grid.cells
     assert np.array_equal(read, cells) and read.flags.writeable and read.dtype == np.uint16
     assert grid.cells is read  # kept unpacked while the budget allows
-    before = pg._UNPACKED.bytes
+    before = pg.UNPACKED_CELLS.bytes
     del grid, read
     gc.collect()
-    assert pg._UNPACKED.bytes == before - cells.nbytes  # a collected grid's cells leave the count
+    assert pg.UNPACKED_CELLS.bytes == before - cells.nbytes  # a collected grid's cells leave the count
 
 
 def test_unpacked_cells_stay_within_their_budget(monkeypatch):
     from carto_cli.grid import probability_grid as pg
 
-    lru = pg._UnpackedCells(3 * 400 * 300 * 2)
-    monkeypatch.setattr(pg, "_UNPACKED", lru)
+    lru = pg.UnpackedCells(3 * 400 * 300 * 2)
+    monkeypatch.setattr(pg, "UNPACKED_CELLS", lru)
     grids = []
     for k in range(6):
         g = ProbabilityGrid(0.05, (0.0, 0.0), (400, 300))
