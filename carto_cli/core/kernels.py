@@ -89,6 +89,8 @@ def claim(claims: str, fn_or_name) -> bool:
 
 
 def cold_cache(wanted: list[Callable[[], None]]) -> bool:
+    """Whether helper processes would pay: a cold cache, two warm-ups or more, two cores or more, and this
+    process is not itself a helper."""
     from carto_cli.core.parallel import available_cores
 
     return (not os.environ.get(HELPER_ENV) and len(wanted) >= 2 and available_cores() >= 2
