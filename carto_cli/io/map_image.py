@@ -60,11 +60,6 @@ def map_yaml(image_name: str, image: OccupancyImage | AssembledImage, mode: str 
     )
 
 
-def _thresholded_pixels(image: OccupancyImage, occupied_thresh: float, free_thresh: float) -> np.ndarray:
-    """Trinary pixels by probability thresholds: >= occupied 0, <= free 254, between and never seen 205."""
-    return np.ascontiguousarray(_thresholded_rows(image.probability, occupied_thresh, free_thresh)[::-1])
-
-
 def _thresholded_rows(p: np.ndarray, occupied_thresh: float, free_thresh: float) -> np.ndarray:
     known = ~np.isnan(p)
     pixels = np.full(p.shape, UNKNOWN, dtype=np.uint8)

@@ -142,8 +142,9 @@ class ConstraintBuilder:
         self._global_samplers: dict[int, FixedRatioSampler] = {}
         # Held to cb.precomputation_memory, least recently searched dropped first. Evicting changes nothing but
         # time: a stack is a function of its finished (immutable) grid, rebuilt the same when searched again.
-        self._stacks = StackCache(int(self.cb.precomputation_memory * 2**20),
-                                  self.cb.fast_correlative_scan_matcher.branch_and_bound_depth)
+        # Its statistics: misses (stacks built, rebuilt ones included), evictions, peak_bytes.
+        self.stacks = StackCache(int(self.cb.precomputation_memory * 2**20),
+                                 self.cb.fast_correlative_scan_matcher.branch_and_bound_depth)
         self.stats = ConstraintBuilderStats()
         self.connected: set[frozenset] = set()  # trajectory pairs linked by a loop closure
         self.jobs = available_cores() if jobs is None else max(1, int(jobs))
@@ -158,20 +159,10 @@ class ConstraintBuilder:
     def stack(self, index: int, grid) -> PrecomputationGridStack:
         """The precomputation grids of finished submap ``index``: built on first use, kept while the memory
         budget allows (least recently used dropped first), rebuilt when needed again."""
-        if index in self._stacks:
-            return self._stacks.get(index, grid)
+        if index in self.stacks:
+            return self.stacks.get(index, grid)
         with self.timer.stage("precomputation"):
-            return self._stacks.get(index, grid)
-
-    @property
-    def stacks(self) -> StackCache:
-        """The precomputation grids' cache (its statistics: misses = stacks built, evictions, peak_bytes)."""
-        return self._stacks
-
-    @property
-    def memory_bytes(self) -> int:
-        """Bytes of the precomputation grids held now."""
-        return self._stacks.bytes
+            return self.stacks.get(index, grid)
 
     def linked(self, node: NodeData, submap: SubmapData) -> bool:
         """Whether the node's trajectory is the submap's or linked to it (else only a whole-submap search)."""

@@ -1,10 +1,17 @@
+import pytest
+
 from carto_cli.core import kernels
 from carto_cli.core.timing import StageTimer
 
 
-def test_each_registered_warm_up_runs_once_inside_the_stage(monkeypatch):
+@pytest.fixture
+def empty_registry(monkeypatch):
+    """No warm-up registered or run: each test registers its own toys."""
     monkeypatch.setattr(kernels, "_registered", [])
     monkeypatch.setattr(kernels, "_done", set())
+
+
+def test_each_registered_warm_up_runs_once_inside_the_stage(empty_registry):
     calls = []
 
     @kernels.register_warm_up
@@ -20,17 +27,13 @@ def test_each_registered_warm_up_runs_once_inside_the_stage(monkeypatch):
     assert timer.snapshot().find(kernels.STAGE) is not None
 
 
-def test_nothing_pending_opens_no_stage(monkeypatch):
-    monkeypatch.setattr(kernels, "_registered", [])
-    monkeypatch.setattr(kernels, "_done", set())
+def test_nothing_pending_opens_no_stage(empty_registry):
     timer = StageTimer()
     kernels.warm_up(timer)
     assert timer.snapshot().find(kernels.STAGE) is None
 
 
-def test_a_systems_warm_up_runs_only_for_that_system(monkeypatch):
-    monkeypatch.setattr(kernels, "_registered", [])
-    monkeypatch.setattr(kernels, "_done", set())
+def test_a_systems_warm_up_runs_only_for_that_system(empty_registry):
     calls = []
 
     @kernels.register_warm_up
