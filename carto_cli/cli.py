@@ -161,6 +161,8 @@ def convert(
     with progress(f"converting {source.name}", None, state.quiet) as bar:
         done = run_convert(source, out, fmt=fmt, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
                            overwrite=force, read=read, on_total=bar.set_total, on_record=bar.advance)
+    for warning in done.warnings:
+        typer.echo(f"carto: warning: {warning}", err=True)
     if done.left_out:
         typer.echo(f"carto: warning: not copied (carto's writer carries scans, odometry, IMU and static TF; ROS1 <-> "
                    f"ROS2 with every topic is lossless): {', '.join(done.left_out)}", err=True)

@@ -258,7 +258,7 @@ def build(
         raise
     core = slam.finish()
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
-                       warnings=content.warnings())
+                       warnings=list(recording.warnings) + content.warnings())
     result.stats["peak_memory_mb"] = peak_memory_mb()
     if judge and result.graph is not None:
         with slam.timer.stage("quality"):

@@ -54,12 +54,23 @@ def test_missing_file_is_one_line_exit_2(tmp_path):
     assert "Traceback" not in result.output
 
 
-def test_corrupt_real_bag_is_a_clean_error():
+def test_a_bag_with_a_damaged_index_is_read_with_a_warning():
+    """The demo bag as recorded in 2010 (a writer bug in its index records): read from its chunks, said once."""
     orig = shared_path("bags", "ccny_laser_scan_matcher_demo.orig.bag")
     result = run("info", orig)
+    assert result.exit_code == 0, result.output
+    assert "360 msgs" in result.stdout
+    assert "ccny_laser_scan_matcher_demo.orig.bag: damaged index" in result.stdout
+    assert "360 messages recovered" in result.stdout
+
+
+def test_a_bag_with_nothing_readable_is_a_clean_error(tmp_path):
+    bad = tmp_path / "bad.bag"
+    bad.write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 4)
+    result = run("info", bad)
     assert result.exit_code == 2
     (line,) = result.stderr.strip().splitlines()
-    assert "ccny_laser_scan_matcher_demo.orig.bag" in line
+    assert "bad.bag" in line and "no message could be recovered" in line
 
 
 def test_convert_round_trip(tmp_path):
@@ -85,8 +96,14 @@ def test_convert_refuses_to_overwrite_and_unknown_format(tmp_path):
 
 
 def test_convert_of_corrupt_input_leaves_no_output(tmp_path):
+    """The index is whole, so the bag opens; its 100th message record is broken, found while converting."""
+    data = bytearray(SAMPLE_BAG.read_bytes())
+    at = -1
+    for _ in range(100):
+        at = data.index(b"op=\x02", at + 1)
+    data[at + 3] = 0x09
     bad = tmp_path / "bad.bag"
-    bad.write_bytes(SAMPLE_BAG.read_bytes()[:300_000])
+    bad.write_bytes(bytes(data))
     out = tmp_path / "out.mcap"
     result = run("convert", bad, out)
     assert result.exit_code == 2, result.output

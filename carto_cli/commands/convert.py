@@ -1,8 +1,10 @@
 """`carto convert` as a library call: a recording in another format.
 
 ROS1 <-> ROS2 with every topic goes through rosbags' converter, losing nothing (every topic, message and
-stamp as recorded). Anything else (MCAP, CARMEN, chosen topics) goes through carto's writer, which carries
-scans, odometry, IMU and static TF and says which topics it left out."""
+stamp as recorded). A ROS1 bag read without its index (cut, or a recorder's .bag.active) is written again
+whole from what its chunks held, with a new index, before any conversion. Anything else (MCAP, CARMEN,
+chosen topics) goes through carto's writer, which carries scans, odometry, IMU and static TF and says which
+topics it left out."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -10,8 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from carto_cli.io.recording import ReadOptions
-from carto_cli.io.recording_writers import convert_bag, format_for_output, write_recording
+from carto_cli.io.recording_writers import convert_bag, format_for_output, repair_bag, write_recording
 from carto_cli.io.sources.open import open_recording
+from carto_cli.io.sources.ros1_salvage import SalvagedBag
+from carto_cli.io.sources.rosbag import RosbagRecording
 from carto_cli.io.topics import choose_topic
 
 __all__ = ["Converted", "run_convert"]
@@ -24,6 +28,7 @@ class Converted:
     format: str
     lossless: bool = False  # every topic and stamp as recorded (rosbags' converter)
     left_out: tuple[str, ...] = ()  # topics of the source not written (carto's writer)
+    warnings: tuple[str, ...] = ()  # what reading the source had to work around (a damaged bag)
 
 
 def run_convert(
@@ -50,12 +55,19 @@ def run_convert(
         topics = rec.topics()
         ros2 = ("ros2-sqlite3", "ros2-mcap")
         whole = scan_topic is None and odom_topic is None and imu_topic is None
+        warnings = tuple(rec.warnings)
+        if whole and isinstance(rec, SalvagedBag) and out_format in ("ros1",) + ros2:
+            if on_total is not None:
+                on_total(sum(t.count for t in topics))
+            n = repair_bag(rec, out, out_format, overwrite=overwrite, on_record=on_record)
+            return Converted(n, out, out_format, lossless=True, warnings=warnings)
         if whole and ((rec.format == "ros1" and out_format in ros2) or (rec.format in ros2 and out_format == "ros1")):
             total = sum(t.count for t in topics)
             if on_total is not None:
                 on_total(total)
-            convert_bag(Path(source), out, out_format, overwrite=overwrite)
-            return Converted(total, out, out_format, lossless=True)
+            assert isinstance(rec, RosbagRecording)  # what opens ROS1 and ROS2 bags (SalvagedBag went above)
+            convert_bag(rec.sources, out, out_format, overwrite=overwrite)
+            return Converted(total, out, out_format, lossless=True, warnings=warnings)
         chosen: list[str] = []
         for kind, wanted in (("scan", scan_topic), ("odometry", odom_topic), ("imu", imu_topic)):
             if wanted is not None:
@@ -73,4 +85,4 @@ def run_convert(
             on_record=on_record, overwrite=overwrite,
         )
         left_out = tuple(t.name for t in topics if t.name not in chosen and t.kind != "tf_static")
-    return Converted(n, out, out_format, left_out=left_out)
+    return Converted(n, out, out_format, left_out=left_out, warnings=warnings)

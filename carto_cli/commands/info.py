@@ -149,7 +149,7 @@ def inspect_recording(recording: Recording, on_record: Callable[[], None] | None
             on_record()
 
     reports = []
-    warnings = content.warnings()
+    warnings = list(recording.warnings) + content.warnings()
     kinds = {t.name: t for t in infos}
     for name, acc in accumulators.items():
         info = kinds.get(name)

@@ -92,6 +92,14 @@ def _relocalizer(loaded: LoadedMap, overrides, warnings: list[str],
     return relocalizer
 
 
+def _recording_warnings(recording, warnings: list[str], on_warning: Callable[[str], None] | None) -> None:
+    """What reading the recording had to work around (a damaged bag), told as soon as it is open."""
+    warnings.extend(recording.warnings)
+    if on_warning is not None:
+        for w in recording.warnings:
+            on_warning(w)
+
+
 def relocalization_options(map_options: Options, profile_options: Options) -> Options:
     """The map's options with the profile's ``relocalization`` section."""
     import dataclasses
@@ -182,6 +190,7 @@ def run_relocalize(
     # Built before the recording is read when the map holds all it needs, so its warnings come first.
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, run.warnings, on_warning)
     with open_recording(recording, read) as rec:
+        _recording_warnings(rec, run.warnings, on_warning)
         mount = None
         if relocalizer is None:
             mount, run.auto = _from_scans(loaded, rec, select_scan_topic(rec, scan_topic), profile)
@@ -268,6 +277,7 @@ def run_track(
     warnings: list[str] = []
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning)
     with open_recording(recording, read) as rec:
+        _recording_warnings(rec, warnings, on_warning)
         selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
         mount = auto = None
         if relocalizer is None:

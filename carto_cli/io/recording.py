@@ -95,6 +95,9 @@ class Recording(ABC):
     def __init__(self, path: Path, options: ReadOptions | None = None):
         self.path = Path(path)
         self.options = options or ReadOptions()
+        # What the reader had to work around to read the file at all (a damaged bag read without its index);
+        # every command that reads the recording shows them.
+        self.warnings: list[str] = []
 
     @abstractmethod
     def topics(self) -> list[TopicInfo]:

@@ -115,19 +115,49 @@ def _staged(out: str | Path, overwrite: bool) -> Iterator[Path]:
         shutil.rmtree(tmpdir, ignore_errors=True)
 
 
-def convert_bag(source: Path, out: Path, fmt: str, *, overwrite: bool = False) -> None:
+def convert_bag(source: Path | Sequence[Path], out: Path, fmt: str, *, overwrite: bool = False) -> None:
     """A ROS1 bag to a ROS2 bag or back through rosbags' own converter: every topic and message as recorded,
-    stamps exact (carto's writer carries only what carto reads). ``fmt``: 'ros1', 'ros2-sqlite3' or
-    'ros2-mcap'. Staged and moved into place like :func:`write_recording`."""
+    stamps exact (carto's writer carries only what carto reads). ``source``: the bag, or the storage files to
+    read (a ROS2 bag without its metadata.yaml). ``fmt``: 'ros1', 'ros2-sqlite3' or 'ros2-mcap'. Staged and
+    moved into place like :func:`write_recording`."""
     from rosbags.convert import ConverterError, convert
     from rosbags.rosbag2 import Writer
 
     with _staged(out, overwrite) as staged:
         storage = "mcap" if fmt == "ros2-mcap" else "sqlite3"
         try:
-            convert([Path(source)], staged, storage, Writer.VERSION_LATEST, None, "file", None, None, [], [], [], [])
+            sources = [Path(source)] if isinstance(source, (str, Path)) else [Path(p) for p in source]
+            convert(sources, staged, storage, Writer.VERSION_LATEST, None, "file", None, None, [], [], [], [])
         except ConverterError as e:
-            raise CartoError(f"cannot convert: {e}", source) from None
+            raise CartoError(f"cannot convert: {e}", sources[0]) from None
+
+
+def repair_bag(source, out: Path, fmt: str, *, overwrite: bool = False,
+               on_record: Callable[[], None] | None = None) -> int:
+    """A ROS1 bag read without its index (``io.sources.ros1_salvage.SalvagedBag``) written again whole: every
+    recovered message's bytes, connection and time as recorded, with a fresh index (what ``rosbag reindex``
+    gives); for a ROS2 ``fmt`` that bag then goes through :func:`convert_bag`. Returns the messages written."""
+    from rosbags.rosbag1 import Writer
+
+    n = 0
+    with _staged(out, overwrite) as staged:
+        bag = staged if fmt == "ros1" else staged.parent / "repaired.bag"
+        writer = Writer(bag)
+        writer.open()
+        try:
+            conns = {k: writer.add_connection(c.topic, c.msgtype, msgdef=c.msgdef, md5sum=c.md5sum,
+                                              callerid=c.callerid, latching=c.latching)
+                     for k, c in source.connections.items()}
+            for conn, time_ns, raw in source.raw_messages():
+                writer.write(conns[conn], time_ns, raw)
+                n += 1
+                if on_record is not None:
+                    on_record()
+        finally:
+            writer.close()
+        if fmt != "ros1":
+            convert_bag(bag, staged, fmt)
+    return n
 
 
 def _move_into_place(staged: Path, out: Path, tmpdir: Path, overwrite: bool) -> None:

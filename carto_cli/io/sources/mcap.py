@@ -24,10 +24,18 @@ class McapRecording(Recording):
     def __init__(self, path: Path, options: ReadOptions | None = None):
         super().__init__(path, options)
         self._static: list[Transform] | None = None
+        self._cut = False  # the file ends before its summary: read up to the cut (_CutFile)
         if not self.path.is_file():
             raise CartoError("no such file" if not self.path.exists() else "not a file", self.path)
         with self._translate_errors():
             self._channels, self._counts = self._read_index()
+        if self._cut:
+            n = sum(self._counts.values())
+            if not n:
+                raise FormatError("truncated MCAP file (no closing magic bytes) with no whole message before the "
+                                  "cut", self.path)
+            self.warnings = [f"{self.path.name}: cut short (no summary, no closing magic bytes): read up to the "
+                             f"cut, {n} messages recovered"]
 
     # -- errors and plumbing ----------------------------------------------------
 
@@ -50,13 +58,14 @@ class McapRecording(Recording):
             tail = f.read(len(_MAGIC))
             if head != _MAGIC:
                 raise FormatError("not an MCAP file (missing magic bytes)", self.path)
-            if tail != _MAGIC:
-                # The writer was killed or the copy cut short; the summary and the
-                # end of the data are gone, so nothing read from it could be trusted.
-                raise FormatError("truncated MCAP file (no closing magic bytes)", self.path)
+            self._cut = tail != _MAGIC
             f.seek(0)
-            yield make_reader(f, validate_crcs=True,
-                              decoder_factories=_decoder_factories())
+            if tail != _MAGIC:
+                # The writer was killed or the copy cut short: the summary (written last) is gone, the
+                # records before the cut are whole.
+                yield _CutFile(f)
+            else:
+                yield make_reader(f, validate_crcs=True, decoder_factories=_decoder_factories())
 
     def _read_index(self):
         """Channels as {id: (topic, normalised type)} and message counts by channel id."""
@@ -129,6 +138,116 @@ class McapRecording(Recording):
                 if not messages.is_readable(channel.topic, msgtype):
                     continue  # another channel of a mixed-type topic: not worth decoding
                 yield from messages.to_records(decode(schema, channel, message), msgtype, channel.topic, options)
+
+
+class _CutFile:
+    """An MCAP file cut short, read from its start up to the cut: every whole record, and the whole records at
+    the start of a chunk the cut went through (decompressed as far as its bytes go). No summary (it is written
+    last), so messages come in file order."""
+
+    def __init__(self, f):
+        self._f = f
+
+    def get_summary(self):
+        return None
+
+    def iter_messages(self, topics=None, log_time_order: bool = False):
+        from mcap.records import Channel, Chunk, Message, Schema
+        from mcap.stream_reader import breakup_chunk
+
+        assert not log_time_order  # _in_log_time_order sorts an unindexed file itself
+        wanted = None if topics is None else set(topics)
+        schemas: dict[int, object] = {}
+        channels: dict[int, object] = {}
+
+        def inner(records):
+            for record in records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message):
+                    channel = channels.get(record.channel_id)
+                    if channel is not None and (wanted is None or channel.topic in wanted):
+                        yield schemas.get(channel.schema_id), channel, record
+
+        f = self._f
+        f.seek(len(_MAGIC))
+        while True:
+            head = f.read(9)
+            if len(head) < 9:
+                return
+            opcode, length = head[0], int.from_bytes(head[1:], "little")
+            body = f.read(length)
+            if opcode not in (_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK):
+                if len(body) < length:
+                    return
+                continue
+            if len(body) == length:
+                stream = _stream(body)
+                if opcode == _SCHEMA:
+                    yield from inner([Schema.read(stream)])
+                elif opcode == _CHANNEL:
+                    yield from inner([Channel.read(stream)])
+                elif opcode == _MESSAGE:
+                    yield from inner([Message.read(stream, length)])
+                else:
+                    yield from inner(breakup_chunk(Chunk.read(stream), validate_crc=True))
+                continue
+            if opcode == _CHUNK:
+                yield from inner(_partial_chunk(body))
+            return
+
+
+_SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x03, 0x04, 0x05, 0x06
+
+
+def _stream(data: bytes):
+    from mcap.data_stream import ReadDataStream
+
+    return ReadDataStream(io.BytesIO(data))
+
+
+def _partial_chunk(body: bytes) -> list:
+    """The whole Schema / Channel / Message records at the start of a chunk cut short."""
+    from mcap.records import Channel, Message, Schema
+
+    if len(body) < 32:
+        return []
+    name_len = int.from_bytes(body[28:32], "little")
+    start = 32 + name_len + 8
+    if len(body) < start:
+        return []
+    compression = body[32:32 + name_len].decode("utf-8", "replace")
+    data = body[start:]
+    try:
+        if compression == "zstd":
+            import zstandard
+
+            data = zstandard.ZstdDecompressor().decompressobj().decompress(data)
+        elif compression == "lz4":
+            import lz4.frame
+
+            data = lz4.frame.LZ4FrameDecompressor().decompress(data)
+        elif compression:
+            return []
+    except Exception:  # a compressed stream cut mid-block: nothing certain in it
+        return []
+    out: list = []
+    p = 0
+    while p + 9 <= len(data):
+        opcode, length = data[p], int.from_bytes(data[p + 1:p + 9], "little")
+        if p + 9 + length > len(data):
+            break
+        stream = _stream(data[p + 9:p + 9 + length])
+        if opcode == _SCHEMA:
+            out.append(Schema.read(stream))
+        elif opcode == _CHANNEL:
+            out.append(Channel.read(stream))
+        elif opcode == _MESSAGE:
+            out.append(Message.read(stream, length))
+        p += 9 + length
+    return out
 
 
 # How far out of log-time order an unindexed file's messages may be and still come out sorted.

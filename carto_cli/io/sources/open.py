@@ -21,7 +21,13 @@ def detect_format(path: Path) -> str:
     if path.is_dir():
         meta = path / "metadata.yaml"
         if not meta.exists():
-            raise FormatError("directory is not a ROS2 bag (no metadata.yaml)", path)
+            # A bag whose metadata.yaml was lost (or never written: the recorder was killed) still has its
+            # storage files, which name their topics and types themselves.
+            if any(path.glob("*.db3")):
+                return "ros2-sqlite3"
+            if any(path.glob("*.mcap")):
+                return "ros2-mcap"
+            raise FormatError("directory is not a ROS2 bag (no metadata.yaml, no .db3 or .mcap file)", path)
         try:
             text = meta.read_text(errors="replace")
         except OSError as e:
@@ -43,6 +49,8 @@ def detect_format(path: Path) -> str:
         return "mcap"
     if name.endswith(".db3") and (path.parent / "metadata.yaml").exists():
         return detect_format(path.parent)
+    if name.endswith(".db3") and head.startswith(b"SQLite format 3"):
+        return "ros2-sqlite3"  # one storage file of a ROS2 bag, read without its metadata.yaml
     if head.startswith(_GZIP_MAGIC) or name.endswith((".clf", ".log", ".clf.gz", ".log.gz")):
         return "carmen"
     if name.endswith(".bag"):
@@ -59,9 +67,20 @@ def open_recording(path: str | Path, options: ReadOptions | None = None) -> Reco
     """Open any supported recording; the caller closes it (it is a context manager)."""
     path = Path(path)
     fmt = detect_format(path)
-    if path.is_file() and path.suffix.lower() == ".db3":
+    if path.is_file() and path.suffix.lower() == ".db3" and (path.parent / "metadata.yaml").exists():
         path = path.parent
-    if fmt in ("ros1", "ros2-sqlite3", "ros2-mcap"):
+    if fmt == "ros1":
+        from carto_cli.io.sources.ros1_salvage import SalvagedBag
+        from carto_cli.io.sources.rosbag import RosbagRecording
+
+        if path.suffix != ".bag":  # a recorder's .bag.active, or a renamed bag: rosbags goes by the suffix
+            return SalvagedBag(path, options)
+        try:
+            return RosbagRecording(path, options)
+        except FormatError as e:
+            # A cut file or a damaged index: read what its chunks hold.
+            return SalvagedBag(path, options, why=e.message.removeprefix("corrupt or truncated ROS1 bag: "))
+    if fmt in ("ros2-sqlite3", "ros2-mcap"):
         from carto_cli.io.sources.rosbag import RosbagRecording
 
         return RosbagRecording(path, options)

@@ -65,10 +65,23 @@ class RosbagRecording(Recording):
         p = self.path
         if not p.exists():
             raise CartoError("no such file or directory", p)
+        sources = [p]
         if p.is_dir():
             meta = p / "metadata.yaml"
             text = meta.read_text(errors="replace") if meta.is_file() else ""
             self.format = "ros2-mcap" if "storage_identifier: mcap" in text else "ros2-sqlite3"
+            self._what = "ROS2 bag"
+            if not meta.is_file():
+                # rosbags reads a storage file by itself (topics and types are in it); a split bag's files
+                # are read together, merged in time order.
+                sources = sorted(p.glob("*.db3")) or sorted(p.glob("*.mcap"))
+                if not sources:
+                    raise FormatError("directory is not a ROS2 bag (no metadata.yaml, no .db3 or .mcap file)", p)
+                self.format = "ros2-sqlite3" if sources[0].suffix == ".db3" else "ros2-mcap"
+                self.warnings = [f"{p.name}: no metadata.yaml: read {', '.join(f.name for f in sources)} "
+                                 "directly"]
+        elif p.suffix == ".db3":
+            self.format = "ros2-sqlite3"
             self._what = "ROS2 bag"
         elif p.suffix == ".bag":
             self.format = "ros1"
@@ -78,7 +91,7 @@ class RosbagRecording(Recording):
             raise FormatError("a ROS1 bag must have the .bag suffix, and a ROS2 bag is a directory", p)
 
         if self.format == "ros2-sqlite3":
-            for db in sorted(p.glob("*.db3")):
+            for db in sorted(p.glob("*.db3")) if p.is_dir() else [p]:
                 _check_sqlite_size(db)
         with self._translate_errors():
             from rosbags.highlevel import AnyReader
@@ -86,12 +99,13 @@ class RosbagRecording(Recording):
 
             # Used only when a ROS2 bag carries no message definitions (metadata
             # version < 8); ROS1 bags always carry theirs and AnyReader registers them.
-            reader = AnyReader([p], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            reader = AnyReader(sources, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             for sub in reader.readers:
                 _modernise_definitions_on_open(sub)
             reader.open()
         self._reader = reader
         self._connections = list(reader.connections)
+        self.sources = list(sources)  # what rosbags reads: the bag, or a ROS2 bag's storage files without metadata
 
     # -- errors ---------------------------------------------------------------
 

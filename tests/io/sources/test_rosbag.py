@@ -307,3 +307,43 @@ def test_bad_pointcloud_in_a_bag_is_a_topic_error(tmp_path):
         with pytest.raises(TopicError) as info:
             list(rec.records())
     assert "/points" in str(info.value) and str(tmp_path / "pc") in str(info.value)
+
+
+# --- a ROS2 bag without its metadata.yaml ---------------------------------------------------------
+
+@pytest.mark.parametrize("storage", ["ros2-sqlite3", "ros2-mcap"])
+def test_a_ros2_bag_without_metadata_reads_from_its_storage_file(tmp_path, written_recordings, storage):
+    """metadata.yaml lost (or never written): the storage file names its topics and types itself."""
+    from carto_cli.commands.convert import run_convert
+    from carto_cli.io.sources.open import detect_format, open_recording
+
+    _, paths = written_recordings
+    src = paths[storage]
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (storage_file,) = [f for f in src.iterdir() if f.suffix in (".db3", ".mcap")]
+    (bare / storage_file.name).write_bytes(storage_file.read_bytes())
+    with open_recording(src) as rec:
+        want = [(r.topic, r.time) for r in rec.records()]
+        topics = rec.topics()
+    assert detect_format(bare) == storage
+    with open_recording(bare) as rec:
+        assert rec.format == storage and rec.topics() == topics
+        assert [(r.topic, r.time) for r in rec.records()] == want
+        assert len(rec.warnings) == 1 and "no metadata.yaml" in rec.warnings[0] and storage_file.name in rec.warnings[0]
+    if storage == "ros2-sqlite3":  # the .db3 file itself, named on the command line
+        with open_recording(bare / storage_file.name) as rec:
+            assert [(r.topic, r.time) for r in rec.records()] == want
+    done = run_convert(bare, tmp_path / "back.bag")
+    assert done.lossless and done.messages == sum(t.count for t in topics)
+    with open_recording(tmp_path / "back.bag") as rec:
+        assert [(r.topic, r.time) for r in rec.records()] == want
+
+
+def test_a_directory_with_no_bag_in_it_is_refused(tmp_path):
+    from carto_cli.io.sources.open import open_recording
+
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(FormatError, match="no metadata.yaml, no .db3 or .mcap file") as info:
+        open_recording(tmp_path)
+    assert str(tmp_path) in str(info.value)
