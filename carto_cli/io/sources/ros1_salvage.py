@@ -109,7 +109,7 @@ class _Walk:
                 return
             data_len = int.from_bytes(raw_len, "little")
             data_start = pos + 8 + header_len
-            op = fields["op"][0]
+            op = fields["op"][0] if fields["op"] else -1
             if op == OP_INDEX and "count" in fields and fields.get("ver", b"\x01\0\0\0")[:1] == b"\x01":
                 # Version 1 index data is 12 bytes per entry; some writers put another figure in data_len.
                 data_len = 12 * int.from_bytes(fields["count"][:4], "little")
@@ -143,7 +143,7 @@ class _Walk:
             start = p + 8 + header_len
             if start + data_len > n:
                 return  # a record the cut went through
-            op = fields["op"][0]
+            op = fields["op"][0] if fields["op"] else -1
             if op == OP_CONNECTION:
                 self._connection(fields, data[start:start + data_len])
             elif op == OP_MESSAGE:
@@ -165,7 +165,7 @@ class _Walk:
         latching = inner.get("latching", b"").decode("latin-1").strip()
         self.connections.setdefault(conn, Connection(
             topic, msgtype, msgdef, inner.get("md5sum", b"").decode("latin-1"), callerid,
-            int(latching) if latching.isdigit() else None))
+            int(latching) if latching.isascii() and latching.isdigit() else None))
 
     def _message(self, fields: dict[str, bytes], chunk: int, offset: int, length: int) -> None:
         if "conn" not in fields or "time" not in fields or len(fields["time"]) < 8:
