@@ -61,6 +61,13 @@ def handle_errors(fn):
             _fail(f"error: {e}", EXIT_USAGE)
         except KeyboardInterrupt:
             _fail("interrupted", EXIT_INTERRUPTED)
+        except BrokenPipeError:
+            # The reader went away (`carto options | head`): what it wanted was written; say nothing, as cat does.
+            import os
+            import sys
+
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            raise typer.Exit(0) from None
         except Exception as e:
             if state.debug:
                 raise
@@ -205,7 +212,14 @@ ALGORITHM = typer.Option(
 def _options(profile: str | None, overrides: list[str] | None):
     from carto_cli.options import load_options
 
-    return load_options(profile, overrides or [])
+    options = load_options(profile, overrides or [])
+    if profile is not None and str(profile).endswith(".lua"):
+        from carto_cli.options.cartographer_lua import import_lua
+
+        note = import_lua(profile).note()  # what a Cartographer configuration set that carto does not use
+        if note:
+            typer.echo(f"carto: note: {note}", err=True)
+    return options
 
 
 def _map_options(profile: str | None, overrides: list[str] | None):
@@ -614,11 +628,29 @@ def tune_(
 @app.command("options")
 @handle_errors
 def options_(
-    filter_: str | None = typer.Argument(None, metavar="[FILTER]", help="Only options whose name contains this."),
+    filter_: str | None = typer.Argument(None, metavar="[FILTER | import]",
+                                         help="Only options whose name contains this; or 'import' and a file."),
+    lua: Path | None = typer.Argument(None, metavar="[ROBOT.lua]",
+                                      help="With 'import': a Cartographer Lua configuration, printed as a carto "
+                                      "profile (YAML) on stdout."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
 ):
-    """Every option: its name, type, default, unit, bounds and what it does."""
-    from carto_cli.commands.options import format_option, list_options
+    """Every option: its name, type, default, unit, bounds and what it does. `carto options import robot.lua >
+    robot.yaml` turns a Cartographer configuration into a carto profile (`--profile robot.lua` reads it as it is)."""
+    from carto_cli.commands.options import format_option, import_configuration, list_options
+
+    if filter_ == "import" or lua is not None:
+        if filter_ != "import" or lua is None:
+            raise CartoError("usage: carto options import ROBOT.lua (a Cartographer configuration)")
+        imported = import_configuration(lua)
+        if as_json:
+            typer.echo(json.dumps({"overrides": imported.overrides, "unused": imported.unused}, indent=2))
+        else:
+            typer.echo(imported.to_yaml(), nl=False)
+        note = imported.note()
+        if note:
+            typer.echo(f"carto: note: {note}", err=True)
+        return
 
     infos = list_options(filter_)
     if as_json:

@@ -1,9 +1,17 @@
 """`carto options`: every option with its type, default, unit, bounds and what it does."""
 from __future__ import annotations
 
-from carto_cli.options import OptionInfo, option_info
+from pathlib import Path
 
-__all__ = ["format_option", "list_options"]
+from carto_cli.options import OptionInfo, option_info
+from carto_cli.options.cartographer_lua import LuaImport, import_lua
+
+__all__ = ["format_option", "import_configuration", "list_options"]
+
+
+def import_configuration(path: str | Path) -> LuaImport:
+    """A Cartographer Lua configuration's settings as carto options (``carto options import``)."""
+    return import_lua(path)
 
 
 def list_options(filter_: str | None = None) -> list[OptionInfo]:

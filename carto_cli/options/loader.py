@@ -259,12 +259,17 @@ def apply_overrides(options: Options, overrides: Iterable[str] | dict[str, Any])
 
 
 def _load_file(options: Options, path: Path) -> Options:
+    if path.suffix == profiles.LUA_SUFFIX:
+        from carto_cli.options.cartographer_lua import import_lua
+
+        return apply_values(options, import_lua(path).nested(), Layer(path))
     data, lines = read_yaml(path)
     return apply_values(options, data, Layer(path, lines))
 
 
 def load_options(profile: str | Path | None = None, overrides: Iterable[str] = ()) -> Options:
-    """The packaged defaults, then ``profile`` (a name from ``profiles_dir()`` or a .yaml path), then --set.
+    """The packaged defaults, then ``profile`` (a name from ``profiles_dir()``, a .yaml path, or a Cartographer
+    .lua configuration), then --set.
 
     Raises CartoError naming the key and the file (or --set) for unknown keys,
     wrong types, out-of-range values and malformed files.

@@ -9,6 +9,7 @@ from carto_cli.core.errors import CartoError
 __all__ = ["PROFILE_SUFFIXES", "list_profiles", "profiles_dir", "resolve_profile"]
 
 PROFILE_SUFFIXES = (".yaml", ".yml")
+LUA_SUFFIX = ".lua"  # a Cartographer configuration (options.cartographer_lua)
 
 
 def profiles_dir() -> Path:
@@ -27,7 +28,7 @@ def resolve_profile(profile: str | Path) -> Path:
     if isinstance(profile, Path):
         return profile
     text = str(profile)
-    if text.endswith(PROFILE_SUFFIXES) or "/" in text or "\\" in text:
+    if text.endswith(PROFILE_SUFFIXES + (LUA_SUFFIX,)) or "/" in text or "\\" in text:
         return Path(text).expanduser()
     for suffix in PROFILE_SUFFIXES:
         candidate = profiles_dir() / f"{text}{suffix}"
@@ -37,4 +38,4 @@ def resolve_profile(profile: str | Path) -> Path:
     close = difflib.get_close_matches(text, names, n=1)
     hint = f"; did you mean '{close[0]}'?" if close else ""
     raise CartoError(f"unknown profile '{text}'{hint} (profiles: {', '.join(names) or 'none'}; "
-                     "a path ending in .yaml is read as a file)")
+                     "a path ending in .yaml is read as a file, one ending in .lua as a Cartographer configuration)")
