@@ -525,7 +525,7 @@ def _track(map_file: Path, recording: Path, output: Path | None, *, as_json: boo
 @app.command("render")
 @handle_errors
 def render_(
-    map_file: Path = typer.Argument(..., help="map.carto written by `carto map`."),
+    map_file: Path = typer.Argument(..., help="map.carto written by `carto map`, or Cartographer's .pbstream."),
     outdir: Path = typer.Option(..., "--output", "-o", help="Output directory."),
     resolution: float | None = typer.Option(None, "--resolution", help="Cell size of the exported map (m; default "
                                             "the map's own)."),
@@ -539,14 +539,17 @@ def render_(
     png_scale: int | None = typer.Option(None, "--png-scale", help="Pixels per cell in map.png (default: about "
                                          "900 px on the longer side, at most 8)."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
+    pbstream: bool = typer.Option(False, "--pbstream", help="Also write map.pbstream: the map as Cartographer's "
+                                  "state (its tools and --load_state_filename read it)."),
 ):
     """Re-export a saved map without its recording: map.pgm + map.yaml (nav2 / map_server) and map.png."""
     from carto_cli.commands.render import run_render
 
     done = run_render(map_file, outdir, resolution=resolution, mode=mode, occupied_thresh=occupied_thresh,
-                      free_thresh=free_thresh, png_scale=png_scale, force=force)
+                      free_thresh=free_thresh, png_scale=png_scale, force=force, pbstream=pbstream)
     h, w = done.image.shape
-    typer.echo(f"{w} x {h} cells at {done.image.resolution:g} m -> {done.image_file}, {done.yaml}, {done.png}")
+    extra = f", {done.pbstream}" if done.pbstream else ""
+    typer.echo(f"{w} x {h} cells at {done.image.resolution:g} m -> {done.image_file}, {done.yaml}, {done.png}{extra}")
 
 
 profiles_app = typer.Typer(help="Environment profiles: list them, show the effective options.", no_args_is_help=True)

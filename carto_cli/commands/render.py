@@ -13,10 +13,11 @@ from carto_cli.grid.occupancy_image import AssembledImage, OccupancyImage
 from carto_cli.io.atomic import existing_outputs, output_set
 from carto_cli.io.map_file import LoadedMap, load_map
 from carto_cli.io.map_image import render_png, write_map, write_png
+from carto_cli.io.pbstream import save_pbstream
 
 __all__ = ["RENDER_OUTPUTS", "Rendered", "map_image_of", "run_render"]
 
-RENDER_OUTPUTS = ("map.pgm", "map.scale.png", "map.yaml", "map.png")
+RENDER_OUTPUTS = ("map.pgm", "map.scale.png", "map.yaml", "map.png", "map.pbstream")
 
 
 @dataclass
@@ -25,6 +26,7 @@ class Rendered:
     yaml: Path
     png: Path
     image: OccupancyImage | AssembledImage
+    pbstream: Path | None = None  # Cartographer's state of the same map, when asked for
 
 
 def map_image_of(loaded: LoadedMap, resolution: float | None = None) -> AssembledImage:
@@ -37,10 +39,12 @@ def map_image_of(loaded: LoadedMap, resolution: float | None = None) -> Assemble
 
 def run_render(map_file: Path, outdir: Path, *, resolution: float | None = None, mode: str = "trinary",
                occupied_thresh: float | None = None, free_thresh: float | None = None,
-               png_scale: int | None = None, force: bool = False) -> Rendered:
+               png_scale: int | None = None, force: bool = False, pbstream: bool = False) -> Rendered:
     """Write map.pgm (or map.scale.png with ``mode`` 'scale') + map.yaml and map.png of ``map_file`` into
     ``outdir`` as one set; an earlier set there is replaced only with ``force``. Thresholds are probabilities;
-    without them a cell is occupied or free by the balance of its evidence, as `carto map` writes it."""
+    without them a cell is occupied or free by the balance of its evidence, as `carto map` writes it. ``map_file``
+    is a map.carto or Cartographer's .pbstream; ``pbstream`` also writes the map as Cartographer's state
+    (map.pbstream: Cartographer's tools and ``--load_state_filename`` read it)."""
     if resolution is not None and not resolution > 0:
         raise CartoError(f"--resolution must be > 0 m, got {resolution:g}")
     if png_scale is not None and png_scale < 1:
@@ -64,4 +68,7 @@ def run_render(map_file: Path, outdir: Path, *, resolution: float | None = None,
     with output_set(outdir, RENDER_OUTPUTS) as staging:
         img, yml = write_map(staging, image, mode=mode, occupied_thresh=occupied_thresh, free_thresh=free_thresh)
         write_png(staging / "map.png", render_png(image, trajectory, closures, scale=png_scale))
-    return Rendered(outdir / img.name, outdir / yml.name, outdir / "map.png", image)
+        if pbstream:
+            save_pbstream(staging / "map.pbstream", loaded)
+    return Rendered(outdir / img.name, outdir / yml.name, outdir / "map.png", image,
+                    outdir / "map.pbstream" if pbstream else None)

@@ -336,8 +336,13 @@ def _constraint_arrays(cs: ConstraintSet) -> dict[str, np.ndarray]:
 
 
 def load_map(path: str | Path) -> LoadedMap:
-    """Read and check a map file. Raises :class:`FormatError` for anything but a good, supported map."""
+    """Read and check a map file (map.carto, or Cartographer's .pbstream). Raises :class:`FormatError` for anything
+    but a good, supported map."""
     path = Path(path)
+    from carto_cli.io import pbstream
+
+    if pbstream.is_pbstream(path):  # Cartographer's own state: relocalize in it, render it, continue it
+        return pbstream.load_pbstream(path)
     data = container.read_bytes(path, MAP_FORMAT)
     try:
         header, arrays = container.decode(data, path, MAP_FORMAT)

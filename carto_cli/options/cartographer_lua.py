@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -175,7 +176,8 @@ carto_open = open
 """
 
 
-def _flatten(value: Any, prefix: str = ""):
+def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """(dotted key, leaf value) of a nested mapping."""
     if isinstance(value, dict):
         for k, v in value.items():
             yield from _flatten(v, f"{prefix}{k}.")

@@ -102,3 +102,23 @@ def test_bad_requests_are_one_line_errors(mapped, tmp_path):
                                  "--mode", "scale"])
     assert r.exit_code == 0 and not (tmp_path / "c" / "map.pgm").exists()  # the set is this run's, not mixed
     assert (tmp_path / "c" / "map.scale.png").exists()
+
+
+def test_a_map_handed_to_cartographer_and_back(mapped, tmp_path):
+    """--pbstream writes the map as Cartographer's state; carto renders, relocalizes in and continues that file
+    as it does the map.carto it came from."""
+    from carto_cli.commands.relocalize import run_relocalize
+
+    mapdir, _ = mapped
+    done = run_render(mapdir / "map.carto", tmp_path / "out", pbstream=True)
+    assert done.pbstream == tmp_path / "out" / "map.pbstream" and done.pbstream.read_bytes()[:2] == b"\xdb\x01"
+    again = run_render(done.pbstream, tmp_path / "again")
+    assert again.image_file.read_bytes() == (mapdir / "map.pgm").read_bytes()
+    bag = mapdir.parent / "sim.bag"
+    poses = [run_relocalize(m, bag, scan_index=150, global_search=True).result.pose
+             for m in (mapdir / "map.carto", done.pbstream)]
+    assert np.allclose(poses[0], poses[1], atol=1e-6)
+    runner = CliRunner()
+    r = runner.invoke(app, ["map", str(bag), "-o", str(tmp_path / "more"), "--profile", "wheeled",
+                            "--load-state", str(done.pbstream)])
+    assert r.exit_code == 0, r.output
