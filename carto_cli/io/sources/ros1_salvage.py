@@ -14,6 +14,7 @@ from __future__ import annotations
 import bz2
 import contextlib
 import struct
+from array import array
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,12 +76,13 @@ class _Walk:
     def __init__(self, f, size: int):
         self.connections: dict[int, Connection] = {}
         self.chunks: list[_Chunk] = []
-        # per message: time (ns), connection, chunk (-1: a record outside any chunk), offset, length
-        self.times: list[int] = []
-        self.conns: list[int] = []
-        self.chunk_of: list[int] = []
-        self.offsets: list[int] = []
-        self.lengths: list[int] = []
+        # per message: time (ns), connection, chunk (-1: a record outside any chunk), offset, length; 8 bytes
+        # each (array, not list: a long recording holds millions of messages)
+        self.times = array("q")
+        self.conns = array("q")
+        self.chunk_of = array("q")
+        self.offsets = array("q")
+        self.lengths = array("q")
         self.cut = False  # the file ends inside a record
         self.garbage_at: int | None = None  # where the walk met bytes that are no record
         self.index_pos = 0
@@ -215,13 +217,15 @@ class SalvagedBag(Recording):
                     walk = _Walk(f, size)
         except OSError as e:
             raise CartoError(f"cannot read: {e.strerror}", self.path) from e
-        keep = [i for i, c in enumerate(walk.conns) if c in walk.connections]
-        order = sorted(keep, key=lambda i: walk.times[i])  # stable: equal stamps keep the file's order
-        self._times = np.array([walk.times[i] for i in order], np.int64)
-        self._conns = np.array([walk.conns[i] for i in order], np.int64)
-        self._chunk_of = np.array([walk.chunk_of[i] for i in order], np.int64)
-        self._offsets = np.array([walk.offsets[i] for i in order], np.int64)
-        self._lengths = np.array([walk.lengths[i] for i in order], np.int64)
+        times, conns = np.frombuffer(walk.times, np.int64), np.frombuffer(walk.conns, np.int64)
+        known = np.isin(conns, np.fromiter(walk.connections, np.int64, len(walk.connections)))
+        order = np.flatnonzero(known)
+        order = order[np.argsort(times[order], kind="stable")]  # equal stamps keep the file's order
+        self._times = times[order]
+        self._conns = conns[order]
+        self._chunk_of = np.frombuffer(walk.chunk_of, np.int64)[order]
+        self._offsets = np.frombuffer(walk.offsets, np.int64)[order]
+        self._lengths = np.frombuffer(walk.lengths, np.int64)[order]
         self._connections = walk.connections
         self._chunks = walk.chunks
         if not len(self._times):
