@@ -9,6 +9,7 @@ import threading
 import time
 from collections import OrderedDict
 
+from carto_cli.core.memory import give_back
 from carto_cli.matching.precomputation import PrecomputationGridStack
 
 __all__ = ["StackCache"]
@@ -50,12 +51,21 @@ class StackCache:
                 self.bytes -= old.memory_bytes
             self._stacks[index] = stack
             self.bytes += stack.memory_bytes
+            evicted = 0
             while self.bytes > self.budget_bytes and len(self._stacks) > 1:
-                _, dropped = self._stacks.popitem(last=False)
-                self.bytes -= dropped.memory_bytes
+                self.bytes -= self._stacks.popitem(last=False)[1].memory_bytes
                 self.evictions += 1
+                evicted += 1
             self.peak_bytes = max(self.peak_bytes, self.bytes)
+        if evicted:
+            give_back()  # the budget holds for the process only if what is dropped leaves it (core.memory)
         return stack
+
+    def clear(self) -> None:
+        """Drop every stack (statistics kept): when no search will follow, their memory is better given back."""
+        with self._lock:
+            self._stacks.clear()
+            self.bytes = 0
 
     def __contains__(self, index: int) -> bool:
         return index in self._stacks

@@ -33,6 +33,7 @@ MSGTYPES = {
 # At equal times, inertial and odometry data come before the scan that they help place.
 _PRIORITY = {IMU_TOPIC: 0, ODOM_TOPIC: 1, SCAN_TOPIC: 2}
 _CHUNK = 256  # scans ray cast per kernel call
+RECORD_BLOCK = 4096  # records turned from arrays into objects at a time
 
 
 def _sample_times(duration: float, rate: float) -> np.ndarray:
@@ -107,29 +108,30 @@ class Simulation:
         topic_ix = np.concatenate([np.full(len(t), i) for i, (_, t) in enumerate(streams)])
         index = np.concatenate([np.arange(len(t)) for _, t in streams])
         priority = np.array([_PRIORITY[topic] for topic, _ in streams])[topic_ix]
-        order = np.lexsort((priority, times)).tolist()
-        topic_ix, index = topic_ix.tolist(), index.tolist()
+        order = np.lexsort((priority, times))
         names = [topic for topic, _ in streams]
         scans = self.scan_ranges() if SCAN_TOPIC in wanted else iter(())
-        scan_times = self.scan_times.tolist()
-        odometry = self.odometry.tolist()
-        imu_times = self.imu_times.tolist()
         angles = beam_angles(self.lidar.angle_min, self.lidar.angle_increment, self.lidar.beams)
         scan_period = 1.0 / self._rate(self.scan_times)
         lidar = self.lidar
-        for j in order:
-            topic, i = names[topic_ix[j]], index[j]
-            if topic == SCAN_TOPIC:
-                yield Scan(
-                    time=scan_times[i], ranges=next(scans), angles=angles.copy(), frame="laser",
-                    topic=SCAN_TOPIC, range_min=lidar.min_range, range_max=lidar.max_range,
-                    angle_min=lidar.angle_min, angle_increment=lidar.angle_increment, scan_time=scan_period,
-                )
-            elif topic == ODOM_TOPIC:
-                t, x, y, yaw, vx, wz = odometry[i]
-                yield Odometry(t, x, y, yaw, topic=ODOM_TOPIC, vx=vx, wz=wz)
-            else:
-                yield Imu(imu_times[i], self.imu_gyro[i].copy(), self.imu_accel[i].copy(), topic=IMU_TOPIC)
+        # Block by block, as a reader streams a file: the whole recording as Python lists (two hours of odometry and
+        # IMU) would cost a bench run hundreds of MB it then charges to mapping.
+        for start in range(0, len(order), RECORD_BLOCK):
+            rows = order[start:start + RECORD_BLOCK]
+            for s, i in zip(topic_ix[rows].tolist(), index[rows].tolist()):
+                topic = names[s]
+                if topic == SCAN_TOPIC:
+                    yield Scan(
+                        time=float(self.scan_times[i]), ranges=next(scans), angles=angles.copy(), frame="laser",
+                        topic=SCAN_TOPIC, range_min=lidar.min_range, range_max=lidar.max_range,
+                        angle_min=lidar.angle_min, angle_increment=lidar.angle_increment, scan_time=scan_period,
+                    )
+                elif topic == ODOM_TOPIC:
+                    t, x, y, yaw, vx, wz = self.odometry[i].tolist()
+                    yield Odometry(t, x, y, yaw, topic=ODOM_TOPIC, vx=vx, wz=wz)
+                else:
+                    yield Imu(float(self.imu_times[i]), self.imu_gyro[i].copy(), self.imu_accel[i].copy(),
+                              topic=IMU_TOPIC)
 
     @staticmethod
     def _rate(times: np.ndarray) -> float:

@@ -64,3 +64,15 @@ def test_stack_cache_shared_by_threads_stays_within_its_budget_and_counts_every_
     assert cache.hits + cache.misses == len(order)
     assert cache.bytes <= cache.budget_bytes and 1 <= len(cache) <= 2
     assert cache.peak_bytes >= cache.bytes
+
+
+def test_clear_drops_every_stack_and_keeps_the_statistics(grids):
+    cache = StackCache(1 << 40, 7)
+    first = cache.get(0, grids[0])
+    cache.get(1, grids[1])
+    peak = cache.peak_bytes
+    cache.clear()
+    assert len(cache) == 0 and cache.bytes == 0 and 0 not in cache
+    assert cache.misses == 2 and cache.peak_bytes == peak
+    again = cache.get(0, grids[0])  # rebuilt, the same
+    assert again is not first and again.memory_bytes == first.memory_bytes

@@ -1,0 +1,34 @@
+"""Giving freed memory back to the operating system.
+
+glibc's malloc keeps what a program frees for later allocations: large blocks are mapped and unmapped, but after
+the first is freed it raises its threshold for mapping to that size, and blocks freed in a thread's arena stay
+with the arena. A long run that frees hundreds of MB of precomputation grids (``mapping.slam``) would go on
+holding them, and the arrays allocated next would come on top. ``malloc_trim`` hands the free pages back.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import functools
+
+__all__ = ["give_back"]
+
+
+@functools.lru_cache(maxsize=1)
+def _trim():
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return None
+    try:
+        return getattr(ctypes.CDLL(name), "malloc_trim", None)  # glibc only (not musl, not macOS)
+    except OSError:
+        return None
+
+
+def give_back() -> bool:
+    """Return the process's free heap pages to the system where the C library can (True when it could)."""
+    trim = _trim()
+    if trim is None:
+        return False
+    trim(0)
+    return True
