@@ -14,6 +14,10 @@ from carto_cli.matching.precomputation import PrecomputationGridStack
 
 __all__ = ["StackCache"]
 
+# Freed memory is given back each time 1/TRIM_SHARE of the budget was evicted (16 MB of the default 256): on the
+# 2-hour campus 72 calls, 0.5 s, peak 935 MB, against 359 calls, 1.5 s, 912 MB at every eviction and 980 MB never.
+TRIM_SHARE = 16
+
 
 class StackCache:
     """Precomputation stacks by submap id, least recently used dropped beyond ``budget_bytes``.
@@ -32,6 +36,7 @@ class StackCache:
         self.evictions = 0
         self.build_ms = 0.0
         self.peak_bytes = 0
+        self._dropped_bytes = 0  # evicted since memory was last given back
         self._lock = threading.Lock()
 
     def get(self, index: int, grid) -> PrecomputationGridStack:
@@ -51,14 +56,19 @@ class StackCache:
                 self.bytes -= old.memory_bytes
             self._stacks[index] = stack
             self.bytes += stack.memory_bytes
-            evicted = 0
             while self.bytes > self.budget_bytes and len(self._stacks) > 1:
-                self.bytes -= self._stacks.popitem(last=False)[1].memory_bytes
+                dropped = self._stacks.popitem(last=False)[1].memory_bytes
+                self.bytes -= dropped
+                self._dropped_bytes += dropped
                 self.evictions += 1
-                evicted += 1
             self.peak_bytes = max(self.peak_bytes, self.bytes)
-        if evicted:
-            give_back()  # the budget holds for the process only if what is dropped leaves it (core.memory)
+            # The budget holds for the process only if what is dropped leaves it (core.memory); a share of the
+            # budget at a time, since handing pages back walks the whole heap (up to 11 ms).
+            trim = self._dropped_bytes >= self.budget_bytes // TRIM_SHARE
+            if trim:
+                self._dropped_bytes = 0
+        if trim:
+            give_back()
         return stack
 
     def clear(self) -> None:
