@@ -8,7 +8,6 @@ holding them, and the arrays allocated next would come on top. ``malloc_trim`` h
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import functools
 
 __all__ = ["give_back"]
@@ -16,11 +15,9 @@ __all__ = ["give_back"]
 
 @functools.lru_cache(maxsize=1)
 def _trim():
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
     try:
-        return getattr(ctypes.CDLL(name), "malloc_trim", None)  # glibc only (not musl, not macOS)
+        # The process's own symbols hold the C library's (no ldconfig lookup, as ctypes.util would run).
+        return getattr(ctypes.CDLL(None), "malloc_trim", None)  # glibc only (not musl, not macOS)
     except OSError:
         return None
 
