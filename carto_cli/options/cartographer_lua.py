@@ -307,16 +307,15 @@ def import_lua(path: str | Path) -> LuaImport:
         values = found[section]
         if not isinstance(values, dict):
             continue
+        # (A sub-table created by reading it and never set is empty: it has no leaf, so no key.)
         for key, value in _flatten(values, section + "."):
-            if isinstance(value, dict) and not value:
-                continue  # a sub-table created by reading it, never set
             if key in SELECTORS:
                 if value != SELECTORS[key]:
                     unused[key] = value
                 continue
             carto_key = RENAMED.get(key, key)
             tp = types.get(carto_key)
-            if tp is None or isinstance(value, (dict, list)):
+            if tp is None or isinstance(value, list):
                 unused[key] = value
                 continue
             value = _typed(value, tp)
@@ -333,6 +332,4 @@ def import_lua(path: str | Path) -> LuaImport:
 
 
 def _collect(values: dict, prefix: str, out: dict) -> None:
-    for key, value in _flatten(values, prefix):
-        if not (isinstance(value, dict) and not value):
-            out[key] = value
+    out.update(_flatten(values, prefix))
