@@ -12,7 +12,8 @@ The messages are declared here, field by field, from Cartographer's published ``
 types are the format; tests/io/test_pbstream.py checks them against a transcription of those files) and encoded
 by the protobuf library; only the fields carto reads or writes are declared, the others are skipped on reading.
 
-Units and frames: carto's poses (x, y, yaw) are Cartographer's Rigid3d with z = 0 and a rotation about z; times
+Units and frames: carto's poses (x, y, yaw) are Cartographer's Rigid3d with z = 0 and a rotation about z (a node's
+pose read is that of its gravity-aligned frame, which its points and constraints refer to); times
 are Cartographer's "universal" ticks (100 ns since 0001-01-01). A carto grid (``cells[iy, ix]``, row 0 at the
 lowest y) is Cartographer's Grid2D turned: Cartographer's cell (cx, cy) lies at ``max - (cy + 0.5, cx + 0.5)
 * resolution``, i.e. its x index runs down the world's y axis and its y index down the world's x axis. Both store
@@ -32,7 +33,7 @@ import numpy as np
 from carto_cli.core.errors import CartoError, FormatError
 
 __all__ = ["MAGIC", "SCHEMA", "grid_from_message", "grid_to_message", "is_pbstream", "load_pbstream", "messages",
-           "save_pbstream"]
+           "pose_of", "save_pbstream"]
 
 MAGIC = 0x7B1D1F7B5BF501DB
 MAGIC_BYTES = struct.pack("<Q", MAGIC)
@@ -144,11 +145,21 @@ def _rigid(msg, pose) -> None:
     msg.rotation.z, msg.rotation.w = math.sin(yaw / 2.0), math.cos(yaw / 2.0)
 
 
-def _pose(msg) -> np.ndarray:
-    q = msg.rotation
+def _quaternion(q) -> tuple[float, float, float, float]:
+    """(w, x, y, z); an unset rotation is the identity."""
     w, x, y, z = q.w, q.x, q.y, q.z
-    if w == x == y == z == 0.0:  # an unset rotation is the identity
-        w = 1.0
+    return (1.0, 0.0, 0.0, 0.0) if w == x == y == z == 0.0 else (w, x, y, z)
+
+
+def pose_of(msg, gravity=None) -> np.ndarray:
+    """A Rigid3d as (x, y, yaw), Cartographer's Project2D. With a node's ``gravity`` alignment, the pose of its
+    gravity-aligned frame (``pose * gravity^-1``), which its points and constraints are in (2D pose graph)."""
+    w, x, y, z = _quaternion(msg.rotation)
+    if gravity is not None:
+        gw, gx, gy, gz = _quaternion(gravity)
+        gx, gy, gz = -gx, -gy, -gz  # the inverse of a unit quaternion
+        w, x, y, z = (w * gw - x * gx - y * gy - z * gz, w * gx + x * gw + y * gz - z * gy,
+                      w * gy - x * gz + y * gw + z * gx, w * gz + x * gy - y * gx + z * gw)
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return np.array([msg.translation.x, msg.translation.y, yaw])
 
@@ -340,18 +351,18 @@ def _load(path: Path, options):
         for n in t.node:
             i = node_of.get((t.trajectory_id, n.node_index))
             if i is not None:
-                global_node[i] = _pose(n.pose)
+                global_node[i] = pose_of(n.pose, nodes[node_ids[i]].gravity_alignment)
         for s in t.submap:
             i = submap_of.get((t.trajectory_id, s.submap_index))
             if i is not None:
-                global_submap[i] = _pose(s.pose)
+                global_submap[i] = pose_of(s.pose)
     missing = [str(node_ids[i]) for i in np.flatnonzero(np.isnan(global_node[:, 0]))[:3]]
     missing += [f"submap {submap_ids[i]}" for i in np.flatnonzero(np.isnan(global_submap[:, 0]))[:3]]
     if missing:
         raise FormatError(f"the pose graph has no optimized pose for {', '.join(missing)}", path)
 
     node_times = np.array([from_ticks(nodes[k].timestamp) for k in node_ids])
-    node_local = np.array([_pose(nodes[k].local_pose) for k in node_ids]).reshape(-1, 3)
+    node_local = np.array([pose_of(nodes[k].local_pose, nodes[k].gravity_alignment) for k in node_ids]).reshape(-1, 3)
     points = [decompress_points(nodes[k].filtered_gravity_aligned_point_cloud.num_points,
                                 nodes[k].filtered_gravity_aligned_point_cloud.point_data) for k in node_ids]
 
@@ -359,7 +370,7 @@ def _load(path: Path, options):
     for k in submap_ids:
         s = submaps[k]
         grid = grid_from_message(s.grid, f"submap {k}")
-        local = _pose(s.local_pose)
+        local = pose_of(s.local_pose)
         sm = Submap(local[:2], resolution=grid.resolution, index=int(k[1]), initial_size=1)
         sm.local_pose = local
         sm.grid = grid
@@ -373,7 +384,7 @@ def _load(path: Path, options):
         ni = node_of.get((c.node_id.trajectory_id, c.node_id.node_index))
         if si is None or ni is None:
             continue  # a constraint to a submap or node not saved (Cartographer drops unfinished submaps)
-        rows.append((si, ni, _pose(c.relative_pose), c.translation_weight, c.rotation_weight, c.tag == INTER_SUBMAP))
+        rows.append((si, ni, pose_of(c.relative_pose), c.translation_weight, c.rotation_weight, c.tag == INTER_SUBMAP))
     constraints = ConstraintSet.from_arrays(
         [r[0] for r in rows], [r[1] for r in rows], np.array([r[2] for r in rows]).reshape(-1, 3),
         [r[3] for r in rows], [r[4] for r in rows], np.array([r[5] for r in rows], dtype=bool)) if rows \

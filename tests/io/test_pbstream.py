@@ -286,3 +286,16 @@ def test_damaged_streams_are_one_format_error(tmp_path, sample_map):
         with pytest.raises(FormatError) as info:
             load_map(p)
         assert str(p) in str(info.value)
+
+
+def test_a_node_is_placed_by_its_gravity_aligned_frame():
+    """Cartographer's 2D graph relates a node by local_pose * gravity_alignment^-1 (its points' frame): a node
+    whose IMU alignment holds a turn of 0.3 rad about z is read 0.3 rad less turned than its tracking frame."""
+    M = pbstream.messages()
+    pose = M["Rigid3d"]()
+    pose.translation.x, pose.rotation.z, pose.rotation.w = 2.0, np.sin(0.5), np.cos(0.5)  # yaw 1.0
+    gravity = M["Quaterniond"](z=np.sin(0.15), w=np.cos(0.15))  # yaw 0.3
+    tilt = M["Quaterniond"](x=np.sin(0.05), w=np.cos(0.05))  # a roll only: no yaw to take away
+    np.testing.assert_allclose(pbstream.pose_of(pose), [2.0, 0.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(pbstream.pose_of(pose, gravity), [2.0, 0.0, 0.7], atol=1e-12)
+    np.testing.assert_allclose(pbstream.pose_of(pose, tilt)[2], 1.0, atol=1e-3)
