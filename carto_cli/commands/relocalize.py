@@ -85,18 +85,16 @@ def _from_scans(loaded: LoadedMap, rec, scan_topic: str, profile) -> tuple[np.nd
 def _relocalizer(loaded: LoadedMap, overrides, warnings: list[str],
                  on_warning: Callable[[str], None] | None) -> Relocalizer:
     relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
-    warnings.extend(relocalizer.warnings)
-    if on_warning is not None:
-        for w in relocalizer.warnings:
-            on_warning(w)
+    _tell(relocalizer.warnings, warnings, on_warning)
     return relocalizer
 
 
-def _recording_warnings(recording, warnings: list[str], on_warning: Callable[[str], None] | None) -> None:
-    """What reading the recording had to work around (a damaged bag), told as soon as it is open."""
-    warnings.extend(recording.warnings)
+def _tell(new: list[str], warnings: list[str], on_warning: Callable[[str], None] | None) -> None:
+    """Add ``new`` warnings to the run's and tell them at once (the map's, or what reading a damaged recording
+    had to work around)."""
+    warnings.extend(new)
     if on_warning is not None:
-        for w in recording.warnings:
+        for w in new:
             on_warning(w)
 
 
@@ -190,7 +188,7 @@ def run_relocalize(
     # Built before the recording is read when the map holds all it needs, so its warnings come first.
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, run.warnings, on_warning)
     with open_recording(recording, read) as rec:
-        _recording_warnings(rec, run.warnings, on_warning)
+        _tell(rec.warnings, run.warnings, on_warning)
         mount = None
         if relocalizer is None:
             mount, run.auto = _from_scans(loaded, rec, select_scan_topic(rec, scan_topic), profile)
@@ -277,7 +275,7 @@ def run_track(
     warnings: list[str] = []
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning)
     with open_recording(recording, read) as rec:
-        _recording_warnings(rec, warnings, on_warning)
+        _tell(rec.warnings, warnings, on_warning)
         selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
         mount = auto = None
         if relocalizer is None:

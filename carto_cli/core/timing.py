@@ -14,7 +14,7 @@ One ``StageTimer`` travels through the core; ``profile``, ``map --profile`` and
     with timer.stage("final_optimization"):   # outside any scan: recorded too
         ...
     timer.stop()
-    print(report_tree_text(timer))
+    text = report_tree_text(timer)          # the CLI prints it
 
 The tree's root is the wall time since the timer was created (until ``stop()``);
 its children are the ``scan`` pseudo-stage (all scans together) and the stages run

@@ -53,14 +53,7 @@ class LuaImport:
 
     def nested(self) -> dict:
         """The overrides as a nested mapping (a profile's YAML layout)."""
-        out: dict = {}
-        for key, value in self.overrides.items():
-            node = out
-            *parents, leaf = key.split(".")
-            for p in parents:
-                node = node.setdefault(p, {})
-            node[leaf] = value
-        return out
+        return _nest(self.overrides.items())
 
     def note(self) -> str | None:
         """One line naming what carto does not use (None when it uses everything)."""
@@ -114,22 +107,20 @@ def _lua_value(value: Any, indent: int) -> str:
 
 def _cartographer_layout(section: str, values: dict) -> dict:
     """carto's nested defaults of ``section`` laid out as Cartographer's stock file has them."""
-    flat = dict(_flatten(values, section + "."))
+    keys = [(_CARTO_TO_LUA.get(key, key), value) for key, value in _flatten(values, section + ".")]
+    keys += [(key, value) for key, value in SELECTORS.items() if key.startswith(section + ".")]
+    return _nest((key.split(".", 1)[1], value) for key, value in keys)
+
+
+def _nest(items) -> dict:
+    """(dotted key, value) pairs as a nested mapping."""
     out: dict = {}
-    for key, value in flat.items():
-        key = _CARTO_TO_LUA.get(key, key)
+    for key, value in items:
         node = out
-        *parents, leaf = key.split(".")[1:]
+        *parents, leaf = key.split(".")
         for p in parents:
             node = node.setdefault(p, {})
         node[leaf] = value
-    for key, value in SELECTORS.items():
-        if key.startswith(section + "."):
-            node = out
-            *parents, leaf = key.split(".")[1:]
-            for p in parents:
-                node = node.setdefault(p, {})
-            node[leaf] = value
     return out
 
 
@@ -224,14 +215,26 @@ def _leaf_types() -> dict[str, Any]:
     return out
 
 
+# By file and its state, so loading the options and the CLI's note run it once per command (an include changed
+# meanwhile is not seen; within one command it is not).
+_IMPORTED: dict[tuple, LuaImport] = {}
+
+
 def import_lua(path: str | Path) -> LuaImport:
     """Run ``path`` (a Cartographer configuration) and read the options it sets. Raises CartoError naming the
     file for a Lua error, a missing include, or a value of the wrong type for carto's option."""
-    from carto_cli.options import load_options
-
     path = Path(path).expanduser()
     if not path.is_file():
         raise CartoError("no such file" if not path.exists() else "not a file", path)
+    st = path.stat()
+    key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
+    if key not in _IMPORTED:
+        _IMPORTED[key] = _import(path)
+    return _IMPORTED[key]
+
+
+def _import(path: Path) -> LuaImport:
+    from carto_cli.options import load_options
     try:
         from lupa import LuaError, LuaRuntime
     except ImportError as e:  # pragma: no cover - a dependency of carto
