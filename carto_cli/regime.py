@@ -115,6 +115,7 @@ def no_return_value(ranges: np.ndarray) -> float | None:
 def _scan_to_scan(scans: list[Scan]) -> np.ndarray:
     """(k, 3) relative motions of a sample of consecutive scan pairs, each matched by correlative search
     in a one-scan grid: the motion estimate of a recording without odometry."""
+    from carto_cli.core.parallel import map_ordered
     from carto_cli.mapping.submaps import ActiveSubmaps
     from carto_cli.matching import correlative, least_squares
     from carto_cli.sensor.range_filter import crop_scan
@@ -123,12 +124,12 @@ def _scan_to_scan(scans: list[Scan]) -> np.ndarray:
     if len(scans) < 2:
         return np.zeros((0, 3))
     picks = np.unique(np.linspace(0, len(scans) - 2, min(MATCH_PAIRS, len(scans) - 1)).astype(int))
-    out = []
     crop = dict(mount=(0.0, 0.0, 0.0), min_range=0.0, max_range=30.0, missing_data_ray_length=1.0)
-    for i in picks:
+
+    def match(i: int) -> np.ndarray | None:
         a, b = crop_scan(scans[i], **crop), crop_scan(scans[i + 1], **crop)
         if len(a.returns) < 10 or len(b.returns) < 10:
-            continue
+            return None
         # A coarse grid keeps a window as wide as a key scan's motion (1 m, 45 deg) cheap.
         active = ActiveSubmaps(num_range_data=1, resolution=0.1)
         active.insert(a)
@@ -138,8 +139,11 @@ def _scan_to_scan(scans: list[Scan]) -> np.ndarray:
         points = adaptive_voxel_filter(voxel_filter(b.returns, 0.025), max_length=0.5, min_num_points=200)
         guess = correlative.match(grid, points, np.zeros(3), linear_search_window=1.0,
                                   angular_search_window=math.radians(45.0))
-        out.append(least_squares.match(grid, points, guess.pose, target_translation=guess.pose[:2],
-                                       translation_weight=1.0, rotation_weight=1.0).pose)
+        return least_squares.match(grid, points, guess.pose, target_translation=guess.pose[:2],
+                                   translation_weight=1.0, rotation_weight=1.0).pose
+
+    # On threads (the matchers' kernels release the GIL): the survey is a tenth of a short run's time
+    out = [pose for pose in map_ordered(match, picks) if pose is not None]
     return np.array(out).reshape(-1, 3)
 
 

@@ -38,11 +38,13 @@ __all__ = [
 # --------------------------------------------------------------------------- YAML
 
 
-class YamlLoader(yaml.SafeLoader):
+class YamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]
     """SafeLoader that also reads '1e5' and '1.1e4' as floats.
 
     PyYAML follows YAML 1.1, which wants a dot and a signed exponent; Cartographer's
-    Lua files are full of '1e5', and silently getting a string would be a trap.
+    Lua files are full of '1e5', and silently getting a string would be a trap. libyaml's parser when PyYAML
+    has it: every run reads the default profile and its base, and the pure-Python parser took 50 ms of a
+    2 s run on the sample.
     """
 
 
