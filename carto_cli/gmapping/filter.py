@@ -251,7 +251,7 @@ class GMappingSlam:
             self.log_weights += log_eta
             self.lineage += log_eta
         with timer.stage("resampling"):
-            weights = resampling.normalized(self.log_weights, g.ogain)
+            weights = resampling.normalized(self.log_weights, g.ogain, g.gainParticles)
             neff = resampling.neff(weights)
             self.neff_history.append(neff)
             limit = resampling.threshold(n, g.resampleThreshold)

@@ -1,8 +1,12 @@
 """Particle weights, the effective sample size and selective, low-variance resampling.
 
-Weights are kept as log sums since the last resampling. GMapping normalises them as
-``exp((log w - max) / (ogain x particles))``: the likelihood of a scan is so peaked that raw weights
-would make one particle take everything at the first resampling; the gain smooths that.
+Weights are kept as log sums since the last resampling and normalised as
+``exp((log w - max) / (ogain x gainParticles))``: the likelihood of a scan is so peaked that raw weights
+would make one particle take everything at the first resampling; the gain smooths that. GMapping scales
+the gain by the filter's own particle count, which makes the weights flatter the more particles there are:
+Neff then stays high, resampling stops selecting, and wrong lineages survive (orebro at 150 particles:
+5.1, 0.19 and 3.0 m over three seeds, against 0.048, 0.041 and 0.045 m with the gain of 50). carto scales
+it by a fixed count, so that more particles sample the same posterior more densely (docs/gmapping.md).
 
 Resampling happens only when the effective sample size Neff = 1 / sum(w^2) falls below a threshold
 (GMapping's selective resampling). With ``adaptive`` the threshold follows the seeds' rule
@@ -15,10 +19,11 @@ from __future__ import annotations
 import numpy as np
 
 
-def normalized(log_weights: np.ndarray, ogain: float) -> np.ndarray:
-    """Normalised weights from log weights, smoothed by ``ogain`` x the number of particles."""
+def normalized(log_weights: np.ndarray, ogain: float, gain_particles: int = 0) -> np.ndarray:
+    """Normalised weights from log weights, smoothed by ``ogain`` x ``gain_particles`` (0: the number of
+    particles, as GMapping does)."""
     lw = np.asarray(log_weights, dtype=np.float64)
-    w = np.exp((lw - lw.max()) / (ogain * lw.shape[0]))
+    w = np.exp((lw - lw.max()) / (ogain * (gain_particles or lw.shape[0])))
     return w / w.sum()
 
 

@@ -22,6 +22,18 @@ def test_normalized_divides_the_log_weights_by_ogain_times_particles():
                                rtol=1e-12)
 
 
+def test_a_fixed_gain_count_makes_the_weights_independent_of_the_particle_count():
+    # gain_particles 2, ogain 3: a particle 6 below the best weighs exp(-1) of it, among 2 particles or 200
+    e = math.exp(-1.0)
+    two = resampling.normalized(np.array([0.0, -6.0]), 3.0, 2)
+    np.testing.assert_allclose(two, [1 / (1 + e), e / (1 + e)], rtol=1e-12)
+    many = resampling.normalized(np.concatenate([[0.0], np.full(199, -6.0)]), 3.0, 2)
+    np.testing.assert_allclose(many[1:] / many[0], e, rtol=1e-12)
+    # GMapping's own scaling (0): among 200 particles the same gap is nearly no difference at all
+    own = resampling.normalized(np.concatenate([[0.0], np.full(199, -6.0)]), 3.0, 0)
+    np.testing.assert_allclose(own[1:] / own[0], math.exp(-6.0 / 600.0), rtol=1e-12)
+
+
 def test_normalized_depends_on_differences_only_and_never_overflows():
     w = resampling.normalized(np.array([-5000.0, -5006.0]), 3.0)
     np.testing.assert_allclose(w, resampling.normalized(np.array([0.0, -6.0]), 3.0), rtol=1e-12)
