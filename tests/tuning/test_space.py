@@ -95,7 +95,7 @@ def test_the_gmapping_space_varies_the_particle_filter():
     assert all(name.startswith("gmapping.") for name in params)
     ranges = {name[len("gmapping."):]: (p.kind, p.low, p.high, p.log) for name, p in params.items()}
     assert ranges == {
-        "particles": ("int", 10, 60, False),
+        "particles": ("int", 20, 150, False),
         "srr": ("float", 0.01, 0.4, True), "srt": ("float", 0.01, 0.4, True),
         "str": ("float", 0.01, 0.4, True), "stt": ("float", 0.01, 0.4, True),
         "sigma": ("float", 0.02, 0.1, False), "lsigma": ("float", 0.02, 0.2, True),
