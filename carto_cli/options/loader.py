@@ -84,7 +84,8 @@ def read_yaml(path: Path) -> tuple[dict, dict[str, int]]:
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}: " if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e)
+        # A reader error (a control character) has no 'problem' and a second line saying where: keep the first
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
         raise CartoError(f"{where}invalid YAML: {problem}", path) from None
     finally:
         if loader is not None:

@@ -181,6 +181,15 @@ def test_file_errors_name_file_line_and_key(tmp_path, text, message):
     assert e.value.path == str(p)
 
 
+def test_a_control_character_is_one_line_naming_it(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text('gmapping:\n  particles: "\x01"\n')
+    with pytest.raises(CartoError) as e:
+        load_options(p)
+    assert "invalid YAML: unacceptable character #x0001" in str(e.value)
+    assert "\n" not in str(e.value)
+
+
 def test_cross_checks_apply_to_the_final_values(tmp_path):
     p = tmp_path / "far.yaml"
     p.write_text("trajectory_builder_2d: {min_range: 40.0}\n")
