@@ -63,11 +63,22 @@ def workspace(tmp_path_factory):
     return root
 
 
+def untimed(argv: list[str]) -> list[str]:
+    """The command with its speed gate's limit lifted. Whether this machine is as fast a minute later is not
+    this test's question (a shared machine made the gate flap here: `scan/preprocess` +42 % between two runs
+    of the same code); the gate's arithmetic is tested with set timings in tests/commands/test_profile.py and
+    its false-alarm rate measured by bench/gate_stability.py."""
+    if "--max-regression" not in argv:
+        return argv
+    i = argv.index("--max-regression") + 1
+    return argv[:i] + ["1000"] + argv[i + 1 :]
+
+
 def run_commands(commands: list[str], cwd: Path, monkeypatch) -> None:
     monkeypatch.chdir(cwd)
     runner = CliRunner()
     for command in commands:
-        argv = shlex.split(command)
+        argv = untimed(shlex.split(command))
         if argv[0] == "pip":
             continue  # the runner's install step
         assert argv[0] == "carto", command
@@ -90,8 +101,8 @@ def test_the_jobs_parse_and_name_the_same_commands():
 
 
 def test_the_gitlab_job_runs_here(workspace, monkeypatch):
-    """The baseline, then the job's script, in a checkout laid out as the doc's: every gate passes and the
-    artifacts it reports exist."""
+    """The baseline, then the job's script, in a checkout laid out as the doc's: the accuracy gate passes, the
+    speed gate runs against the baseline (its limit lifted, see `untimed`), and the artifacts it reports exist."""
     (baseline,) = [code for heading, code in blocks("sh") if "baseline" in heading]
     first = [line for line in baseline.splitlines() if line.startswith("carto ")]
     (gitlab,) = [yaml.safe_load(code) for heading, code in blocks("yaml") if heading == "GitLab CI"]
