@@ -2,7 +2,8 @@
 """Localization in a plain map_server map: the building's ground-truth occupancy image as the map.
 
     python bench/localization.py [--cases aces,intel,freiburg-079] [--queries 200] [--global-queries 100]
-                                 [--foreign-queries 50] [--seed 0] [--no-track] [--results DIR]
+                                 [--foreign-queries 50] [--foreign-track 300] [--seed 0] [--no-track]
+                                 [--results DIR]
                                  [--doc docs/benchmarks.md | --no-doc]
 
 For each case of ``$DATA/bench-dense`` (``map.yaml`` + ``map.pgm``: the occupancy grid the simulator drew the
@@ -14,9 +15,10 @@ building from, in the frame of ``groundtruth.txt``, so the reference needs no fi
    uniformly within a disc of 1.5 m and ±15°, given with sigma 0.5 m / 5°. Right = verdict ``ok`` and within
    0.2 m / 2° of the reference. Latency = ``total_ms`` (numba compiled, stacks built).
 3. **Global**: the first ``--global-queries`` of them without a prior.
-4. **Another building**: ``--foreign-queries`` scans of the next case's recording, with priors on this map's
+4. **Another building**: ``--foreign-queries`` scans of each other case's recording, with priors on this map's
    route (the reference poses of its own recording) and without; every answer with verdict ``ok`` is counted:
-   there should be none.
+   there should be none. From each such answer a ``Tracker`` follows the next ``--foreign-track`` scans of that
+   recording: how many scans it believes the wrong pose, and how many it answers ``ok`` in all.
 5. **Tracking**: ``commands.relocalize.run_track`` over the whole recording (reading, tracking and writing the
    outputs, as ``carto relocalize MAP REC --track`` does), no initial pose (a global first fix): share of scans
    ``ok`` and within 0.1 m / 1°, scans per second over the whole call, time to the first fix.
@@ -76,7 +78,29 @@ def _lat(ms) -> dict:
     return {"p50_ms": float(np.percentile(v, 50)), "p99_ms": float(np.percentile(v, 99)), "max_ms": float(v.max())}
 
 
-def run_case(case: Path, foreign: Path, args) -> dict:
+def _track_from(reloc, building: Path, first: int, pose, n: int) -> dict:
+    """Track ``n`` scans of ``building`` from its scan ``first`` on, starting at ``pose`` (a wrong answer in
+    another building's map): how long the tracker believes it, and how often its searches answer ``ok`` again."""
+    from carto_cli.core.records import Scan
+    from carto_cli.io.sources.open import open_recording
+    from carto_cli.relocalization.tracking import Tracker
+
+    if n <= 0:
+        return {}
+    records, k = [], -1
+    with open_recording(building / "scans.clf.gz") as rec:
+        for r in rec.records():
+            k += isinstance(r, Scan)
+            if k >= first + n:
+                break
+            if k >= first:
+                records.append(r)
+    verdicts = [t.verdict for t in Tracker(reloc).track(records, initial_pose=pose, sigma_xy=0.1, sigma_yaw=0.05)]
+    return {"tracked": len(verdicts), "first_not_ok": next((j for j, v in enumerate(verdicts) if v != "ok"), None),
+            "tracked_ok": verdicts.count("ok")}
+
+
+def run_case(case: Path, foreign: list[Path], args) -> dict:
     from carto_cli.commands.relocalize import run_track
     from carto_cli.io.map_server import load_map_server
     from carto_cli.relocalization import Relocalizer
@@ -123,14 +147,25 @@ def run_case(case: Path, foreign: Path, args) -> dict:
                      "verdicts": {v: sum(r[0] == v for r in rows) for v in ("ok", "ambiguous", "lost")},
                      **_lat([r[2] for r in rows])}
 
-    other = _scans(foreign / "scans.clf.gz")
-    fidx = rng.choice(len(other), min(args.foreign_queries, len(other)), replace=False)
-    ok_prior = ok_global = 0
-    for i in fidx:
-        prior = gt[rng.integers(len(gt)), 1:4]
-        ok_prior += reloc.relocalize(other[i], prior, sigma_xy=0.5, sigma_yaw=math.radians(5)).verdict == "ok"
-        ok_global += reloc.relocalize(other[i]).verdict == "ok"
-    out["foreign"] = {"building": foreign.name, "n": len(fidx), "ok_with_prior": ok_prior, "ok_global": ok_global}
+    ok_prior = ok_global = n_foreign = 0
+    wrong = []
+    for building in foreign:
+        other = _scans(building / "scans.clf.gz")
+        fidx = rng.choice(len(other), min(args.foreign_queries, len(other)), replace=False)
+        n_foreign += len(fidx)
+        for i in fidx:
+            prior = gt[rng.integers(len(gt)), 1:4]
+            for kind, res in (("prior", reloc.relocalize(other[i], prior, sigma_xy=0.5, sigma_yaw=math.radians(5))),
+                              ("global", reloc.relocalize(other[i]))):
+                if res.verdict == "ok":
+                    ok_prior += kind == "prior"
+                    ok_global += kind == "global"
+                    wrong.append({"building": building.name, "scan": int(i), "kind": kind, "path": res.path,
+                                  "score": res.score, "inliers": res.inlier_fraction, "see_through": res.see_through,
+                                  "ambiguity": res.ambiguity,
+                                  **_track_from(reloc, building, int(i), res.pose, args.foreign_track)})
+    out["foreign"] = {"buildings": [b.name for b in foreign], "n": n_foreign, "ok_with_prior": ok_prior,
+                      "ok_global": ok_global, "ok_answers": wrong}
 
     if not args.no_track:
         with tempfile.TemporaryDirectory() as d:
@@ -177,8 +212,8 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
            "`carto relocalize MAP.yaml` reads it, settings chosen by `auto` from the scans. Queries: scans of the "
            "recording; with a prior = reference moved uniformly within 1.5 m / ±15° (sigma 0.5 m / 5°); global: "
            "the first of them without a prior; right = verdict `ok` and within 0.2 m / 2°; *false ok* = verdict "
-           "`ok` and not right. Another building: scans of the next case with priors on this map's route, and "
-           "without. Tracking: `carto relocalize MAP REC --track` over the whole recording without an initial "
+           "`ok` and not right. Another building: scans of each other case with priors on this map's route, and "
+           "without (each `ok` among them listed below, with how a tracker started there fares). Tracking: `carto relocalize MAP REC --track` over the whole recording without an initial "
            "pose (global first fix), right = `ok` and within 0.1 m / 1°; scans/s over the whole call (reading, "
            "tracking, writing). Method in `bench/localization.py`.", "",
            "Targets (issue 14): prior ≥ 99 %, p50 ≤ 10 ms, p99 ≤ 50 ms; global ≥ 95 %, p50 ≤ 200 ms; another "
@@ -195,7 +230,7 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
         out.append(f"| {c['case']} | {c['cells'] / 1e6:.2f} M cells, {c['tiles']} tile(s) | "
                    f"{_pct(p['right'], p['n'])} | {p['false_ok']} | {p['p50_ms']:.1f} / {p['p99_ms']:.1f} | "
                    f"{_pct(g['right'], g['n'])} | {g['false_ok']} | {g['p50_ms']:.0f} / {g['p99_ms']:.0f} | "
-                   f"{f['ok_with_prior']} / {f['ok_global']} of {f['n']} ({f['building']}) " + track)
+                   f"{f['ok_with_prior']} / {f['ok_global']} of {f['n']} ({', '.join(f['buildings'])}) " + track)
     out += ["", "Verdicts and settings:", ""]
     for c in cases:
         line = (f"- {c['case']}: auto {c['auto']}; prior {c['prior']['verdicts']}, global {c['global']['verdicts']}")
@@ -203,6 +238,14 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
             t = c["track"]
             line += f"; track {t['verdicts']}, {t['searches']} searches, stage ms {t['timings_ms']}"
         out.append(line)
+        for w in c["foreign"]["ok_answers"]:
+            tracked = ("" if "tracked" not in w else
+                       f"; tracked from there: first not `ok` after {w['first_not_ok']} scan(s), "
+                       f"{w['tracked_ok']} of {w['tracked']} `ok`")
+            out.append(f"  - `ok` on {w['building']} scan {w['scan']} ({w['kind']}, {w['path']}): score "
+                       f"{w['score']:.3f}, {100 * w['inliers']:.0f} % of the points on walls, "
+                       f"{100 * w['see_through']:.0f} % of the rays through walls, ambiguity {w['ambiguity']:.2f}"
+                       + tracked)
     out += ["", END]
     return "\n".join(out) + "\n"
 
@@ -223,6 +266,7 @@ def main(argv: list[str]) -> int:
     p.add_argument("--queries", type=int, default=200)
     p.add_argument("--global-queries", type=int, default=100)
     p.add_argument("--foreign-queries", type=int, default=50)
+    p.add_argument("--foreign-track", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-track", action="store_true")
     p.add_argument("--results", type=Path, default=None)
@@ -233,10 +277,9 @@ def main(argv: list[str]) -> int:
     names = args.cases.split(",")
     t0 = time.perf_counter()
     cases = []
-    for k, name in enumerate(names):
-        foreign = names[(k + 1) % len(names)] if len(names) > 1 else next(
-            d.name for d in sorted(data.iterdir()) if d.is_dir() and d.name != name)
-        c = run_case(data / name, data / foreign, args)
+    every = sorted(d.name for d in data.iterdir() if d.is_dir())
+    for name in names:
+        c = run_case(data / name, [data / other for other in every if other != name], args)
         cases.append(c)
         print(json.dumps(c), flush=True)
         if args.results:

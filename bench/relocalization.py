@@ -304,6 +304,7 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
                                  "ref_known": float(pool_known[sel[j]]), "ref_score": float(pool_score[sel[j]]),
                                  "ref_track_m": float(pool_track[sel[j]]),
                                  "see_through": res.see_through, "known": res.known_fraction,
+                                 "inliers": res.inlier_fraction, "ambiguity": res.ambiguity, "verdict": res.verdict,
                                  "reason": res.reason, "submap": res.submap,
                                  "pose": [round(float(v), 4) for v in res.pose],
                                  "reference": [round(float(v), 4) for v in ref_map[j]],

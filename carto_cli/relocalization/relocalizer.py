@@ -40,8 +40,9 @@ answers :meth:`Relocalizer.relocalize` queries, Cartographer-style:
    fallbacks) search down to ``global_search_min_score`` and judge the refined
    score against ``global_min_score``; they also keep every submap's best within ``_AMBIGUITY_MARGIN`` of
    the best overall as rivals.
-5. The verdict (``_finish``): 'lost' when a check above fails, fewer than ``min_inlier_fraction`` of the
-   points on known cells fall on walls, or the answer is farther than ``max_jump`` from the prior;
+5. The verdict (``_finish``): 'lost' when a check above fails, the laser would stand on a cell no submap knows
+   (``seen``), fewer than ``min_inlier_fraction`` of the points on known cells fall on walls, or the answer is
+   farther than ``max_jump`` from the prior;
    'ambiguous' when the best rival at a different place (> 1 m or > 10° away in the map frame; with a prior,
    not farther from it than the answer) -- another submap's best, or the best elsewhere in the answer's own
    search window (``branch_and_bound.peaks``) -- scores ``max_ambiguity`` of the answer or more: aliasing
@@ -513,8 +514,10 @@ class Relocalizer:
         whether that is good enough: the score reaches ``threshold`` (with ``known_ok``, or the points on known
         cells do, when at least ``MIN_KNOWN_FRACTION`` of them are); at most ``max_see_through`` of the rays from
         ``sensor`` (the laser in the tracking frame) cross walls; at least ``min_inlier_fraction`` of the points
-        on known cells fall on walls. The one judgement of a match, for a search's answer and a tracked scan."""
+        on known cells fall on walls; the laser stands where the map has seen (:meth:`seen`). The one judgement of
+        a match, for a search's answer and a tracked scan."""
         grid = self.grids[submap]
+        laser = transform.apply(grid_pose, np.asarray(sensor, dtype=np.float64).reshape(1, 2))[0]
         score = score_at(grid, points, grid_pose)
         known, kscore = known_score(grid, points, grid_pose)
         see = see_through_fraction(grid, points, grid_pose, sensor)
@@ -523,7 +526,11 @@ class Relocalizer:
         # (bench-dense's map images, every right answer), a scan of another building 0.5-0.87.
         on_walls = inliers / known if known > 0 else 0.0
         ro, reason = self.ro, ""
-        if score < threshold and not (known_ok and known >= MIN_KNOWN_FRACTION and kscore >= threshold):
+        if not self.seen(submap, laser):
+            at = transform.apply(self.grid_to_map[submap], laser[None])[0]
+            reason = (f"the laser would stand at {at[0]:.2f},{at[1]:.2f}, where the map has never seen: the robot "
+                      "cannot have been there while it was mapped")
+        elif score < threshold and not (known_ok and known >= MIN_KNOWN_FRACTION and kscore >= threshold):
             reason = f"refined score {score:.3f} below {threshold:g}" + (
                 f" (known cells: {100 * known:.0f} % of the points, scoring {kscore:.3f})" if known_ok else "")
         elif see > ro.max_see_through:
@@ -533,6 +540,25 @@ class Relocalizer:
             reason = (f"only {100 * on_walls:.0f} % of the points on known cells fall on walls (less than "
                       f"relocalization.min_inlier_fraction = {ro.min_inlier_fraction:g})")
         return Fit(not reason, reason, score, known, kscore, see, inliers)
+
+    def seen(self, submap: int, xy) -> bool:
+        """Whether a cell of the map knows grid point ``xy`` of submap ``submap`` (that submap's, else any other's).
+
+        A scan's rays all start at the laser, so the map knows every place the robot stood while mapping, and a
+        map_server image marks where a robot can stand as free. A match that puts the laser on an unknown cell has
+        fitted the scan's walls to walls of the map from a place outside it: on bench-dense's map images, a scan of
+        another building fitted to the lip of the map's outline (docs/localization.md); no right answer of the
+        building's own scans stood on an unknown cell."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(1, 2)
+        if self.grids[submap].is_known(self.grids[submap].cell_index(xy))[0]:
+            return True
+        at = transform.apply(self.grid_to_map[submap], xy)
+        for i in self.searchable:
+            if i != submap and _in_box(self.boxes[i], transform.apply(self.map_to_grid[i], at)[0]):
+                g = self.grids[i]
+                if g.is_known(g.cell_index(transform.apply(self.map_to_grid[i], at)))[0]:
+                    return True
+        return False
 
     def covariance(self, submap: int, points: np.ndarray, grid_pose: np.ndarray) -> np.ndarray:
         """3x3 covariance (map frame) of a match of ``points`` in submap ``submap`` (``least_squares.covariance``,
@@ -851,6 +877,10 @@ class Relocalizer:
 
     def stats(self) -> dict:
         return {"submaps": self.map.num_submaps, "searchable": len(self.searchable), "cache": self.cache.stats()}
+
+
+def _in_box(box: np.ndarray, xy: np.ndarray) -> bool:
+    return bool(box[0] <= xy[0] <= box[2] and box[1] <= xy[1] <= box[3])
 
 
 def _tight(grid):

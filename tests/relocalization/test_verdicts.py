@@ -111,6 +111,35 @@ def test_a_scan_from_another_building_is_never_ok(relocalizer, mapped):
         assert res.verdict != "ok", (k, res.score, res.reason)
 
 
+def test_an_answer_outside_the_map_is_lost_though_its_points_fit(tmp_path):
+    """A room whose surroundings the map never saw (unknown in the image): a scan taken outside it, looking at
+    the outer faces of a corner, puts every point on the map's walls and no ray through one. Only where the laser
+    would stand says the robot cannot be there."""
+    n = int(20.0 / RES)
+    px = np.full((n, n), 128, np.uint8)  # unknown
+    lo, hi = int(5.0 / RES), int(15.0 / RES)  # pixel (column c, row r) is the cell at (c, n - 1 - r) * RES
+    px[n - 1 - hi:n - lo, lo:hi + 1] = 254  # the room's floor, free
+    cv2.rectangle(px, (lo, n - 1 - hi), (hi, n - 1 - lo), 0, 3)  # its walls, three cells thick
+    cv2.imwrite(str(tmp_path / "room.pgm"), px)
+    (tmp_path / "room.yaml").write_text(f"image: room.pgm\nresolution: {RES}\norigin: [0.0, 0.0, 0.0]\n")
+    r = Relocalizer(load_map_server(tmp_path / "room.yaml"))
+    corner = [(5.0, 5.0, 15.0, 5.0), (5.0, 5.0, 5.0, 15.0)]
+
+    def scan(pose):
+        s = _scan(corner, pose, max_range=8.0)
+        s.ranges[s.ranges > 8.0] = np.inf  # rays past the corner's ends meet nothing
+        return s
+
+    outside = (3.0, 3.5, math.radians(40.0))
+    res = r.relocalize(scan(outside), outside, sigma_xy=0.2, sigma_yaw=0.05)
+    assert res.verdict == "lost" and not res.success, res.reason
+    assert "never seen" in res.reason and res.inlier_fraction > 0.95 and res.see_through == 0.0
+    # the same corner seen from inside the room is found
+    inside = (7.0, 6.5, math.radians(220.0))
+    res = r.relocalize(scan(inside), inside, sigma_xy=0.2, sigma_yaw=0.05)
+    assert res.verdict == "ok" and pose_error(res.pose, inside)[0] < 0.05, res.reason
+
+
 def test_max_jump_turns_a_far_answer_lost(relocalizer, queries):
     _, qs = queries
     scan, ref = qs[5]
