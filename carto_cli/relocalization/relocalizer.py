@@ -554,10 +554,11 @@ class Relocalizer:
             return True
         at = transform.apply(self.grid_to_map[submap], xy)
         for i in self.searchable:
-            if i != submap and _in_box(self.boxes[i], transform.apply(self.map_to_grid[i], at)[0]):
-                g = self.grids[i]
-                if g.is_known(g.cell_index(transform.apply(self.map_to_grid[i], at)))[0]:
-                    return True
+            if i == submap:
+                continue
+            p = transform.apply(self.map_to_grid[i], at)
+            if _in_box(self.boxes[i], p[0]) and self.grids[i].is_known(self.grids[i].cell_index(p))[0]:
+                return True
         return False
 
     def covariance(self, submap: int, points: np.ndarray, grid_pose: np.ndarray) -> np.ndarray:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from reloc_map import pose_error
 
+from carto_cli.core import transform
 from carto_cli.core.records import Scan
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.io.map_server import load_map_server
@@ -138,6 +139,17 @@ def test_an_answer_outside_the_map_is_lost_though_its_points_fit(tmp_path):
     inside = (7.0, 6.5, math.radians(220.0))
     res = r.relocalize(scan(inside), inside, sigma_xy=0.2, sigma_yaw=0.05)
     assert res.verdict == "ok" and pose_error(res.pose, inside)[0] < 0.05, res.reason
+
+
+def test_where_the_robot_stood_while_mapping_is_seen_by_the_map_not_only_by_one_submap(relocalizer, mapped):
+    nodes = np.asarray(mapped.node_global_poses)[:, :2]
+    # each node's position asked of submap 0: its own grid does not know most of them, another submap's does
+    in_grid = transform.apply(relocalizer.map_to_grid[0], nodes)
+    unknown_to_0 = ~relocalizer.grids[0].is_known(relocalizer.grids[0].cell_index(in_grid))
+    assert unknown_to_0.sum() >= 10
+    assert all(relocalizer.seen(0, xy) for xy in in_grid)
+    far = transform.apply(relocalizer.map_to_grid[0], nodes.max(axis=0)[None] + 50.0)[0]
+    assert not relocalizer.seen(0, far)
 
 
 def test_max_jump_turns_a_far_answer_lost(relocalizer, queries):
