@@ -213,9 +213,10 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
            "recording; with a prior = reference moved uniformly within 1.5 m / ±15° (sigma 0.5 m / 5°); global: "
            "the first of them without a prior; right = verdict `ok` and within 0.2 m / 2°; *false ok* = verdict "
            "`ok` and not right. Another building: scans of each other case with priors on this map's route, and "
-           "without (each `ok` among them listed below, with how a tracker started there fares). Tracking: `carto relocalize MAP REC --track` over the whole recording without an initial "
-           "pose (global first fix), right = `ok` and within 0.1 m / 1°; scans/s over the whole call (reading, "
-           "tracking, writing). Method in `bench/localization.py`.", "",
+           "without (each `ok` among them listed below, with how a tracker started there fares). Tracking: "
+           "`carto relocalize MAP REC --track` over the whole recording without an initial pose (global first "
+           "fix), right = `ok` and within 0.1 m / 1°; scans/s over the whole call (reading, tracking, writing). "
+           "Method in `bench/localization.py`.", "",
            "Targets (issue 14): prior ≥ 99 %, p50 ≤ 10 ms, p99 ≤ 50 ms; global ≥ 95 %, p50 ≤ 200 ms; another "
            "building 0 `ok`; tracking ≥ 99 %, ≥ 500 scans/s, first fix ≤ 1 s.", "",
            "| case | map | prior: right | false ok | p50 / p99 ms | global: right | false ok | p50 / p99 ms | "
