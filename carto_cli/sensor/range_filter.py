@@ -172,18 +172,39 @@ def crop_polar(ranges, angles, *, min_range: float = 0.0, max_range: float = 30.
 def crop_scan(scan, *, mount=None, motion=None, **kwargs) -> RangeData:
     """``crop_polar`` for a :class:`carto_cli.core.records.Scan`.
 
+    The scan's own limits come first, as REP 117 has them: a reading above its ``range_max`` is no return (as
+    +inf: a miss beyond ``max_range``), one below its ``range_min`` is dropped. A driver that reports "no
+    return" as a value past its maximum would otherwise put phantom walls there, out to ``max_range``.
+
     With a ``motion``, beams are de-skewed using the scan's ``time_increment``
     (a scan without one, such as a CARMEN log or a point cloud slice, is taken
     as instantaneous).
     """
+    ranges = _within_sensor_limits(scan.ranges, float(scan.range_min), float(scan.range_max))
     if mount is None:
         if motion is not None:
             raise ValueError("de-skewing (motion) needs the sensor's mount on the body")
-        return crop_polar(scan.ranges, scan.angles, **kwargs)
+        return crop_polar(ranges, scan.angles, **kwargs)
     if motion is None or not scan.time_increment:
-        return crop_polar(scan.ranges, scan.angles, mount=mount, **kwargs)
-    return crop_polar(scan.ranges, scan.angles, mount=mount, time_increment=scan.time_increment, motion=motion,
+        return crop_polar(ranges, scan.angles, mount=mount, **kwargs)
+    return crop_polar(ranges, scan.angles, mount=mount, time_increment=scan.time_increment, motion=motion,
                       **kwargs)
+
+
+def _within_sensor_limits(ranges, range_min: float, range_max: float) -> np.ndarray:
+    """``ranges`` with readings above ``range_max`` set to +inf and those below ``range_min`` to NaN (a copy only
+    when one is out of its limits; non-finite or non-positive limits are no limits)."""
+    r = np.asarray(ranges)
+    above = r > range_max if math.isfinite(range_max) and range_max > 0 else None
+    below = r < range_min if math.isfinite(range_min) and range_min > 0 else None
+    if (above is None or not above.any()) and (below is None or not below.any()):
+        return r
+    r = r.astype(np.float64, copy=True)
+    if above is not None:
+        r[above] = np.inf
+    if below is not None:
+        r[below] = np.nan
+    return r
 
 
 def crop_points(points, origin=(0.0, 0.0), *, min_range: float = 0.0, max_range: float = 30.0,

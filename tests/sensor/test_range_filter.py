@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from carto_cli.core import transform as tf
-from carto_cli.sensor.range_filter import RangeData, accumulate, crop_points, crop_polar
+from carto_cli.core.records import Scan
+from carto_cli.sensor.range_filter import RangeData, accumulate, crop_points, crop_polar, crop_scan
 
 
 def test_crop_polar_sorts_returns_misses_and_drops_invalid():
@@ -17,6 +18,25 @@ def test_crop_polar_sorts_returns_misses_and_drops_invalid():
     np.testing.assert_allclose(rd.misses, [[5 * math.cos(a[2]), 5 * math.sin(a[2])],
                                            [5 * math.cos(a[5]), 5 * math.sin(a[5])]], atol=1e-12)
     np.testing.assert_array_equal(rd.origin, [0.0, 0.0])
+
+
+@pytest.mark.parametrize("mount", [None, (0.1, 0.0, 0.0)])
+def test_crop_scan_keeps_to_the_scans_own_limits(mount):
+    """REP 117: a reading above the LaserScan's range_max is no return (a miss), one below its range_min is not a
+    reading; the options' wider limits do not make either a wall."""
+    angles = np.array([0.0, 0.5, 1.0, 1.5, 2.0], dtype=np.float32)
+    ranges = np.array([1.0, 5.5, 0.05, 4.0, np.inf], dtype=np.float32)
+    scan = Scan(0.0, ranges, angles, "laser", range_min=0.1, range_max=5.0)
+    rd = crop_scan(scan, mount=mount, min_range=0.0, max_range=30.0, missing_data_ray_length=2.0)
+    ox = rd.origin[0]
+    np.testing.assert_allclose(rd.returns - rd.origin, [[1.0, 0.0], [4 * math.cos(1.5), 4 * math.sin(1.5)]],
+                               atol=1e-6)
+    np.testing.assert_allclose(rd.misses - [ox, 0.0], [[2 * math.cos(0.5), 2 * math.sin(0.5)],
+                                                       [2 * math.cos(2.0), 2 * math.sin(2.0)]], atol=1e-6)
+    assert scan.ranges[1] == np.float32(5.5)  # the record itself is left as recorded
+    # without limits of its own (a CARMEN log's range_min 0, no range_max) the options decide
+    free = Scan(0.0, ranges, angles, "laser")
+    assert len(crop_scan(free, mount=mount, min_range=0.0, max_range=30.0).returns) == 4
 
 
 def test_crop_points_measures_from_origin():
