@@ -552,12 +552,18 @@ class Relocalizer:
         xy = np.asarray(xy, dtype=np.float64).reshape(1, 2)
         if self.grids[submap].is_known(self.grids[submap].cell_index(xy))[0]:
             return True
-        at = transform.apply(self.grid_to_map[submap], xy)
-        for i in self.searchable:
-            if i == submap:
-                continue
-            p = transform.apply(self.map_to_grid[i], at)
-            if _in_box(self.boxes[i], p[0]) and self.grids[i].is_known(self.grids[i].cell_index(p))[0]:
+        # The point in every submap's grid frame at once; only those whose known box holds it are looked up (a
+        # tracked robot at the map's edge asks this every scan, of maps with hundreds of submaps).
+        x, y = transform.apply(self.grid_to_map[submap], xy)[0]
+        m = self.map_to_grid
+        c, s = np.cos(m[:, 2]), np.sin(m[:, 2])
+        gx, gy = c * x - s * y + m[:, 0], s * x + c * y + m[:, 1]
+        b = self.boxes  # NaN for empty submaps: every comparison false
+        inside = (b[:, 0] <= gx) & (gx <= b[:, 2]) & (b[:, 1] <= gy) & (gy <= b[:, 3])
+        inside[submap] = False
+        for i in np.flatnonzero(inside):
+            g = self.grids[i]
+            if g.is_known(g.cell_index(np.array([[gx[i], gy[i]]])))[0]:
                 return True
         return False
 
@@ -878,10 +884,6 @@ class Relocalizer:
 
     def stats(self) -> dict:
         return {"submaps": self.map.num_submaps, "searchable": len(self.searchable), "cache": self.cache.stats()}
-
-
-def _in_box(box: np.ndarray, xy: np.ndarray) -> bool:
-    return bool(box[0] <= xy[0] <= box[2] and box[1] <= xy[1] <= box[3])
 
 
 def _tight(grid):
