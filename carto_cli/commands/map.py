@@ -37,7 +37,7 @@ class MapOutputs:
 
 
 def write_outputs(result: MapResult, outdir: Path, options: Options | None = None, *, state: bool = True,
-                  recordings=()) -> MapOutputs:
+                  recordings=(), jobs: int | None = None) -> MapOutputs:
     """Every output of ``result`` in ``outdir``, as one set: written to a staging directory first and moved into
     place together, so an interrupted or failed write leaves the earlier set (or nothing) as it was. Whether
     an existing set may be replaced is :func:`check_outdir`'s question, asked before mapping."""
@@ -52,7 +52,7 @@ def write_outputs(result: MapResult, outdir: Path, options: Options | None = Non
         if state and options is not None and result.graph is not None:
             from carto_cli.io.map_file import save_map
 
-            save_map(staging / "map.carto", result, options, recordings=recordings)
+            save_map(staging / "map.carto", result, options, recordings=recordings, jobs=jobs)
             wrote_state = True
         write_text_atomic(staging / "summary.json", json.dumps(result.summary(), indent=1, default=float) + "\n")
     return MapOutputs(outdir / "map.pgm", outdir / "map.yaml", outdir / "map.png", outdir / "trajectory.tum",
@@ -155,7 +155,7 @@ def run_map(
         if configured is not chosen and on_configured is not None:
             on_configured(configured)  # auto fell back to another system: say so
         result.regime, result.auto, result.options = configured.regime, configured.auto, configured.options
-    outputs = write_outputs(result, outdir, configured.options, state=state, recordings=recordings)
+    outputs = write_outputs(result, outdir, configured.options, state=state, recordings=recordings, jobs=jobs)
     if timer is not None:
         timer.stop()
     return result, outputs

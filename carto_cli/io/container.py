@@ -88,37 +88,55 @@ def _unshuffle(raw: bytes, itemsize: int) -> bytes:
     return np.frombuffer(raw, np.uint8).reshape(itemsize, -1).T.tobytes()
 
 
-def _compress(raw: bytes, itemsize: int) -> tuple[str, bytes]:
-    """The smallest of: stored, zstd, zstd of the byte-shuffled array."""
+def _candidates(raw: bytes, itemsize: int) -> list[tuple[str, bytes]]:
+    """What is tried on an array besides storing it: zstd, and zstd of the byte-shuffled array for wide items;
+    the smallest is kept."""
     if len(raw) < _MIN_COMPRESS:
-        return "none", raw
-    import zstandard
-
-    compressor = zstandard.ZstdCompressor(level=_ZSTD_LEVEL)
-    best = ("none", raw)
+        return []
     candidates = [("zstd", raw)]
     if itemsize >= 4:  # pose, time and index columns; grid cells (uint16) never gained from it
         candidates.append(("shuffle+zstd", _shuffle(raw, itemsize)))
-    for codec, data in candidates:
-        packed = compressor.compress(data)
-        if len(packed) < len(best[1]):
-            best = (codec, packed)
+    return candidates
+
+
+def _zstd(data: bytes) -> bytes:
+    import zstandard
+
+    return zstandard.ZstdCompressor(level=_ZSTD_LEVEL).compress(data)  # a compressor per call: not thread-safe
+
+
+def _smallest(raw: bytes, packed: list[tuple[str, bytes]]) -> tuple[str, bytes]:
+    best = ("none", raw)
+    for codec, blob in packed:
+        if len(blob) < len(best[1]):
+            best = (codec, blob)
     return best
 
 
-def encode(fmt: ContainerFormat, fields: dict, arrays: dict[str, np.ndarray]) -> bytes:
-    """The whole file: ``fields`` (JSON-able) and ``arrays`` (plain numeric dtypes) in ``fmt``."""
-    directory: dict[str, dict] = {}
-    blobs: list[bytes] = []
-    offset = 0
+def encode(fmt: ContainerFormat, fields: dict, arrays: dict[str, np.ndarray], jobs: int | None = None) -> bytes:
+    """The whole file: ``fields`` (JSON-able) and ``arrays`` (plain numeric dtypes) in ``fmt``. The arrays are
+    compressed on ``jobs`` threads (None: every core; zstd releases the GIL), each on its own: the bytes do not
+    depend on ``jobs``."""
+    from carto_cli.core.parallel import map_ordered
+
+    raws = []
     for name, array in arrays.items():
         a = np.asarray(array)
         le = a.dtype.newbyteorder("<") if a.dtype.byteorder not in ("|", "<") else a.dtype
         if le.str not in _DTYPES:
             raise TypeError(f"array {name}: dtype {a.dtype} cannot be stored in a {fmt.kind} file")
-        raw = np.ascontiguousarray(a, dtype=le).tobytes()
-        codec, blob = _compress(raw, le.itemsize)
-        directory[name] = {"dtype": le.str, "shape": list(a.shape), "codec": codec,
+        raws.append((name, a.shape, le, np.ascontiguousarray(a, dtype=le).tobytes()))
+    tried = [_candidates(raw, le.itemsize) for _, _, le, raw in raws]
+    # The largest first, so that the last to finish is a small one (a map's points and cells are most of it).
+    work = sorted(((i, j) for i, cands in enumerate(tried) for j in range(len(cands))),
+                  key=lambda ij: -len(tried[ij[0]][ij[1]][1]))
+    packed = dict(zip(work, map_ordered(lambda ij: _zstd(tried[ij[0]][ij[1]][1]), work, jobs)))
+    directory: dict[str, dict] = {}
+    blobs: list[bytes] = []
+    offset = 0
+    for i, (name, shape, le, raw) in enumerate(raws):
+        codec, blob = _smallest(raw, [(c, packed[i, j]) for j, (c, _) in enumerate(tried[i])])
+        directory[name] = {"dtype": le.str, "shape": list(shape), "codec": codec,
                            "offset": offset, "length": len(blob), "raw_length": len(raw)}
         blobs.append(blob)
         offset += len(blob)
@@ -136,10 +154,12 @@ def encode(fmt: ContainerFormat, fields: dict, arrays: dict[str, np.ndarray]) ->
     return body + hashlib.sha256(body).digest()
 
 
-def write(path: str | Path, fmt: ContainerFormat, fields: dict, arrays: dict[str, np.ndarray]) -> Path:
-    """Encode, then write ``path`` atomically (an interrupted save leaves the old file, or none)."""
+def write(path: str | Path, fmt: ContainerFormat, fields: dict, arrays: dict[str, np.ndarray],
+          jobs: int | None = None) -> Path:
+    """Encode (on ``jobs`` threads), then write ``path`` atomically (an interrupted save leaves the old file, or
+    none)."""
     path = Path(path)
-    data = encode(fmt, fields, arrays)
+    data = encode(fmt, fields, arrays, jobs)
     with atomic_output(path) as tmp:
         tmp.write_bytes(data)
     return path

@@ -163,11 +163,12 @@ def _linked_trajectories(cs: ConstraintSet, node_trajectories: np.ndarray,
 
 
 def save_map(path: str | Path, result_or_graph, options: Options, *, trajectory=None,
-             recordings: Iterable[str | Path] = ()) -> Path:
+             recordings: Iterable[str | Path] = (), jobs: int | None = None) -> Path:
     """Write ``result_or_graph`` (a ``MapResult`` or a ``PoseGraph``) to ``path`` atomically.
 
     ``trajectory`` (a :class:`Trajectory` or ``(times, poses)``) defaults to the MapResult's
-    per-scan poses; a bare PoseGraph has none unless given. ``recordings`` names what was mapped.
+    per-scan poses; a bare PoseGraph has none unless given. ``recordings`` names what was mapped. ``jobs``:
+    threads compressing the arrays (None: every core); the bytes do not depend on it.
     """
     path = Path(path)
     if isinstance(recordings, (str, Path)):
@@ -207,7 +208,7 @@ def save_map(path: str | Path, result_or_graph, options: Options, *, trajectory=
             meta["scan_topic"] = str(selection.scan)
         meta["stats"] = _json_safe_stats(result.stats)
 
-    return container.write(path, MAP_FORMAT, {**meta, "options": options_to_dict(options)}, arrays)
+    return container.write(path, MAP_FORMAT, {**meta, "options": options_to_dict(options)}, arrays, jobs)
 
 
 def _graph_of(obj) -> tuple[PoseGraph, Any]:

@@ -388,3 +388,14 @@ def test_source_date_epoch_stamps_the_map_and_nothing_else_does(mapped, tmp_path
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1704067200")
     stamped = save_map(tmp_path / "stamped.carto", result, options, recordings=["sim.bag"])
     assert load_map(stamped).metadata.created == "2024-01-01T00:00:00Z"
+
+
+def test_the_bytes_do_not_depend_on_the_threads_that_compress_them(tmp_path, mapped):
+    result, options, _ = mapped
+    one = save_map(tmp_path / "one.carto", result, options, jobs=1).read_bytes()
+    three = save_map(tmp_path / "three.carto", result, options, jobs=3).read_bytes()
+    assert one == three
+    _, _, header_length, _ = struct.unpack("<8sIIQ", one[:24])
+    header = json.loads(one[28:28 + header_length])  # after the preamble and its CRC-32
+    codecs = {entry["codec"] for entry in header["arrays"].values()}
+    assert {"zstd", "shuffle+zstd"} <= codecs  # several arrays compressed at once, each kept at its smallest
