@@ -82,14 +82,17 @@ def configure(spec: Options | Auto, recording: Recording, selection: TopicSelect
     says otherwise), or for :class:`Auto` the survey's choice (``algorithm``, when given, wins)."""
     if isinstance(spec, Options):
         return Configured(spec, algorithm=algorithm or "cartographer")
-    return configure_regime(survey(recording, selection), spec, algorithm)
+    # The odometry check sizes the particle filter's motion model: a Cartographer run does not need it
+    return configure_regime(survey(recording, selection, check_odometry=algorithm in (None, "gmapping")), spec,
+                            algorithm)
 
 
 def configure_regime(regime: Regime, spec: Auto, algorithm: str | None = None) -> Configured:
     """:func:`configure` for a regime already surveyed."""
     base = load_options(None, list(spec.overrides))
+    g = base.gmapping
     choice = choose(regime, base_max_range=base.trajectory_builder_2d.max_range, algorithm=algorithm,
-                    gmapping_max_range=base.gmapping.maxRange)
+                    gmapping_max_range=g.maxRange, gmapping_noise=(g.srr, g.srt, g.str, g.stt))
     return Configured(load_options(choice.profile, choice.settings + list(spec.overrides)), regime, choice,
                       choice.algorithm)
 

@@ -38,6 +38,14 @@ MATCH_PAIRS = 40  # scan-to-scan matches when there is no odometry
 # above these medians local SLAM sees a new piece of the building with every scan.
 SPARSE_STEP = 0.25  # m
 SPARSE_TURN = math.radians(5.0)
+# The particle filter's motion noise from the measured odometry error (m per m): GMapping's srr is a standard
+# deviation per metre, the measure a median of |2-D error| per metre, which for a Gaussian is 1.177 of it
+# (Rayleigh); a margin over that keeps room for the match's own error and for a rougher stretch later on.
+RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
+MOTION_NOISE_MARGIN = 1.5
+# Odometry is never trusted more than a fifth of GMapping's defaults (a climb must still be able to leave it) nor
+# distrusted beyond twice them (the proposal's lattice is sized for a match, not for a search)
+MOTION_NOISE_SCALE = (0.2, 2.0)
 NO_RETURN_SHARE = 0.002  # a single range value this common at the top of the range is a "no return" marker
 
 
@@ -56,6 +64,9 @@ class Regime:
     turn_median: float  # rad between consecutive scans
     turn_p90: float
     scan_rate: float | None  # Hz from timestamps (None when fewer than two scans)
+    # How far odometry can be trusted (key scans with odometry): its median translation error per metre
+    # travelled against the scans matched on their own map (gmapping.odometry_check; None: not measured)
+    odometry_error: float | None = None
 
     @property
     def sparse(self) -> bool:
@@ -73,6 +84,8 @@ class Regime:
         if self.no_return is not None:
             sensor += f", no return = {self.no_return:.4g} m"
         inputs = ("odometry" if self.odometry else "no odometry") + (", IMU" if self.imu else "")
+        if self.odometry_error is not None:
+            inputs += f" (off the scans by {100 * self.odometry_error:.1f} % of the travel)"
         return f"{self.kind}: {rate}{moves}; {sensor}; {inputs}"
 
     def to_dict(self) -> dict:
@@ -81,7 +94,7 @@ class Regime:
             "range_max_m": self.range_max, "no_return_m": self.no_return, "odometry": self.odometry,
             "imu": self.imu, "motion_source": self.motion_source, "step_median_m": self.step_median,
             "step_p90_m": self.step_p90, "turn_median_rad": self.turn_median, "turn_p90_rad": self.turn_p90,
-            "scan_rate_hz": self.scan_rate,
+            "scan_rate_hz": self.scan_rate, "odometry_error_m_per_m": self.odometry_error,
         }
 
 
@@ -147,11 +160,16 @@ def _scan_to_scan(scans: list[Scan]) -> np.ndarray:
     return np.array(out).reshape(-1, 3)
 
 
-def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = SURVEY_SCANS) -> Regime:
-    """Read up to ``max_scans`` scans (and the odometry alongside) and measure the recording's regime."""
+def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = SURVEY_SCANS,
+           check_odometry: bool = True, laser_pose=None) -> Regime:
+    """Read up to ``max_scans`` scans (and the odometry alongside) and measure the recording's regime. With
+    ``check_odometry``, key scans with odometry are also matched to measure the odometry's error (the particle
+    filter's motion model is sized from it; about a second); ``laser_pose``: the laser's mount on the robot
+    (None: the recording's, as mapping resolves it)."""
     topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
     scans: list[Scan] = []
     odometry: list[tuple[float, float, float, float]] = []
+    odometry_records: list[Odometry] = []
     # What mapping will not use (io.content) must not shape the settings either; mapping reports it.
     for record in ContentCheck().filter(selected_records(recording, selection, topics)):
         if isinstance(record, Scan):
@@ -160,6 +178,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
             scans.append(record)
         elif isinstance(record, Odometry):
             odometry.append((record.time, record.x, record.y, record.yaw))
+            odometry_records.append(record)
     if not scans:
         raise CartoError(f"no scans on {selection.scan}", recording.path)
     times = np.array([s.time for s in scans])
@@ -189,23 +208,38 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
         source = "scan matching" if len(motions) else "none"
     step = np.hypot(motions[:, 0], motions[:, 1]) if len(motions) else np.zeros(1)
     turn = np.abs(transform.wrap_angle(motions[:, 2])) if len(motions) else np.zeros(1)
+    no_return = no_return_value(ranges)
+    odometry_error = None
+    if check_odometry and source == "odometry" and (np.median(step) >= SPARSE_STEP
+                                                    or np.median(turn) >= SPARSE_TURN):
+        from carto_cli.gmapping.odometry_check import odometry_error as measure
+        from carto_cli.options import Options
+        from carto_cli.pipeline import first_scan_frame, resolve_laser_pose
+
+        mount, _ = resolve_laser_pose(recording, first_scan_frame(recording, selection.scan), laser_pose,
+                                      selection.tf_odometry.fixed if selection.tf_odometry else ())
+        odometry_error = measure(scans, odometry_records, Options(), laser_pose=mount,
+                                 max_range=None if no_return is None else no_return - 0.1)
     return Regime(
-        scans=len(scans), beams=beams, fov=fov, range_max=range_max, no_return=no_return_value(ranges),
+        scans=len(scans), beams=beams, fov=fov, range_max=range_max, no_return=no_return,
         odometry=bool(selection.odometry), imu=bool(selection.imu), motion_source=source,
         step_median=float(np.median(step)), step_p90=float(np.percentile(step, 90)),
         turn_median=float(np.median(turn)), turn_p90=float(np.percentile(turn, 90)), scan_rate=scan_rate,
+        odometry_error=odometry_error,
     )
 
 
 def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None = None,
-           gmapping_max_range: float = 80.0) -> AutoChoice:
+           gmapping_max_range: float = 80.0,
+           gmapping_noise: tuple[float, float, float, float] = (0.1, 0.2, 0.1, 0.2)) -> AutoChoice:
     """The mapping system, base profile and derived settings for ``regime`` (see docs/profiles.md, 'auto').
 
     ``algorithm`` None lets the regime choose: GMapping for key scans with odometry, where it was measured
     better than Cartographer on four of the five key-scan buildings (intel 0.063 vs 0.127 m, edmonton 0.056
     vs 0.077, fhw 0.062 vs 0.114, orebro 0.051 vs 0.167) and worse on one (aces 0.33 vs 0.048, which the
     verdict reports as suspect; docs/gmapping.md), Cartographer otherwise. With GMapping the particle filter's
-    range is also set, its default (80 m) being far beyond Cartographer's."""
+    range is also set, its default (80 m) being far beyond Cartographer's, and its motion noise (``gmapping_noise``:
+    the base srr, srt, str, stt) scaled to the odometry error the survey measured."""
     settings: list[str] = []
     reasons: list[str] = []
     chose = algorithm is None
@@ -252,4 +286,12 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
         # on a circle around every pose (aces: 50 m readings, 0.36 m error before this).
         settings.append(f"gmapping.maxRange={max(regime.no_return - 0.1, 0.1):.3f}")
         reasons.append(f"'no return' is reported as {regime.no_return:.4g} m: gmapping skips those beams")
+    if algorithm == "gmapping" and regime.odometry_error is not None and gmapping_noise[0] > 0:
+        lo, hi = MOTION_NOISE_SCALE
+        scale = MOTION_NOISE_MARGIN * regime.odometry_error / RAYLEIGH_MEDIAN / gmapping_noise[0]
+        scale = min(max(scale, lo), hi)
+        for name, value in zip(("srr", "srt", "str", "stt"), gmapping_noise):
+            settings.append(f"gmapping.{name}={value * scale:.4g}")
+        reasons.append(f"odometry off the scans by {100 * regime.odometry_error:.1f} % of the travel: the motion "
+                       f"model's noise x {scale:.2f} (particles spread where odometry leaves doubt, not beyond)")
     return AutoChoice(profile, settings, reasons, algorithm, chose)

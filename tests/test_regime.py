@@ -46,10 +46,17 @@ def test_key_scans_are_recognised_by_motion_not_by_timestamps(world):
     assert choice.algorithm == "gmapping" and choice.profile == "sparse"
     assert "algorithm gmapping" in choice.describe()
     assert not any("motion_scaled_prior" in s for s in choice.settings)  # Cartographer's matcher is not used
+    # The simulated odometry errs by a few percent of the travel (2 % scale, 2 cm per sqrt(m)): measured, and the
+    # particle filter's motion noise sized to it, well below slam_gmapping's 0.1 m per m.
+    assert regime.odometry_error is not None and 0.005 < regime.odometry_error < 0.08
+    assert "off the scans by" in regime.describe()
+    srr = float(next(s for s in choice.settings if s.startswith("gmapping.srr=")).split("=")[1])
+    assert srr == pytest.approx(max(0.02, 1.5 * regime.odometry_error / math.sqrt(2 * math.log(2))), rel=1e-3)
     # A user's --algorithm cartographer gets Cartographer's key-scan settings.
     forced = choose(regime, algorithm="cartographer")
     assert forced.algorithm == "cartographer" and forced.profile == "sparse"
     assert any("motion_scaled_prior=true" in s for s in forced.settings)
+    assert not any(s.startswith("gmapping.") for s in forced.settings)
     assert len(forced.reasons) >= len(forced.settings) - 1
 
 
@@ -67,6 +74,28 @@ def test_without_odometry_the_motion_comes_from_scan_matching():
     assert true_step / 2 < regime.step_median < 1.5 * true_step
     assert choose(regime).profile == "office"
     assert choose(regime).algorithm == "cartographer"  # GMapping needs odometry
+
+
+def test_the_motion_noise_follows_the_measured_odometry_error_within_bounds():
+    base = dict(scans=10, beams=180, fov=math.pi, range_max=80.0, no_return=None, odometry=True, imu=False,
+                motion_source="odometry", step_median=1.0, step_p90=1.2, turn_median=0.2, turn_p90=0.5,
+                scan_rate=1000.0)
+
+    def noise(error):
+        settings = choose(Regime(**base, odometry_error=error)).settings
+        return {s.split("=")[0]: float(s.split("=")[1]) for s in settings if s.startswith("gmapping.s")}
+
+    assert noise(None) == {}  # not measured: GMapping's own defaults stay
+    good = noise(0.025)  # the benchmark buildings' odometry
+    scale = 1.5 * 0.025 / math.sqrt(2 * math.log(2)) / 0.1
+    assert good == pytest.approx({"gmapping.srr": 0.1 * scale, "gmapping.srt": 0.2 * scale,
+                                  "gmapping.str": 0.1 * scale, "gmapping.stt": 0.2 * scale}, rel=1e-3)
+    assert noise(0.0)["gmapping.srr"] == pytest.approx(0.02)  # never below a fifth of the defaults
+    assert noise(5.0)["gmapping.srr"] == pytest.approx(0.2)  # nor above twice them
+    # srr is the measure itself; the other three keep their ratio to it from the base noise (a user's --set
+    # gmapping.srr=0.05 doubles them)
+    other = choose(Regime(**base, odometry_error=0.025), gmapping_noise=(0.05, 0.2, 0.1, 0.2)).settings
+    assert f"gmapping.srr={0.1 * scale:.4g}" in other and f"gmapping.srt={0.4 * scale:.4g}" in other
 
 
 def test_no_return_marker_needs_many_identical_top_readings():

@@ -82,13 +82,12 @@ class GMappingSlam:
         the result is the same for any number."""
         self.options = options
         self.jobs = jobs
-        if jobs is not None:
-            import numba
+        import numba
 
-            try:
-                numba.set_num_threads(max(1, int(jobs)))
-            except ValueError:  # more than the threads numba started with: it keeps all of them
-                pass
+        # numba's thread count is the process's: set it either way, so that an earlier filter run with fewer
+        # jobs (the survey's one-particle odometry check) does not leave this one on fewer cores
+        most = int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]  # set at import from the cores
+        numba.set_num_threads(min(max(1, int(jobs)), most) if jobs is not None else most)
         self.g = options.gmapping
         self.timer = timer or NullTimer()
         kernels.warm_up(self.timer, systems=("gmapping",))
@@ -129,6 +128,16 @@ class GMappingSlam:
     @property
     def num_poses(self) -> int:
         return len(self._scan_times)
+
+    @property
+    def num_steps(self) -> int:
+        """Scans processed so far."""
+        return len(self._step_poses)
+
+    @property
+    def step_odometry(self) -> list[np.ndarray | None]:
+        """The odometry at each processed scan (None where there was none)."""
+        return self._step_odometry
 
     # ------------------------------------------------------------------ input
 
