@@ -117,8 +117,8 @@ def map_records(records: Iterable[Record], *, laser_pose: Sequence[float] | None
         raise CartoError("no scans to map")
     opts = options(profile, overrides)
     selection = select_topics(recording)
-    configured = configure(opts, recording, selection, algorithm)
     mount = None if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
+    configured = configure(opts, recording, selection, algorithm, mount)
     result, configured = build_configured(recording, configured, opts, selection=selection, laser_pose=mount,
                                           jobs=jobs)
     result.regime, result.auto, result.options = configured.regime, configured.auto, configured.options

@@ -77,14 +77,25 @@ class Configured:
 
 
 def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection,
-              algorithm: str | None = None) -> Configured:
+              algorithm: str | None = None, laser_pose=None) -> Configured:
     """The options and mapping system for ``recording``: ``spec`` itself (Cartographer unless ``algorithm``
-    says otherwise), or for :class:`Auto` the survey's choice (``algorithm``, when given, wins)."""
+    says otherwise), or for :class:`Auto` the survey's choice (``algorithm``, when given, wins). ``laser_pose``:
+    the user's mount (None: the recording's), for the survey's odometry check."""
     if isinstance(spec, Options):
         return Configured(spec, algorithm=algorithm or "cartographer")
     # The odometry check sizes the particle filter's motion model: a Cartographer run does not need it
-    return configure_regime(survey(recording, selection, check_odometry=algorithm in (None, "gmapping")), spec,
-                            algorithm)
+    check = algorithm in (None, "gmapping")
+    mount = survey_mount(recording, selection, laser_pose) if check else None
+    return configure_regime(survey(recording, selection, check_odometry=check, laser_pose=mount), spec, algorithm)
+
+
+def survey_mount(recording: Recording, selection: TopicSelection, laser_pose=None) -> np.ndarray | None:
+    """The laser's mount as mapping will resolve it (None without scans)."""
+    scan_frame = first_scan_frame(recording, selection.scan)
+    if scan_frame is None:
+        return None
+    return resolve_laser_pose(recording, scan_frame, laser_pose,
+                              selection.tf_odometry.fixed if selection.tf_odometry else ())[0]
 
 
 def configure_regime(regime: Regime, spec: Auto, algorithm: str | None = None) -> Configured:

@@ -164,8 +164,8 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
            check_odometry: bool = True, laser_pose=None) -> Regime:
     """Read up to ``max_scans`` scans (and the odometry alongside) and measure the recording's regime. With
     ``check_odometry``, key scans with odometry are also matched to measure the odometry's error (the particle
-    filter's motion model is sized from it; about a second); ``laser_pose``: the laser's mount on the robot
-    (None: the recording's, as mapping resolves it)."""
+    filter's motion model is sized from it; about a second); ``laser_pose``: the laser's mount on the robot, as
+    mapping resolves it (``pipeline.resolve_laser_pose``; None: at the robot's origin)."""
     topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
     scans: list[Scan] = []
     odometry: list[tuple[float, float, float, float]] = []
@@ -214,11 +214,9 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
                                                     or np.median(turn) >= SPARSE_TURN):
         from carto_cli.gmapping.odometry_check import odometry_error as measure
         from carto_cli.options import Options
-        from carto_cli.pipeline import first_scan_frame, resolve_laser_pose
 
-        mount, _ = resolve_laser_pose(recording, first_scan_frame(recording, selection.scan), laser_pose,
-                                      selection.tf_odometry.fixed if selection.tf_odometry else ())
-        odometry_error = measure(scans, odometry_records, Options(), laser_pose=mount,
+        odometry_error = measure(scans, odometry_records, Options(),
+                                 laser_pose=(0.0, 0.0, 0.0) if laser_pose is None else laser_pose,
                                  max_range=None if no_return is None else no_return - 0.1)
     return Regime(
         scans=len(scans), beams=beams, fov=fov, range_max=range_max, no_return=no_return,

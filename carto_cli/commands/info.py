@@ -221,11 +221,12 @@ def _auto(recording: Recording):
     without scans."""
     from carto_cli.core.errors import CartoError
     from carto_cli.io.topics import select_topics
+    from carto_cli.pipeline import survey_mount
     from carto_cli.regime import choose, survey
 
     try:
         selection = select_topics(recording)
-        regime = survey(recording, selection)
+        regime = survey(recording, selection, laser_pose=survey_mount(recording, selection))
     except CartoError:
         return None, None
     choice = choose(regime)
