@@ -10,8 +10,8 @@ and the map kept the gap (0.096 m mean relation error against 0.039 m with the n
 The measurement is the filter itself with one particle and no noise: each key scan climbs from the odometry's
 prediction on the map of the scans before it, and the median, over steps of at least ``MIN_STEP``, of
 |climbed increment - odometry increment| / travel says how far odometry is off per metre. A climb that slid
-lands in the upper half; the match's own error makes the figure an upper bound (on the six benchmark buildings
-it reads 0.025-0.048 against the reference's 0.021-0.025).
+lands in the upper half; the match's own error makes the figure an upper bound (on the five key-scan benchmark
+buildings it reads 0.025-0.042 against the reference poses' 0.021-0.025).
 """
 from __future__ import annotations
 
