@@ -168,8 +168,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
     mapping resolves it (``pipeline.resolve_laser_pose``; None: at the robot's origin)."""
     topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
     scans: list[Scan] = []
-    odometry: list[tuple[float, float, float, float]] = []
-    odometry_records: list[Odometry] = []
+    odometry: list[Odometry] = []
     # What mapping will not use (io.content) must not shape the settings either; mapping reports it.
     for record in ContentCheck().filter(selected_records(recording, selection, topics)):
         if isinstance(record, Scan):
@@ -177,8 +176,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
                 break
             scans.append(record)
         elif isinstance(record, Odometry):
-            odometry.append((record.time, record.x, record.y, record.yaw))
-            odometry_records.append(record)
+            odometry.append(record)
     if not scans:
         raise CartoError(f"no scans on {selection.scan}", recording.path)
     times = np.array([s.time for s in scans])
@@ -193,7 +191,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
 
     motions = np.zeros((0, 3))
     source = "none"
-    odo = np.array(odometry).reshape(-1, 4)
+    odo = np.array([(o.time, o.x, o.y, o.yaw) for o in odometry]).reshape(-1, 4)
     if len(odo) >= 2:
         inside = (times >= odo[0, 0]) & (times <= odo[-1, 0])
         t = times[inside]
@@ -215,7 +213,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
         from carto_cli.gmapping.odometry_check import odometry_error as measure
         from carto_cli.options import Options
 
-        odometry_error = measure(scans, odometry_records, Options(),
+        odometry_error = measure(scans, odometry, Options(),
                                  laser_pose=(0.0, 0.0, 0.0) if laser_pose is None else laser_pose,
                                  max_range=None if no_return is None else no_return - 0.1)
     return Regime(
