@@ -10,10 +10,14 @@ closures of a pose graph (Cartographer's optimizer, ``mapping.optimization``):
 * the processed scans are cut into chunks of ``CHUNK`` consecutive scans, each a small probability grid at
   the particle's poses and a submap of the graph, anchored at its first scan;
 * every scan is matched (a correlative search of +-``WINDOW_M`` / +-``WINDOW_RAD``, then least squares)
-  against each chunk of another time whose scans pass within ``NEAR_M`` of it; a match counts when most of
-  its points fall on cells the chunk knows and their mean occupancy reaches ``MIN_PROBABILITY``, and
-  when a scan within two of it found the same correction in the same chunk (one scan's match alone is
-  often a corridor's slide or a door's edge);
+  against each chunk of another pass whose scans come within ``NEAR_M`` of it: another pass is at least
+  ``MIN_TRAVEL_M`` of travel away, so that a dense recording's next metres are not taken for a revisit;
+* a search whose best pose lies on its window's edge has not found a peak but a slope (most often a scan
+  sliding towards the few walls a chunk knows): it is searched again from there, and the match is dropped
+  when the slope leads further than ``MAX_MOVE_M``;
+* a match counts when most of its points fall on cells the chunk knows and their mean occupancy reaches
+  ``MIN_PROBABILITY``, and when a scan within two of it found the same correction in the same chunk (one
+  scan's match alone is often a corridor's slide or a door's edge);
 * the graph holds every scan in its own chunk and its step from the previous scan as the particle left
   them, and the accepted matches, all with one weight; the Huber loss bounds what a wrong match can pull.
 
@@ -39,7 +43,10 @@ from carto_cli.sensor.range_filter import RangeData
 
 CHUNK = 10  # processed scans per chunk: 5-20 measured alike on intel (docs/gmapping.md)
 NEAR_M = 2.0  # a chunk whose scans' bounding circle comes this close to the scan is a candidate
-WINDOW_M = 0.4  # the correlative search's reach: revisits sit 0.2-0.5 m off
+# The correlative search's reach (revisits sit 0.2-0.7 m off; fhw, seed 3: one 0.63-0.67 m) and the largest
+# correction: a search on its window's edge is followed (EDGE_SEARCHES), so a wider reach does not turn a
+# slope into a match. 0.4 / 0.6 m before that rule; 0.5 / 0.8 had then let a false closure in (docs/gmapping.md)
+WINDOW_M = 0.5
 WINDOW_RAD = math.radians(3.0)
 # A chunk's grid from a handful of scans: stronger updates than a submap's (0.55 / 0.49) so that walls seen
 # two or three times already stand out from free space
@@ -51,7 +58,13 @@ MIN_KNOWN = 0.5  # share of the scan's points on cells the chunk knows, after th
 # right match lands many points on cells below 0.5 (orebro, 30 particles: the first scans against the last,
 # 0.45 m off, match at 0.42-0.51; 0.65 missed that loop and left it 0.5 m open)
 MIN_PROBABILITY = 0.45
-MAX_MOVE_M = 0.6  # a larger correction is not a revisit a few decimetres off but another place
+MAX_MOVE_M = 0.8  # a larger correction is not a revisit a few decimetres off but another place
+# Travel between a scan and a chunk below which they are one pass, not a revisit. The chunk index alone (two
+# chunks apart) meant 7-10 m on key scans but 1-2 m on a dense recording (a chunk of processed scans 0.1 m
+# apart), where scans matched against the corridor just behind them slid to the search window's edge and 73-75
+# such "loop closures" made the simulated loop's map five times worse (0.02 -> 0.10 m, docs/gmapping.md)
+MIN_TRAVEL_M = 5.0
+EDGE_SEARCHES = 3  # correlative searches from one start, each from the last one's edge (the reach's bound)
 MIN_POINTS = 20
 CONFIRM_SPAN = 2  # a neighbour within this many processed scans must agree ...
 CONFIRM_M = 0.1  # ... on the correction within this translation ...
@@ -85,6 +98,7 @@ def close_loops(poses: np.ndarray, scans: list[RangeData], *, resolution: float,
         centres[j] = xy.mean(axis=0)
         radii[j] = np.max(np.linalg.norm(xy - centres[j], axis=1))
     enough = np.array([len(scan.returns) >= MIN_POINTS for scan in scans])
+    travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1))])
 
     candidates = 0
     corrections: dict[tuple[int, int], np.ndarray] = {}
@@ -93,6 +107,8 @@ def close_loops(poses: np.ndarray, scans: list[RangeData], *, resolution: float,
     for j in range(m):
         near = (np.linalg.norm(poses[:, :2] - centres[j], axis=1) - radii[j] < NEAR_M) & enough
         near &= np.abs(chunk_of - j) >= 2
+        first_travel, last_travel = travel[j * CHUNK], travel[min((j + 1) * CHUNK, n) - 1]
+        near &= np.maximum(first_travel - travel, travel - last_travel) >= MIN_TRAVEL_M
         if not near.any():
             continue
         first, last = j * CHUNK, (j + 1) * CHUNK
@@ -130,13 +146,33 @@ def _match(grid, points: np.ndarray, pose: np.ndarray) -> tuple[bool, np.ndarray
     """(searched, the scan's pose in the chunk's grid or None when the match is not a revisit)."""
     if known_score(grid, points, pose)[0] < PREFILTER_KNOWN:
         return False, None
-    start = correlative.match(grid, points, pose, linear_search_window=WINDOW_M,
-                              angular_search_window=WINDOW_RAD).pose
+    start = follow_to_peak(grid, points, pose)
+    if start is None:
+        return True, None
     found = least_squares.match(grid, points, start).pose
     share, probability = known_score(grid, points, found)
     if share < MIN_KNOWN or probability < MIN_PROBABILITY or np.hypot(*(found[:2] - pose[:2])) > MAX_MOVE_M:
         return True, None
     return True, found
+
+
+def follow_to_peak(grid, points: np.ndarray, pose: np.ndarray) -> np.ndarray | None:
+    """The correlative search's best pose near ``pose``, searched again from there while it lies on the search
+    window's edge (the score still rising outward); None when that leads beyond ``MAX_MOVE_M`` or is still on
+    an edge after ``EDGE_SEARCHES`` searches."""
+    params = correlative.search_parameters(points, grid.resolution, WINDOW_M, WINDOW_RAD)
+    start = np.asarray(pose, dtype=np.float64)
+    for _ in range(EDGE_SEARCHES):
+        best = correlative.match(grid, points, start, linear_search_window=WINDOW_M,
+                                 angular_search_window=WINDOW_RAD).pose
+        cells = np.rint(np.abs(best[:2] - start[:2]) / grid.resolution)
+        steps = round(abs(transform.wrap_angle_scalar(float(best[2] - start[2]))) / params.angular_step)
+        if cells.max() < params.num_linear_perturbations and steps < params.num_angular_perturbations:
+            return best
+        if np.hypot(*(best[:2] - pose[:2])) > MAX_MOVE_M:
+            return None
+        start = best
+    return None
 
 
 def _confirmed(corrections: dict[tuple[int, int], np.ndarray], i: int, j: int) -> bool:
