@@ -33,6 +33,7 @@ from carto_cli.grid.occupancy_image import OccupancyImage
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.slam import SlamResult
 from carto_cli.mapping.submaps import ActiveSubmaps
+from carto_cli.matching import correlative
 from carto_cli.options import Options
 from carto_cli.sensor.range_filter import RangeData, crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter
@@ -60,6 +61,10 @@ def warm_up() -> None:
                     np.full((2, 3), 0.1), np.zeros((2, 3)), 1, 0.05, 0.075, 1, -0.1, 0.01, 0.01, 0.005, 0.005)
     maps.occupancy(0)
     maps.entropy(0)
+    # the final refinement's pruned correlative search (loops, refine)
+    grid = refine.map_of(np.zeros((1, 3)), [RangeData(np.zeros(2), ends, np.empty((0, 2)))], 0.05)
+    correlative.match_pruned(grid, correlative.coarse_grid(grid), ends, np.zeros(3), linear_search_window=0.1,
+                             angular_search_window=0.05)
 
 
 @dataclass

@@ -58,19 +58,22 @@ def refine_poses(poses: np.ndarray, scans: list[RangeData], *, resolution: float
     out = np.array(poses, dtype=np.float64, copy=True)
     for _ in range(iterations):
         grid = map_of(out, scans, resolution)
-        moved = map_ordered(functools.partial(_rematch_scan, grid, scans, out), range(len(scans)), jobs)
+        coarse = correlative.coarse_grid(grid)
+        moved = map_ordered(functools.partial(_rematch_scan, grid, coarse, scans, out), range(len(scans)), jobs)
         out = np.array(moved, dtype=np.float64).reshape(-1, 3)
     return out
 
 
-def _rematch_scan(grid: ProbabilityGrid, scans: list[RangeData], poses: np.ndarray, k: int) -> np.ndarray:
-    return _rematch(grid, scans[k].returns, poses[k])
+def _rematch_scan(grid: ProbabilityGrid, coarse: correlative.CoarseGrid, scans: list[RangeData], poses: np.ndarray,
+                  k: int) -> np.ndarray:
+    return _rematch(grid, coarse, scans[k].returns, poses[k])
 
 
-def _rematch(grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+def _rematch(grid: ProbabilityGrid, coarse: correlative.CoarseGrid, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
     if points.shape[0] == 0:
         return pose
-    start = correlative.match(grid, points, pose, linear_search_window=SEARCH_WINDOW_M,
-                              angular_search_window=SEARCH_WINDOW_RAD).pose
+    # the exhaustive search's answer (correlative.match), found scoring blocks of candidates first
+    start = correlative.match_pruned(grid, coarse, points, pose, linear_search_window=SEARCH_WINDOW_M,
+                                     angular_search_window=SEARCH_WINDOW_RAD).pose
     return least_squares.match(grid, points, start, target_translation=pose[:2],
                                translation_weight=TRANSLATION_WEIGHT, rotation_weight=ROTATION_WEIGHT).pose
