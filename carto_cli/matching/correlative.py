@@ -151,6 +151,7 @@ class CoarseGrid(NamedTuple):
 
 
 def coarse_grid(grid, unknown_probability: float | None = None) -> CoarseGrid:
+    """``grid``'s :class:`CoarseGrid`, never-observed cells scored as ``unknown_probability`` (None: 0.1)."""
     table = VALUE_TO_PROBABILITY if unknown_probability is None else _score_table(float(unknown_probability))
     probabilities, block_max, by_parity = _coarse(grid.cells, table)
     return CoarseGrid(probabilities, block_max, by_parity, float(table[0]))
@@ -179,10 +180,10 @@ def match_pruned(grid, coarse: CoarseGrid, points, initial_pose, *, linear_searc
                  angular_search_window: float, translation_delta_cost_weight: float = 1e-1,
                  rotation_delta_cost_weight: float = 1e-1) -> CorrelativeResult:
     """:func:`match`'s answer (the same pose and score, bit for bit), found by scoring 2 x 2 blocks of
-    translations first with each point's best cell in the block, then only the blocks whose bound can still
-    beat the best candidate, best bound first. ``coarse``: :func:`coarse_grid` of ``grid`` (with the unknown
-    probability :func:`match` would use). Worth it from windows of about ten cells, for many searches in one
-    grid."""
+    translations first with each point's best cell in the block, then in full the block with the best bound
+    and every block whose bound can still beat the best candidate so far. ``coarse``: :func:`coarse_grid` of
+    ``grid`` (with the unknown probability :func:`match` would use). Worth it from windows of about ten cells,
+    for many searches in one grid."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     x0, y0, th0 = (float(v) for v in np.asarray(initial_pose, dtype=np.float64))
     params = search_parameters(pts, grid.resolution, linear_search_window, angular_search_window)
