@@ -77,16 +77,17 @@ class Configured:
 
 
 def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection,
-              algorithm: str | None = None, laser_pose=None) -> Configured:
+              algorithm: str | None = None, laser_pose=None, timer=None) -> Configured:
     """The options and mapping system for ``recording``: ``spec`` itself (Cartographer unless ``algorithm``
     says otherwise), or for :class:`Auto` the survey's choice (``algorithm``, when given, wins). ``laser_pose``:
-    the user's mount (None: the recording's), for the survey's odometry check."""
+    the user's mount (None: the recording's), for the survey's odometry check; ``timer``: its kernels' warm-up."""
     if isinstance(spec, Options):
         return Configured(spec, algorithm=algorithm or "cartographer")
     # The odometry check sizes the particle filter's motion model: a Cartographer run does not need it
     check = algorithm in (None, "gmapping")
     mount = survey_mount(recording, selection, laser_pose) if check else None
-    return configure_regime(survey(recording, selection, check_odometry=check, laser_pose=mount), spec, algorithm)
+    return configure_regime(survey(recording, selection, check_odometry=check, laser_pose=mount, timer=timer),
+                            spec, algorithm)
 
 
 def survey_mount(recording: Recording, selection: TopicSelection, laser_pose=None) -> np.ndarray | None:

@@ -161,11 +161,12 @@ def _scan_to_scan(scans: list[Scan]) -> np.ndarray:
 
 
 def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = SURVEY_SCANS,
-           check_odometry: bool = True, laser_pose=None) -> Regime:
+           check_odometry: bool = True, laser_pose=None, timer=None) -> Regime:
     """Read up to ``max_scans`` scans (and the odometry alongside) and measure the recording's regime. With
     ``check_odometry``, key scans with odometry are also matched to measure the odometry's error (the particle
     filter's motion model is sized from it; about a second); ``laser_pose``: the laser's mount on the robot, as
-    mapping resolves it (``pipeline.resolve_laser_pose``; None: at the robot's origin)."""
+    mapping resolves it (``pipeline.resolve_laser_pose``; None: at the robot's origin); ``timer``: where the
+    check's kernels are warmed up (compiled on a fresh install: the ``jit warm-up`` stage)."""
     topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
     scans: list[Scan] = []
     odometry: list[Odometry] = []
@@ -215,7 +216,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
 
         odometry_error = measure(scans, odometry, Options(),
                                  laser_pose=(0.0, 0.0, 0.0) if laser_pose is None else laser_pose,
-                                 max_range=None if no_return is None else no_return - 0.1)
+                                 max_range=None if no_return is None else no_return - 0.1, timer=timer)
     return Regime(
         scans=len(scans), beams=beams, fov=fov, range_max=range_max, no_return=no_return,
         odometry=bool(selection.odometry), imu=bool(selection.imu), motion_source=source,

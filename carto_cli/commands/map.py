@@ -135,7 +135,7 @@ def run_map(
         # Before the survey, which needs the matchers: on a cold cache every kernel the run will use is compiled
         # here at once, on every core (GMapping's only if it was asked for: auto rarely picks it).
         kernels.warm_up(timer, systems=(algorithm or "cartographer",))
-        configured = configure(options, source.recording, surveyed, algorithm, laser_pose)
+        configured = configure(options, source.recording, surveyed, algorithm, laser_pose, timer=timer)
         if on_configured is not None:
             on_configured(configured)
         if load_state is not None:

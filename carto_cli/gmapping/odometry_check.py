@@ -20,7 +20,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from carto_cli.core import transform
+from carto_cli.core import kernels, transform
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.options import Options
 
@@ -32,13 +32,16 @@ MAX_STEPS = 150  # processed scans looked at: enough for a median, a second on t
 
 
 def odometry_error(scans: Sequence[Scan], odometry: Sequence[Odometry], options: Options, *,
-                   laser_pose=(0.0, 0.0, 0.0), max_range: float | None = None) -> float | None:
+                   laser_pose=(0.0, 0.0, 0.0), max_range: float | None = None, timer=None) -> float | None:
     """Median translation error of the odometry per metre travelled over the first ``MAX_STEPS`` processed key
     scans of ``scans`` (time order, ``odometry`` alongside), or None when fewer than ``MIN_STEPS`` steps moved
     ``MIN_STEP`` or more. ``options.gmapping`` gives the matcher's settings; ``max_range`` caps its range (a
-    fixed "no return" reading below it would draw phantom walls)."""
+    fixed "no return" reading below it would draw phantom walls). ``timer``: the caller's, for the ``jit
+    warm-up`` stage: on a fresh install the filter's kernels are compiled here, before mapping needs them, and
+    by :func:`kernels.warm_up` (shared with helper processes) rather than one by one on first use."""
     from carto_cli.gmapping.filter import GMappingSlam
 
+    kernels.warm_up(timer, systems=("gmapping",))
     g = dataclasses.replace(options.gmapping, particles=1, srr=0.0, srt=0.0, str=0.0, stt=0.0,
                             refineIterations=0, refineLoops=False)
     if max_range is not None:
