@@ -121,16 +121,28 @@ def match(grid, points, initial_pose, *, linear_search_window: float = 0.1,
     y and by the angular step of :func:`search_parameters` in theta. ``unknown_probability`` replaces
     Cartographer's 0.1 for never-observed cells (None keeps it).
     """
+    params, discrete = _candidates(grid, points, initial_pose, linear_search_window, angular_search_window)
+    table = VALUE_TO_PROBABILITY if unknown_probability is None else _score_table(float(unknown_probability))
+    found = _search(grid.cells, table, discrete, params.num_linear_perturbations, params.num_angular_perturbations,
+                    params.angular_step, grid.resolution, float(translation_delta_cost_weight),
+                    float(rotation_delta_cost_weight))
+    return _result(grid, initial_pose, params, *found)
+
+
+def _candidates(grid, points, initial_pose, linear_search_window: float,
+                angular_search_window: float) -> tuple[SearchParameters, np.ndarray]:
+    """The search's parameters and the scan's cells at every candidate angle (``discretize``)."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     x0, y0, th0 = (float(v) for v in np.asarray(initial_pose, dtype=np.float64))
     params = search_parameters(pts, grid.resolution, linear_search_window, angular_search_window)
     num_angular = params.num_angular_perturbations
     angles = th0 + np.arange(-num_angular, num_angular + 1) * params.angular_step
-    discrete = discretize(pts, angles, x0, y0, grid.origin[0], grid.origin[1], 1.0 / grid.resolution)
-    table = VALUE_TO_PROBABILITY if unknown_probability is None else _score_table(float(unknown_probability))
-    k, dx, dy, score = _search(grid.cells, table, discrete, params.num_linear_perturbations,
-                               params.num_angular_perturbations, params.angular_step, grid.resolution,
-                               float(translation_delta_cost_weight), float(rotation_delta_cost_weight))
+    return params, discretize(pts, angles, x0, y0, grid.origin[0], grid.origin[1], 1.0 / grid.resolution)
+
+
+def _result(grid, initial_pose, params: SearchParameters, k: int, dx: int, dy: int, score: float) -> CorrelativeResult:
+    """The pose of candidate (angle ``k``, offset ``dx``, ``dy`` cells) and its score."""
+    x0, y0, th0 = (float(v) for v in np.asarray(initial_pose, dtype=np.float64))
     dtheta = (k - params.num_angular_perturbations) * params.angular_step
     pose = np.array([x0 + dx * grid.resolution, y0 + dy * grid.resolution, wrap_angle_scalar(th0 + dtheta)])
     return CorrelativeResult(pose, float(score))
@@ -184,20 +196,12 @@ def match_pruned(grid, coarse: CoarseGrid, points, initial_pose, *, linear_searc
     and every block whose bound can still beat the best candidate so far. ``coarse``: :func:`coarse_grid` of
     ``grid`` (with the unknown probability :func:`match` would use). Worth it from windows of about ten cells,
     for many searches in one grid."""
-    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
-    x0, y0, th0 = (float(v) for v in np.asarray(initial_pose, dtype=np.float64))
-    params = search_parameters(pts, grid.resolution, linear_search_window, angular_search_window)
-    num_angular = params.num_angular_perturbations
-    angles = th0 + np.arange(-num_angular, num_angular + 1) * params.angular_step
-    discrete = discretize(pts, angles, x0, y0, grid.origin[0], grid.origin[1], 1.0 / grid.resolution)
-    k, dx, dy, score = _search_pruned(coarse.probabilities, coarse.block_max, coarse.block_max_by_parity,
-                                      coarse.unknown, discrete,
-                                      params.num_linear_perturbations, num_angular, params.angular_step,
-                                      grid.resolution, float(translation_delta_cost_weight),
-                                      float(rotation_delta_cost_weight))
-    dtheta = (k - num_angular) * params.angular_step
-    pose = np.array([x0 + dx * grid.resolution, y0 + dy * grid.resolution, wrap_angle_scalar(th0 + dtheta)])
-    return CorrelativeResult(pose, float(score))
+    params, discrete = _candidates(grid, points, initial_pose, linear_search_window, angular_search_window)
+    found = _search_pruned(coarse.probabilities, coarse.block_max, coarse.block_max_by_parity, coarse.unknown,
+                           discrete, params.num_linear_perturbations, params.num_angular_perturbations,
+                           params.angular_step, grid.resolution, float(translation_delta_cost_weight),
+                           float(rotation_delta_cost_weight))
+    return _result(grid, initial_pose, params, *found)
 
 
 @njit(cache=True, nogil=True)
