@@ -8,13 +8,15 @@
 
 Per case (every directory of ``$DATA/bench-dense`` as ``dense-<name>`` and of ``$DATA/bench``):
 
-1. **Map.** ``pipeline.build(recording, options, max_scans=N60)`` on the first 60 % of the
+1. **Map.** ``pipeline.build_configured(recording, ..., max_scans=N60)`` on the first 60 % of the
    scans (of the first ``--max-scans`` scans when given), saved with ``save_map`` and loaded back
    with ``load_map`` (what ``carto relocalize`` reads). Mapping options: ``--profile`` when given,
-   else ``wheeled`` for the dense cases and ``sparse`` for the sparse key-scan logs (the profiles
-   bench/run maps them with; the stock settings do not close the loops of the sparse logs, see
-   PEERS.md); ``--set`` on top. The
-   relocalizer uses the map's own options (their ``relocalization`` section).
+   else ``auto``, what ``carto map`` does with no profile (the survey of the recording chooses the
+   system and its settings: GMapping for the key-scan logs with odometry, Cartographer for the dense
+   ones; until 2026-11-25 this bench mapped with ``wheeled`` / ``sparse``, on which three of the
+   key-scan maps were metres off); ``--set`` on top. The relocalizer uses the map's own options
+   with what ``carto relocalize`` chooses from the map when given no profile
+   (``relocalization.auto.choose_for_map``: score thresholds scaled to the map's own score level).
 2. **Reference in the map frame.** ``groundtruth.txt`` interpolated at the mapped scans' times.
    Primary reference of a query: a *local* frame, fitted on the mapped poses whose reference
    position is within 5 m of the query's (rotation = circular mean of their yaw offsets,
@@ -140,13 +142,15 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
     from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, within
     from carto_cli.io.map_file import load_map, save_map
     from carto_cli.io.sources.open import open_recording
+    from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import read_trajectory
     from carto_cli.options import load_options
-    from carto_cli.pipeline import build, read_options
+    from carto_cli.pipeline import Auto, build_configured, configure, read_options
     from carto_cli.relocalization import Relocalizer
+    from carto_cli.relocalization.auto import choose_for_map
 
-    profile = args.profile if args.profile else ("wheeled" if family == "bench-dense" else "sparse")
-    options = load_options(profile, args.set)
+    profile = args.profile or "auto"
+    spec = Auto(tuple(args.set)) if profile == "auto" else load_options(profile, args.set)
     reference = read_trajectory(path / "groundtruth.txt")
     total = len(reference.t)  # groundtruth.txt has one line per scan
     if args.max_scans:
@@ -162,7 +166,7 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
         args.map_cache.mkdir(parents=True, exist_ok=True)
         cached = args.map_cache / f"{name}-{n_map}-{key}.carto"
     with tempfile.TemporaryDirectory(prefix="carto-reloc-") as tmp:
-        with open_recording(path / "scans.clf.gz", read_options(options)) as rec:
+        with open_recording(path / "scans.clf.gz", read_options(spec)) as rec:
             meta = cached.with_suffix(".json") if cached is not None else None
             if cached is not None and cached.is_file() and meta.is_file():
                 loaded = load_map(cached)
@@ -171,14 +175,19 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
                 print(f"[{name}] map from {cached}", file=sys.stderr, flush=True)
             else:
                 t0 = time.perf_counter()
-                result = build(rec, options, max_scans=n_map)
+                selection = select_topics(rec)
+                configured = configure(spec, rec, selection)
+                result, configured = build_configured(rec, configured, spec, selection=selection, max_scans=n_map)
+                options = configured.options
                 info["map_s"] = time.perf_counter() - t0
+                info["algorithm"] = configured.algorithm
                 info["submaps"] = len(result.submaps)
                 info["loop_closures"] = int(result.stats.get("loop_closures", 0))
                 map_path = save_map(Path(tmp) / "map.carto" if cached is None else cached, result, options,
                                     recordings=[path / "scans.clf.gz"])
                 if meta is not None:
-                    meta.write_text(json.dumps({k: info[k] for k in ("map_s", "submaps", "loop_closures")}),
+                    meta.write_text(json.dumps({k: info[k] for k in ("map_s", "submaps", "loop_closures",
+                                                                      "algorithm")}),
                                     encoding="utf-8")
                 loaded = load_map(map_path)
                 times, poses = result.times, result.poses
@@ -223,6 +232,10 @@ def run_case(name: str, family: str, path: Path, args) -> dict:
                 return transform.compose(np.array([tr[0], tr[1], th]), g)
 
             # ---- the remaining 40 %: reference in the map frame, and whether the map holds the place
+            # What `carto relocalize MAP` does with no profile: thresholds scaled to the map's own score level.
+            auto = choose_for_map(loaded.options, loaded)
+            loaded.options = auto.options
+            info["relocalization_auto"] = auto.describe()
             reloc = Relocalizer(loaded)
             t0 = time.perf_counter()
             for s in reloc.searchable:
@@ -385,7 +398,8 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
             continue
         p, g = c["prior"], c["global"]
         out.append(
-            f"| {c['case']} | {c['profile']} | {c['mapped_scans']} / {c['scans']} | {c['submaps']} | "
+            f"| {c['case']} | {c['profile']}{' (' + c['algorithm'] + ')' if c.get('algorithm') else ''} | "
+            f"{c['mapped_scans']} / {c['scans']} | {c['submaps']} | "
             f"{c['fit']['ate_rmse_m']:.3f} | {c['pool']['in_map']} / {c['pool']['scans']} | "
             f"{p['success']}/{p['n']} = {_pct(p['success_rate'])} | {p['false_matches']} | "
             f"{p['success_global_fit']} | {p['success_submap_fit']} ({p['false_submap_fit']}) | "
@@ -399,7 +413,8 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
             continue
         out.append(f"- {c['case']}: prior {c['prior']['paths']}; global {c['global']['paths']}; stacks "
                    f"{c['stacks_ms'] / 1e3:.1f} s, {c['stack_bytes'] / 1e6:.0f} MB; map built in {c['map_s']:.0f} s "
-                   f"({c['loop_closures']} loop closures)")
+                   f"({c['loop_closures']} loop closures); relocalization settings: "
+                   f"{c.get('relocalization_auto', 'as saved in the map')}")
     out += ["", END]
     return "\n".join(out) + "\n"
 
@@ -435,7 +450,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--in-map-route", type=float, default=IN_MAP_ROUTE,
                     help=f"and its reference within this many metres of a mapped pose (default {IN_MAP_ROUTE:g})")
     ap.add_argument("--max-scans", type=int, default=0, help="use only the first N scans of every case")
-    ap.add_argument("--profile", help="mapping profile for every case (default: wheeled / sparse by family)")
+    ap.add_argument("--profile", help="mapping profile for every case (default: auto, as carto map)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="option override (repeatable)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--doc", type=Path, default=DEFAULT_DOC)

@@ -27,7 +27,7 @@ import numpy as np
 
 from carto_cli.commands.eval import run_eval
 from carto_cli.commands.map import MapOutputs, check_outdir, run_map, write_outputs
-from carto_cli.commands.relocalize import load_relocalization_map
+from carto_cli.commands.relocalize import apply_map_auto, load_relocalization_map
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
@@ -154,8 +154,11 @@ def relocalize(map_file: str | Path, query: Scan, prior: Sequence[float] | None 
     by a global search. The answer carries ``pose``, ``verdict`` ('ok' | 'ambiguous' | 'lost') and ``reason``,
     ``covariance``, ``ambiguity`` and ``inlier_fraction`` (docs/localization.md). A map_server map takes carto's
     defaults or ``profile`` (the command line also fits the range to the recording's first scans, which one query
-    cannot do). For many queries against one map, build a ``carto_cli.relocalization.Relocalizer`` once instead."""
+    cannot do); a map.carto without ``profile`` gets its score thresholds scaled to the map, as on the command
+    line (``relocalization.auto.choose_for_map``). For many queries against one map, build a
+    ``carto_cli.relocalization.Relocalizer`` once instead."""
     loaded = load_relocalization_map(Path(map_file), profile)
+    apply_map_auto(loaded, profile)
     return Relocalizer(loaded).relocalize(query, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw,
                                           laser_pose=laser_pose, max_jump=max_jump)
 

@@ -6,6 +6,7 @@ reference pose of each is the map's own pose of the first pass's scan at that ti
 world frame is not a good reference: local SLAM's small rotation bias bends the map by up
 to ~1 m over the loop, so a pose that fits the map perfectly is off from the world's.)
 """
+import copy
 import math
 from pathlib import Path
 
@@ -58,3 +59,16 @@ def pose_error(a, b):
     """(m, degrees) between two poses."""
     d = np.asarray(a, float) - np.asarray(b, float)
     return math.hypot(d[0], d[1]), abs(math.degrees(transform.wrap_angle(d[2])))
+
+
+def with_walls(loaded, probability):
+    """A copy of ``loaded`` whose wall cells (p > 0.5) read ``probability(p)`` instead of p."""
+    out = copy.deepcopy(loaded)
+    for sub in out.submaps:
+        grid = sub.grid
+        grid.cells = grid.cells.copy()  # a loaded map's grids may be packed: writes go to cells of its own
+        cells = np.argwhere(np.ones(grid.num_cells[::-1], dtype=bool))[:, ::-1]
+        p = grid.probability(cells)
+        walls = p > 0.5  # NaN (unknown) compares False
+        grid.set_probability(cells[walls], probability(p[walls]))
+    return out

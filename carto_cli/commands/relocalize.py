@@ -37,11 +37,11 @@ from carto_cli.relocalization import (
     select_scan_topic,
     write_results_csv,
 )
-from carto_cli.relocalization.auto import AutoRelocalization, choose_for_scans
+from carto_cli.relocalization.auto import AutoRelocalization, choose_for_map, choose_for_scans
 from carto_cli.relocalization.tracking import TRACK_COLUMNS, TrackedScan, Tracker, TrackSummary, summarize_track
 
-__all__ = ["TRACK_OUTPUTS", "RelocalizeRun", "TrackRun", "default_track_dir", "load_relocalization_map",
-           "relocalization_options", "run_relocalize", "run_track"]
+__all__ = ["TRACK_OUTPUTS", "RelocalizeRun", "TrackRun", "apply_map_auto", "default_track_dir",
+           "load_relocalization_map", "relocalization_options", "run_relocalize", "run_track"]
 
 
 def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -> LoadedMap:
@@ -49,7 +49,8 @@ def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -
 
     ``profile``: for map.carto its ``relocalization`` section replaces the map's own (the scan filtering stays the
     map's, as the map was built with it); a map_server map takes the whole profile (default: carto's defaults).
-    None or 'auto': the map's own options (for a map_server map, carto's defaults; ``_from_scans`` fits them).
+    None or 'auto': the map's own options (for a map_server map, carto's defaults); ``apply_map_auto`` then
+    scales a map.carto's score thresholds to the map, ``_from_scans`` fits a map_server map's range to the scans.
     """
     profile = None if profile == "auto" else profile
     if is_map_server_yaml(map_file):
@@ -62,6 +63,17 @@ def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -
 
 AUTO_SCANS = 50  # scans read to choose a map_server map's settings (regime.no_return_value needs a few hundred
 # readings at the top of the range; 50 scans of 360 beams hold 18 000)
+
+
+def apply_map_auto(loaded: LoadedMap, profile) -> AutoRelocalization | None:
+    """The settings chosen from a map.carto itself when no profile was given (``loaded.options`` are replaced by
+    them); None when the map's own stand, for a map_server map (its settings come from the scans: ``_from_scans``)
+    or with a profile."""
+    if profile not in (None, "auto") or _reads_scans(loaded):
+        return None
+    auto = choose_for_map(loaded.options, loaded)
+    loaded.options = auto.options
+    return auto if auto.settings else None
 
 
 def _reads_scans(loaded: LoadedMap) -> bool:
@@ -116,7 +128,7 @@ class RelocalizeRun:
     results: list[QueryResult] | None = None
     summary: BatchSummary | None = None
     csv: Path | None = None
-    auto: AutoRelocalization | None = None  # what was chosen from the scans for a map without options
+    auto: AutoRelocalization | None = None  # what auto chose from the map (map.carto) or the scans (map_server)
 
     @property
     def batch(self) -> bool:
@@ -184,7 +196,7 @@ def run_relocalize(
             raise CartoError("exists; --force replaces it, or give another --csv", csv_out)
 
     loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
-    run = RelocalizeRun()
+    run = RelocalizeRun(auto=apply_map_auto(loaded, profile))
     # Built before the recording is read when the map holds all it needs, so its warnings come first.
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, run.warnings, on_warning)
     with open_recording(recording, read) as rec:
@@ -272,12 +284,13 @@ def run_track(
     prior = parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose
     t0 = time.perf_counter()
     loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
+    auto = apply_map_auto(loaded, profile)
     warnings: list[str] = []
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning)
     with open_recording(recording, read) as rec:
         _tell(rec.warnings, warnings, on_warning)
         selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
-        mount = auto = None
+        mount = None
         if relocalizer is None:
             mount, auto = _from_scans(loaded, rec, selection.scan, profile)
             relocalizer = _relocalizer(loaded, overrides, warnings, on_warning)

@@ -5,11 +5,11 @@ import math
 
 import numpy as np
 import pytest
-from reloc_map import build_map, pose_error, second_pass
+from reloc_map import build_map, pose_error, second_pass, with_walls
 from typer.testing import CliRunner
 
 from carto_cli.cli import app
-from carto_cli.commands.relocalize import run_relocalize
+from carto_cli.commands.relocalize import apply_map_auto, run_relocalize
 from carto_cli.core.errors import CartoError
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.relocalization import CSV_COLUMNS
@@ -77,6 +77,25 @@ def test_a_batch_on_threads_gives_the_answers_of_one_thread(cli_files, tmp_path)
     for a, b in zip(one.results, three.results):
         assert (a.scan_index, a.result.path, a.result.verdict) == (b.scan_index, b.result.path, b.result.verdict)
         assert (a.result.pose is None and b.result.pose is None) or (a.result.pose == b.result.pose).all()
+
+
+def test_a_map_carto_without_a_profile_gets_thresholds_for_its_own_walls(cli_files):
+    """No profile (or 'auto'): the score thresholds follow the map's own level (relocalization.auto); a profile's
+    relocalization section replaces them untouched; a map at the reference level keeps its own."""
+    from carto_cli.io.map_file import load_map
+
+    map_path, _, _ = cli_files
+    stock = load_map(map_path).options.relocalization
+    for profile in (None, "auto"):
+        faint = with_walls(load_map(map_path), lambda p: 0.5 + 0.3 * (p - 0.5))
+        auto = apply_map_auto(faint, profile)
+        assert auto is not None and "relocalization.global_min_score" in auto.describe()
+        assert faint.options.relocalization.global_min_score < 0.9 * stock.global_min_score
+        assert faint.options == auto.options
+    faint = with_walls(load_map(map_path), lambda p: 0.5 + 0.3 * (p - 0.5))
+    assert apply_map_auto(faint, "office") is None and faint.options.relocalization == stock
+    sharp = with_walls(load_map(map_path), lambda p: np.full_like(p, 0.9))
+    assert apply_map_auto(sharp, None) is None and sharp.options.relocalization == stock
 
 
 def test_run_relocalize_reports_warnings_before_reading_the_recording(cli_files, tmp_path):
