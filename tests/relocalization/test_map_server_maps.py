@@ -83,3 +83,31 @@ def test_global_search_works_in_an_image(variants, mapped, queries):
         assert res.verdict != "ok" or (d < 0.3 and dyaw < 2.0)
         right += res.verdict == "ok"
     assert right >= 0.7 * len(qs[::4])
+
+
+def test_a_whole_image_search_looks_only_where_the_laser_can_stand(variants, mapped, queries, tmp_path):
+    """A global search in an image (here padded with 20 m of unknown on every side) covers the box of its free cells
+    plus 2 m, not every position at which the scan still overlaps the grid (the laser up to the scan's reach
+    outside it), and finds the answers."""
+    source = cv2.imread(str(variants["carto"].with_suffix(".pgm")), cv2.IMREAD_UNCHANGED)
+    pad = 400  # cells: 20 m
+    padded = cv2.copyMakeBorder(source, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=205)
+    cv2.imwrite(str(tmp_path / "padded.pgm"), padded)
+    image = _image(mapped)
+    ox, oy = image.origin
+    r = Relocalizer(load_map_server(_yaml(tmp_path / "padded.yaml", "padded.pgm", (ox - 20.0, oy - 20.0, 0.0)),
+                                    mapped.options))
+    assert len(r.searchable) == 1 and r.node_windows[r.searchable[0]] is not None
+    half = r.node_windows[r.searchable[0]][2]
+    free = (source == 254)[::-1]  # row 0 at the bottom, as the grid
+    rows, cols = np.flatnonzero(free.any(axis=1)), np.flatnonzero(free.any(axis=0))
+    extent = 0.05 * max(cols[-1] - cols[0] + 1, rows[-1] - rows[0] + 1)
+    assert half == pytest.approx(extent / 2 + 2.0, abs=0.3)
+    _, qs = queries
+    right = 0
+    for scan, ref in qs[::4]:
+        res = r.relocalize(scan)
+        d, dyaw = pose_error(res.pose, ref)
+        assert res.verdict != "ok" or (d < 0.3 and dyaw < 2.0)
+        right += res.verdict == "ok"
+    assert right >= 0.7 * len(qs[::4])
