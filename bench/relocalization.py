@@ -136,7 +136,7 @@ def explained(reloc, points: np.ndarray, pose: np.ndarray) -> tuple[float, float
     return best
 
 
-def run_case(name: str, family: str, path: Path, args) -> dict:
+def run_case(name: str, path: Path, args) -> dict:
     from carto_cli.core import transform
     from carto_cli.evaluation.metrics import align_se2, interpolate_poses
     from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, within
@@ -475,9 +475,9 @@ def main(argv: list[str]) -> int:
     results_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     out = []
-    for name, family, path in cases:
+    for name, _family, path in cases:
         try:
-            info = run_case(name, family, path, args)
+            info = run_case(name, path, args)
         except Exception as e:  # one failing case does not stop the others
             import traceback
             traceback.print_exc()
