@@ -69,7 +69,8 @@ class TiledMaps:
 
     @property
     def memory_bytes(self) -> int:
-        """Bytes held by the pool (used and free tiles) and the tables."""
+        """Bytes reserved by the pool (used and free tiles) and the tables; free tiles never written take no
+        memory (peak_tiles is what the maps used)."""
         return (self.capacity * TILE * TILE * CELL_BYTES + self.refs.nbytes + self.table.nbytes
                 + self.marks.nbytes + self._free.nbytes)
 
@@ -131,8 +132,11 @@ class TiledMaps:
         self.peak_tiles = max(self.peak_tiles, self.tiles_in_use)
 
     def _grow_pool(self, at_least: int) -> None:
+        # Four times, not twice: growing copies every tile in use (0.65 s of edmonton's 13 s at 30 particles
+        # when doubling, 0.08 s so), while the free tail costs no memory until a tile there is first written
+        # (np.zeros maps fresh pages lazily).
         old = self.capacity
-        new = max(old * 2, old + at_least)
+        new = max(old * 4, old + at_least)
         self.hits = _grown(self.hits, new)
         self.visits = _grown(self.visits, new)
         self.mean = _grown(self.mean, new)
@@ -312,42 +316,83 @@ def _fill_tiles(sources, targets, hits, visits, mean, state):
             state[fresh] = state[t]
 
 
+@njit(cache=True, inline="always")
+def _touch(hits, visits, mean, state, t, u, v, last_hit, ex, ey):
+    """One cell of a ray: crossed, or (``last_hit``) the wall the ray ended in at (ex, ey)."""
+    visits[t, v, u] += 1
+    if last_hit:
+        m = hits[t, v, u] + 1
+        hits[t, v, u] = m
+        mean[t, v, u, 0] += (ex - mean[t, v, u, 0]) / m
+        mean[t, v, u, 1] += (ey - mean[t, v, u, 1]) / m
+        state[t, v, u] = WALL if m > FULLNESS * visits[t, v, u] else SEEN
+    elif state[t, v, u] == WALL:
+        state[t, v, u] = WALL if hits[t, v, u] > FULLNESS * visits[t, v, u] else SEEN
+    else:
+        state[t, v, u] = SEEN  # a ray through a cell that was no wall leaves it none
+
+
 @njit(cache=True, parallel=True)
 def _update_cells(table, marks, hits, visits, mean, state, poses, lx, ly, ends, hit, res, ox, oy):
+    """Every particle's rays into its own tiles. The cells are those ``traverse`` gives (the last one always the
+    ray's end cell), walked here without a buffer and with the tile looked up once per run of cells in it: the
+    map update is a fifth to a third of the filter's time (edmonton's 51 m beams cross ~1,000 cells each)."""
     n_particles = poses.shape[0]
     h, w = table.shape[1], table.shape[2]
+    inf = 1e300
     for p in prange(n_particles):
         sx, sy, world = _rays_in_world(poses[p], lx, ly, ends)
-        cap = 16
-        buf = np.empty((cap, 2), np.int64)
         for i in range(ends.shape[0]):
-            ex, ey = world[i, 0], world[i, 1]
-            need = int(abs(ex - sx) / res + abs(ey - sy) / res) + 4
-            if need > cap:
-                cap = 2 * need
-                buf = np.empty((cap, 2), np.int64)
-            k = traverse(sx, sy, ex, ey, res, buf)
-            for j in range(k):
-                cx = buf[j, 0]
-                cy = buf[j, 1]
-                tx = (cx >> TILE_BITS) - ox
-                ty = (cy >> TILE_BITS) - oy
-                if tx < 0 or ty < 0 or tx >= w or ty >= h or not marks[p, ty, tx]:
-                    continue  # only on a ray grazing a tile corner the tile walk rounded the other way
-                t = table[p, ty, tx]
-                u = (cx & TILE_MASK)
-                v = (cy & TILE_MASK)
-                visits[t, v, u] += 1
-                if j == k - 1 and hit[i]:
-                    m = hits[t, v, u] + 1
-                    hits[t, v, u] = m
-                    mean[t, v, u, 0] += (ex - mean[t, v, u, 0]) / m
-                    mean[t, v, u, 1] += (ey - mean[t, v, u, 1]) / m
-                    state[t, v, u] = WALL if m > FULLNESS * visits[t, v, u] else SEEN
-                elif state[t, v, u] == WALL:
-                    state[t, v, u] = WALL if hits[t, v, u] > FULLNESS * visits[t, v, u] else SEEN
+            x1, y1 = world[i, 0], world[i, 1]
+            # Amanatides-Woo exactly as traverse walks it
+            ix = int(math.floor(sx / res))
+            iy = int(math.floor(sy / res))
+            ex = int(math.floor(x1 / res))
+            ey = int(math.floor(y1 / res))
+            dx = x1 - sx
+            dy = y1 - sy
+            step_x = 1 if dx > 0 else -1
+            step_y = 1 if dy > 0 else -1
+            if dx != 0.0:
+                t_max_x = ((ix + (1 if dx > 0 else 0)) * res - sx) / dx
+                t_delta_x = res / abs(dx)
+            else:
+                t_max_x = inf
+                t_delta_x = inf
+            if dy != 0.0:
+                t_max_y = ((iy + (1 if dy > 0 else 0)) * res - sy) / dy
+                t_delta_y = res / abs(dy)
+            else:
+                t_max_y = inf
+                t_delta_y = inf
+            limit = abs(ex - ix) + abs(ey - iy) + 1
+            n = 1
+            ltx = -1 << 40  # the tile of the previous cell, and its id (-1: not this particle's to write)
+            lty = -1 << 40
+            t = -1
+            while n < limit and (ix != ex or iy != ey):
+                tx = (ix >> TILE_BITS) - ox
+                ty = (iy >> TILE_BITS) - oy
+                if tx != ltx or ty != lty:
+                    ltx, lty = tx, ty
+                    t = -1
+                    # outside its marked tiles only on a ray grazing a tile corner the tile walk rounded the other way
+                    if 0 <= tx < w and 0 <= ty < h and marks[p, ty, tx]:
+                        t = table[p, ty, tx]
+                if t >= 0:
+                    _touch(hits, visits, mean, state, t, ix & TILE_MASK, iy & TILE_MASK, False, x1, y1)
+                if t_max_x < t_max_y:
+                    t_max_x += t_delta_x
+                    ix += step_x
                 else:
-                    state[t, v, u] = SEEN  # a ray through a cell that was no wall leaves it none
+                    t_max_y += t_delta_y
+                    iy += step_y
+                n += 1
+            # the walk's last cell is the end cell, whatever rounding left it at
+            tx = (ex >> TILE_BITS) - ox
+            ty = (ey >> TILE_BITS) - oy
+            if 0 <= tx < w and 0 <= ty < h and marks[p, ty, tx]:
+                _touch(hits, visits, mean, state, table[p, ty, tx], ex & TILE_MASK, ey & TILE_MASK, hit[i], x1, y1)
         marks[p, :, :] = 0
 
 
