@@ -197,13 +197,14 @@ class Tracker:
         self.relocalizations += 1
         try:
             try:
+                # No second look: the next scan is the tracker's (a robot not in the map would cost it ~0.5 s a scan)
                 r = self.reloc.relocalize(scan, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, laser_pose=self.mount,
-                                          max_jump=self.max_jump if prior is not None else None)
+                                          max_jump=self.max_jump if prior is not None else None, second_look=False)
             except CartoError:
                 if prior is None:
                     raise
                 # Dead reckoning has carried the prediction off the map: only a global search can help.
-                r = self.reloc.relocalize(scan, None, laser_pose=self.mount)
+                r = self.reloc.relocalize(scan, None, laser_pose=self.mount, second_look=False)
         finally:
             self._add("relocalization", t)
         return TrackedScan(index, scan.time, r.pose if r.verdict != "lost" else None, r.verdict,

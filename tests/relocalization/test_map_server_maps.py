@@ -111,3 +111,32 @@ def test_a_whole_image_search_looks_only_where_the_laser_can_stand(variants, map
         assert res.verdict != "ok" or (d < 0.3 and dyaw < 2.0)
         right += res.verdict == "ok"
     assert right >= 0.7 * len(qs[::4])
+
+
+def test_a_failed_whole_image_answer_is_searched_for_again_with_more_bets(variants, mapped, queries, monkeypatch):
+    """A whole-image search bets on a few coarse leaves; when they all lead to wrong places (here: the first search's
+    bets made to return a place 3 m off, which fails its checks), the second look with more bets finds the right
+    place, and the answer is right and `ok`; a tracker, which has the next scan to try, does not take it."""
+    from carto_cli.matching import branch_and_bound
+    from carto_cli.relocalization import relocalizer as module
+
+    r = Relocalizer(load_map_server(variants["carto"], mapped.options))
+    real_peaks = branch_and_bound.peaks
+
+    def misled(stack, points, estimate, **kw):
+        found = real_peaks(stack, points, estimate, **kw)
+        if kw.get("tries") == module._GLOBAL_BETS:  # the first search, not the second look or a rival search
+            found = [branch_and_bound.MatchResult(True, 0.5 * f.score, f.pose + [3.0, 0.0, 0.0]) for f in found]
+        return found
+
+    monkeypatch.setattr(branch_and_bound, "peaks", misled)
+    _, qs = queries
+    right = 0
+    for scan, ref in qs[::4]:
+        res = r.relocalize(scan)
+        d, dyaw = pose_error(res.pose, ref)
+        assert res.verdict != "ok" or (d < 0.3 and dyaw < 2.0)
+        assert res.verdict != "ok" or "second look" in res.reason
+        right += res.verdict == "ok"
+        assert r.relocalize(scan, second_look=False).verdict != "ok"
+    assert right >= 0.7 * len(qs[::4])
