@@ -108,6 +108,10 @@ _GLOBAL_BETS = 6
 # A whole-image answer that fails its checks is searched for again with this many (relocalizer._second_look): on
 # bench-dense/intel's image 12 / 24 / 48 bets put 3 / 4 / 5 of its 6 lost right answers right, at about 7 ms a bet
 _SECOND_LOOK_BETS = 24
+# ... and its answer is `ambiguous` from this ratio (best distinct rival / answer) on, not max_ambiguity: searched
+# four times as widely, a scan of another building found a place at 0.937 that passed every other check
+# (freiburg-079 scan 414 on aces's image), where the right answers the second look found stood at 0.71-0.82
+_SECOND_LOOK_MAX_AMBIGUITY = 0.9
 # A scan taken where the map ends sees partly unmapped space: its points there read 0.1 whatever the pose, and
 # drag the plain score of the right pose below min_score (on bench-dense, every failure with a prior was such a
 # scan: docs/measurements.md).
@@ -803,8 +807,14 @@ class Relocalizer:
         if not more or more[0].score <= first:
             return res
         s.reasons.append(f"second look with {_SECOND_LOOK_BETS} bets")
-        return self._decide(s, sorted(more + s.candidates, key=lambda c: -c.score), "global",
-                            self.ro.global_min_score, np.zeros(3))
+        out = self._decide(s, sorted(more + s.candidates, key=lambda c: -c.score), "global",
+                           self.ro.global_min_score, np.zeros(3))
+        if out.verdict == "ok" and out.ambiguity >= _SECOND_LOOK_MAX_AMBIGUITY:
+            # Four times the places tried raise the best wrong place's score: the answer must stand further out
+            out.verdict, out.success = "ambiguous", False
+            out.reason = "; ".join(s.reasons + [f"ambiguous after the second look: ratio {out.ambiguity:.3f}, at "
+                                                f"least {_SECOND_LOOK_MAX_AMBIGUITY:g}"])
+        return out
 
     def _global_rest(self, s: _Search) -> RelocalizationResult:
         """'global', then the other submaps: the covering ones hold every place, not always its best version (a
