@@ -133,7 +133,7 @@ class TiledMaps:
 
     def _grow_pool(self, at_least: int) -> None:
         # Four times, not twice: growing copies every tile in use (0.65 s of edmonton's 13 s at 30 particles
-        # when doubling, 0.08 s so), while the free tail costs no memory until a tile there is first written
+        # when doubling, 0.2-0.3 s so), while the free tail costs no memory until a tile there is first written
         # (np.zeros maps fresh pages lazily).
         old = self.capacity
         new = max(old * 4, old + at_least)
@@ -182,10 +182,10 @@ def _world_extent(poses, origin, ends):
     return (xs.min() - reach, xs.max() + reach), (ys.min() - reach, ys.max() + reach)
 
 
-@njit(cache=True)
-def traverse(x0, y0, x1, y1, size, out):
-    """Every cell of side ``size`` the segment (x0, y0)-(x1, y1) passes through, in order (Amanatides-Woo),
-    written as integer (ix, iy) rows into ``out``; returns how many. The last one holds (x1, y1)."""
+@njit(cache=True, inline="always")
+def _walk_start(x0, y0, x1, y1, size):
+    """Amanatides-Woo's start: the first and last cells, the steps, and the ray parameters of the first x and y
+    cell borders and between borders."""
     ix = int(math.floor(x0 / size))
     iy = int(math.floor(y0 / size))
     ex = int(math.floor(x1 / size))
@@ -207,6 +207,14 @@ def traverse(x0, y0, x1, y1, size, out):
     else:
         t_max_y = inf
         t_delta_y = inf
+    return ix, iy, ex, ey, step_x, step_y, t_max_x, t_delta_x, t_max_y, t_delta_y
+
+
+@njit(cache=True)
+def traverse(x0, y0, x1, y1, size, out):
+    """Every cell of side ``size`` the segment (x0, y0)-(x1, y1) passes through, in order (Amanatides-Woo),
+    written as integer (ix, iy) rows into ``out``; returns how many. The last one holds (x1, y1)."""
+    ix, iy, ex, ey, step_x, step_y, t_max_x, t_delta_x, t_max_y, t_delta_y = _walk_start(x0, y0, x1, y1, size)
     n = 0
     limit = min(out.shape[0], abs(ex - ix) + abs(ey - iy) + 1)
     out[0, 0] = ix
@@ -339,32 +347,12 @@ def _update_cells(table, marks, hits, visits, mean, state, poses, lx, ly, ends, 
     map update is a fifth to a third of the filter's time (edmonton's 51 m beams cross ~1,000 cells each)."""
     n_particles = poses.shape[0]
     h, w = table.shape[1], table.shape[2]
-    inf = 1e300
     for p in prange(n_particles):
         sx, sy, world = _rays_in_world(poses[p], lx, ly, ends)
         for i in range(ends.shape[0]):
             x1, y1 = world[i, 0], world[i, 1]
-            # Amanatides-Woo exactly as traverse walks it
-            ix = int(math.floor(sx / res))
-            iy = int(math.floor(sy / res))
-            ex = int(math.floor(x1 / res))
-            ey = int(math.floor(y1 / res))
-            dx = x1 - sx
-            dy = y1 - sy
-            step_x = 1 if dx > 0 else -1
-            step_y = 1 if dy > 0 else -1
-            if dx != 0.0:
-                t_max_x = ((ix + (1 if dx > 0 else 0)) * res - sx) / dx
-                t_delta_x = res / abs(dx)
-            else:
-                t_max_x = inf
-                t_delta_x = inf
-            if dy != 0.0:
-                t_max_y = ((iy + (1 if dy > 0 else 0)) * res - sy) / dy
-                t_delta_y = res / abs(dy)
-            else:
-                t_max_y = inf
-                t_delta_y = inf
+            # the walk traverse makes
+            ix, iy, ex, ey, step_x, step_y, t_max_x, t_delta_x, t_max_y, t_delta_y = _walk_start(sx, sy, x1, y1, res)
             limit = abs(ex - ix) + abs(ey - iy) + 1
             n = 1
             ltx = -1 << 40  # the tile of the previous cell, and its id (-1: not this particle's to write)
