@@ -271,7 +271,9 @@ class SalvagedBag(Recording):
             conns = [k for k, c in self._connections.items() if kind_of(c.topic, c.msgtype) == "tf_static"]
             found: list[Transform] = []
             for _, conn, raw in self._raw(conns):
-                found.extend(messages.transforms_from_tf(self._deserialize(raw, conn)))
+                with translate_errors(self.path, "ROS1 bag"):  # the conversion too (_records says why)
+                    msg = self._typestore.deserialize_ros1(raw, self._connections[conn].msgtype)
+                    found.extend(messages.transforms_from_tf(msg))
             self._static = messages.merge_static_transforms(found)
         return list(self._static)
 
@@ -294,12 +296,16 @@ class SalvagedBag(Recording):
 
     def _iter_records(self, conns: list[int]) -> Iterator[Record]:
         for _, conn, raw in self._raw(conns):
-            c = self._connections[conn]
-            yield from messages.to_records(self._deserialize(raw, conn), c.msgtype, c.topic, self.options)
+            yield from self._records(raw, conn)
 
-    def _deserialize(self, raw: bytes, conn: int):
+    def _records(self, raw: bytes, conn: int) -> list[Record]:
+        """One message's records. Its conversion fails inside the same translation as its decoding: a damaged
+        connection header can define the type with a field renamed (a flipped byte: `intensities` ->
+        `i0tensities`), which decodes and then lacks the field."""
+        c = self._connections[conn]
         with translate_errors(self.path, "ROS1 bag"):
-            return self._typestore.deserialize_ros1(raw, self._connections[conn].msgtype)
+            return messages.to_records(self._typestore.deserialize_ros1(raw, c.msgtype), c.msgtype, c.topic,
+                                       self.options)
 
     @property
     def connections(self) -> dict[int, Connection]:

@@ -100,3 +100,18 @@ def test_real_bag_truncated(tmp_path_factory, cut):
     p = tmp_path_factory.mktemp("cut") / "cut.bag"
     p.write_bytes(SAMPLE_BAG.read_bytes()[:cut])
     check_clean(p)
+
+
+def test_ros1_field_renamed_by_a_flipped_byte(tmp_path, written_recordings):
+    """A byte flipped in a connection header's message definition renames a field (found by test_ros1_damage:
+    `intensities` -> `i0tensities`, with the bag header's index position zeroed so the chunks are salvaged): the
+    message decodes, then lacks the field; a FormatError naming the file."""
+    _, paths = written_recordings
+    data = bytearray(paths["ros1"].read_bytes())
+    at = data.find(b"intensities")
+    assert at >= 0
+    data[at + 1] = ord("0")
+    data[29] = 0  # in the bag header's index_pos
+    p = tmp_path / "renamed.bag"
+    p.write_bytes(bytes(data))
+    check_clean(p)
