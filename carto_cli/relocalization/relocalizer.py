@@ -164,6 +164,7 @@ class _Search:
     search_floor: float  # what whole-submap searches look down to
     prior: np.ndarray | None = None
     second_look: bool = True  # a failed whole-image answer is searched for again with more bets
+    max_ambiguity: float | None = None  # the rival ratio from which an answer is ambiguous (None: the option's)
     considered: list[int] = field(default_factory=list)
     reasons: list[str] = field(default_factory=list)
     # With a prior (see Relocalizer._read_prior).
@@ -807,14 +808,10 @@ class Relocalizer:
         if not more or more[0].score <= first:
             return res
         s.reasons.append(f"second look with {_SECOND_LOOK_BETS} bets")
-        out = self._decide(s, sorted(more + s.candidates, key=lambda c: -c.score), "global",
-                           self.ro.global_min_score, np.zeros(3))
-        if out.verdict == "ok" and out.ambiguity >= _SECOND_LOOK_MAX_AMBIGUITY:
-            # Four times the places tried raise the best wrong place's score: the answer must stand further out
-            out.verdict, out.success = "ambiguous", False
-            out.reason = "; ".join(s.reasons + [f"ambiguous after the second look: ratio {out.ambiguity:.3f}, at "
-                                                f"least {_SECOND_LOOK_MAX_AMBIGUITY:g}"])
-        return out
+        # Four times the places tried raise the best wrong place's score: the answer must stand further out
+        s.max_ambiguity = min(self.ro.max_ambiguity, _SECOND_LOOK_MAX_AMBIGUITY)
+        return self._decide(s, sorted(more + s.candidates, key=lambda c: -c.score), "global",
+                            self.ro.global_min_score, np.zeros(3))
 
     def _global_rest(self, s: _Search) -> RelocalizationResult:
         """'global', then the other submaps: the covering ones hold every place, not always its best version (a
@@ -845,9 +842,10 @@ class Relocalizer:
         verdict = "ok" if ok else "lost"
         ambiguity, rival_pose, rival_note = self._ambiguity(s, cand, pose, rivals, path)
         s.tm.add("scan scoring", t)
-        if ok and ambiguity >= self.ro.max_ambiguity:
+        limit = self.ro.max_ambiguity if s.max_ambiguity is None else s.max_ambiguity
+        if ok and ambiguity >= limit:
             verdict = "ambiguous"
-            reason = f"ambiguous: {rival_note} (ratio {ambiguity:.3f}, at least {self.ro.max_ambiguity:g})"
+            reason = f"ambiguous: {rival_note} (ratio {ambiguity:.3f}, at least {limit:g})"
         if ok and s.max_jump is not None and s.prior is not None and path != "global":
             jump = math.hypot(*(pose[:2] - s.prior[:2]))
             if jump > s.max_jump:
