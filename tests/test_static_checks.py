@@ -68,6 +68,16 @@ def test_cli_imports_no_kernel_before_a_command_runs():
     assert proc.stdout.strip() == "[]"
 
 
+def test_mapping_and_relocalizing_load_no_scipy_sparse():
+    """SciPy's sparse package took a fifth of a warm start's imports (docs/scaling.md, Start-up); the optimizer
+    orders and splits its graph with its own kernels. (numba itself imports SciPy's top package, which is cheap.)"""
+    probe = ("import sys, carto_cli.commands.map, carto_cli.commands.relocalize, carto_cli.pipeline; "
+             "print(sorted(m for m in sys.modules if m.startswith(('scipy.sparse', 'scipy.linalg'))))")
+    proc = _run(sys.executable, "-c", probe)
+    _ok(proc)
+    assert proc.stdout.strip() == "[]"
+
+
 def _python_files(*dirs: str):
     for d in dirs:
         yield from sorted((ROOT / d).rglob("*.py"))

@@ -23,8 +23,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.csgraph as csgraph
 from numba import njit
 
 from carto_cli.core.transform import relative as relative_pose
@@ -356,8 +354,7 @@ def free_columns(edges: Edges, num_vars: int, fixed: np.ndarray) -> np.ndarray:
     used[edges.end] = True
     held |= ~used
     if len(edges):
-        graph = sp.coo_matrix((np.ones(len(edges)), (edges.start, edges.end)), shape=(num_vars, num_vars))
-        _, label = csgraph.connected_components(graph, directed=False)
+        label = _components(edges.start, edges.end, num_vars)
         anchored = np.zeros(label.max() + 1, dtype=bool)
         anchored[label[held & used]] = True
         # Poses are ordered submaps first, so the anchor is the part's first submap.
@@ -368,6 +365,37 @@ def free_columns(edges: Edges, num_vars: int, fixed: np.ndarray) -> np.ndarray:
     free = np.flatnonzero(~held)
     column[free] = np.arange(len(free))
     return column
+
+
+@njit(cache=True, nogil=True)
+def _components(start, end, n):
+    """Connected part of every pose (labels 0..parts-1 in order of each part's lowest pose), by union-find."""
+    parent = np.arange(n)
+    for e in range(len(start)):
+        a = start[e]
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        b = end[e]
+        while parent[b] != b:
+            parent[b] = parent[parent[b]]
+            b = parent[b]
+        if a < b:
+            parent[b] = a
+        elif b < a:
+            parent[a] = b
+    label = np.empty(n, np.int64)
+    parts = 0
+    for v in range(n):
+        root = v
+        while parent[root] != root:
+            root = parent[root]
+        if root == v:
+            label[v] = parts
+            parts += 1
+        else:
+            label[v] = label[root]
+    return label
 
 
 def residuals(node_poses, submap_poses, constraints: ConstraintSet, *, scaled: bool = False) -> np.ndarray:
