@@ -69,8 +69,8 @@ def test_cli_imports_no_kernel_before_a_command_runs():
 
 
 def test_mapping_and_relocalizing_load_no_scipy_sparse():
-    """SciPy's sparse package took a fifth of a warm start's imports (docs/scaling.md, Start-up); the optimizer
-    orders and splits its graph with its own kernels. (numba itself imports SciPy's top package, which is cheap.)"""
+    """Importing scipy.sparse was a quarter of the mapping command's imports (docs/scaling.md, Start-up); the
+    optimizer orders and splits its graph with its own kernels. (numba imports scipy.linalg on its own.)"""
     probe = ("import sys, carto_cli.commands.map, carto_cli.commands.relocalize, carto_cli.pipeline; "
              "print(sorted(m for m in sys.modules if m.startswith(('scipy.sparse', 'scipy.linalg'))))")
     proc = _run(sys.executable, "-c", probe)

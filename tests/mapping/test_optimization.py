@@ -328,14 +328,14 @@ def _fill(rows: np.ndarray, cols: np.ndarray, iperm: np.ndarray, n: int) -> int:
 
 
 def test_the_ordering_is_a_permutation_with_no_fill_on_trees_and_near_mmd_on_pose_graphs():
-    from carto_cli.mapping.optimization.block_cholesky import _block_ordering
+    from carto_cli.mapping.optimization.block_cholesky import block_ordering
 
     rng = np.random.default_rng(3)
     # a star: eliminating the hub first would fill every pair of leaves; minimum degree takes it last
     n = 12
     rows = np.concatenate([np.zeros(n - 1, int), np.arange(1, n)])
     cols = np.concatenate([np.arange(1, n), np.zeros(n - 1, int)])
-    iperm = _block_ordering(rows, cols, n)
+    iperm = block_ordering(rows, cols, n)
     assert sorted(iperm) == list(range(n)) and iperm[0] >= n - 2
     assert _fill(rows, cols, iperm, n) == n - 1
     # random trees: no fill at all
@@ -344,13 +344,13 @@ def test_the_ordering_is_a_permutation_with_no_fill_on_trees_and_near_mmd_on_pos
         parent = np.array([int(rng.integers(0, v)) for v in range(1, n)])
         rows = np.concatenate([np.arange(1, n), parent])
         cols = np.concatenate([parent, np.arange(1, n)])
-        iperm = _block_ordering(rows, cols, n)
+        iperm = block_ordering(rows, cols, n)
         assert sorted(iperm) == list(range(n))
         assert _fill(rows, cols, iperm, n) == n - 1
     # pose graphs: as little fill as SuperLU's multiple minimum degree, give or take a tenth
     for n, closures in ((60, 5), (150, 20), (300, 60)):
         rows, cols = _pose_graph_pattern(rng, n, closures)
-        iperm = _block_ordering(rows, cols, n)
+        iperm = block_ordering(rows, cols, n)
         assert sorted(iperm) == list(range(n))
         off = rows != cols
         values = np.where(off, -1.0, 1.0)
@@ -359,21 +359,21 @@ def test_the_ordering_is_a_permutation_with_no_fill_on_trees_and_near_mmd_on_pos
                         options={"SymmetricMode": True}).perm_c
         assert _fill(rows, cols, iperm, n) <= 1.1 * _fill(rows, cols, np.asarray(mmd), n) + 2
     # no links at all, and nothing to order
-    assert sorted(_block_ordering(np.arange(4), np.arange(4), 4)) == [0, 1, 2, 3]
-    assert len(_block_ordering(np.zeros(0, int), np.zeros(0, int), 0)) == 0
+    assert sorted(block_ordering(np.arange(4), np.arange(4), 4)) == [0, 1, 2, 3]
+    assert len(block_ordering(np.zeros(0, int), np.zeros(0, int), 0)) == 0
 
 
 def test_connected_parts_match_scipys():
     import scipy.sparse.csgraph as csgraph
 
-    from carto_cli.mapping.optimization.problem import _components
+    from carto_cli.mapping.optimization.problem import connected_parts
 
     rng = np.random.default_rng(5)
     for _ in range(20):
         n = int(rng.integers(1, 80))
         k = int(rng.integers(0, n + 1))
         a, b = rng.integers(0, n, k), rng.integers(0, n, k)
-        label = _components(a, b, n)
+        label = connected_parts(a, b, n)
         _, expected = csgraph.connected_components(sp.coo_matrix((np.ones(k), (a, b)), shape=(n, n)), directed=False)
         # the same parts, numbered by their lowest pose
         assert np.array_equal(label, expected)

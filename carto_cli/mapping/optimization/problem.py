@@ -34,6 +34,7 @@ __all__ = [
     "NodePairs",
     "build_edges",
     "check_index",
+    "connected_parts",
     "cost_kernel",
     "free_columns",
     "linearize_kernel",
@@ -354,7 +355,7 @@ def free_columns(edges: Edges, num_vars: int, fixed: np.ndarray) -> np.ndarray:
     used[edges.end] = True
     held |= ~used
     if len(edges):
-        label = _components(edges.start, edges.end, num_vars)
+        label = connected_parts(edges.start, edges.end, num_vars)
         anchored = np.zeros(label.max() + 1, dtype=bool)
         anchored[label[held & used]] = True
         # Poses are ordered submaps first, so the anchor is the part's first submap.
@@ -368,7 +369,7 @@ def free_columns(edges: Edges, num_vars: int, fixed: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _components(start, end, n):
+def connected_parts(start, end, n):
     """Connected part of every pose (labels 0..parts-1 in order of each part's lowest pose), by union-find."""
     parent = np.arange(n)
     for e in range(len(start)):
