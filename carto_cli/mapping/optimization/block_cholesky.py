@@ -237,9 +237,10 @@ def _minimum_degree(indptr, indices, n):
     if n == 0:
         return order
     # Each block's neighbours live in one pool, in a slot with room to grow; a list that outgrows its slot
-    # moves to the pool's end
+    # moves to the pool's end. (Element by element, not slices or np.full: those took numba 2.7 s more to
+    # compile here, which a fresh install pays once.)
     slack = 4
-    pool = np.empty(max(len(indices) + (slack + 1) * n, 16), np.int64)
+    pool = np.empty(len(indices) + (slack + 1) * n + 16, np.int64)
     start = np.empty(n, np.int64)
     length = np.empty(n, np.int64)
     room = np.empty(n, np.int64)
@@ -253,9 +254,16 @@ def _minimum_degree(indptr, indices, n):
             pool[top + t] = indices[indptr[v] + t]
         top += d + slack
     # Blocks by degree, in doubly linked buckets
-    head = np.full(n + 1, -1, np.int64)
-    nxt = np.full(n, -1, np.int64)
-    prv = np.full(n, -1, np.int64)
+    head = np.empty(n + 1, np.int64)
+    nxt = np.empty(n, np.int64)
+    prv = np.empty(n, np.int64)
+    mark = np.empty(n, np.int64)
+    for v in range(n):
+        nxt[v] = -1
+        prv[v] = -1
+        mark[v] = -1
+        head[v] = -1
+    head[n] = -1
     for v in range(n - 1, -1, -1):
         d = length[v]
         nxt[v] = head[d]
@@ -263,7 +271,6 @@ def _minimum_degree(indptr, indices, n):
             prv[head[d]] = v
         head[d] = v
     eliminated = np.zeros(n, np.bool_)
-    mark = np.full(n, -1, np.int64)
     nbrs = np.empty(n, np.int64)
     buffer = np.empty(n, np.int64)
     stamp = 0
@@ -313,8 +320,10 @@ def _minimum_degree(indptr, indices, n):
             if count > room[u]:
                 need = top + count + slack
                 if need > pool.shape[0]:
-                    grown = np.empty(max(2 * pool.shape[0], need), np.int64)
-                    grown[:top] = pool[:top]
+                    # twice is enough: need <= pool + n + slack, and the pool starts above 5 n
+                    grown = np.empty(2 * pool.shape[0], np.int64)
+                    for t in range(top):
+                        grown[t] = pool[t]
                     pool = grown
                 start[u] = top
                 room[u] = count + slack
