@@ -443,9 +443,10 @@ def relocalize_(
     base_frame: str | None = BASE_FRAME,
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
-    jobs: int | None = typer.Option(None, "--jobs", "-j", min=1, help="--queries: queries relocalized at once "
-                                    "(default: every core); the answers are the same for any number, each "
-                                    "query's timings include waiting for a core (1 for latency figures)."),
+    jobs: int | None = typer.Option(None, "--jobs", "-j", min=1, help="--queries: queries relocalized at once; "
+                                    "one query: threads for a whole-map search (default: every core). The "
+                                    "answers are the same for any number; a batch's timings include waiting "
+                                    "for a core (1 for latency figures)."),
 ):
     """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search.
 

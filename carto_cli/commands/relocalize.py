@@ -95,8 +95,8 @@ def _from_scans(loaded: LoadedMap, rec, scan_topic: str, profile) -> tuple[np.nd
 
 
 def _relocalizer(loaded: LoadedMap, overrides, warnings: list[str],
-                 on_warning: Callable[[str], None] | None) -> Relocalizer:
-    relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None)
+                 on_warning: Callable[[str], None] | None, jobs: int | None = None) -> Relocalizer:
+    relocalizer = Relocalizer(loaded, apply_overrides(loaded.options, overrides) if overrides else None, jobs=jobs)
     _tell(relocalizer.warnings, warnings, on_warning)
     return relocalizer
 
@@ -179,8 +179,8 @@ def run_relocalize(
     with ``force`` (refused before any work). ``read``: how point clouds are sliced (io.recording.ReadOptions).
     ``map_file`` is a map.carto or a map_server YAML (``load_relocalization_map``, with ``profile``); a map that
     does not know where the laser sits (a map_server image) takes it from the recording's static TF.
-    ``max_jump`` (m): an answer farther than this from its prior is 'lost'. ``jobs``: threads for a batch
-    (None: every core).
+    ``max_jump`` (m): an answer farther than this from its prior is 'lost'. ``jobs``: threads for a batch,
+    or for one query's whole-map search (None: every core); the answers are the same for any number.
     """
     if max_jump is not None and not max_jump > 0:
         raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
@@ -198,13 +198,13 @@ def run_relocalize(
     loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
     run = RelocalizeRun(auto=apply_map_auto(loaded, profile))
     # Built before the recording is read when the map holds all it needs, so its warnings come first.
-    relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, run.warnings, on_warning)
+    relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, run.warnings, on_warning, jobs)
     with open_recording(recording, read) as rec:
         _tell(rec.warnings, run.warnings, on_warning)
         mount = None
         if relocalizer is None:
             mount, run.auto = _from_scans(loaded, rec, select_scan_topic(rec, scan_topic), profile)
-            relocalizer = _relocalizer(loaded, overrides, run.warnings, on_warning)
+            relocalizer = _relocalizer(loaded, overrides, run.warnings, on_warning, jobs)
         if queries is not None:
             qs = read_queries(queries)
             with progress("relocalizing", len(qs), quiet) as bar:

@@ -403,6 +403,31 @@ def _run_bnb(stack, problem: _Problem, top: int, leaf: int, thr: int, scored=Non
                              scored, _NO_EXCLUSION if excl is None else excl)
 
 
+def _run_bnb_split(stack, problem: _Problem, top: int, leaf: int, thr: int, excl, jobs: int | None):
+    """:func:`_run_bnb`'s answer, the angles dealt to ``jobs`` threads (every ``jobs``-th angle to each, so that
+    every share holds angles near the best and prunes as early). Each share's best is exact and the kernel
+    orders leaves totally (sum, then |angle|, distance, angle, x, y: :func:`_may_beat`), so the best of the
+    shares' bests by that order is the whole search's, whatever the number of threads."""
+    from carto_cli.core.parallel import available_cores, map_ordered
+
+    parts = min(available_cores() if jobs is None else max(1, int(jobs)), len(problem.angle_index))
+    if parts < 2:
+        return _run_bnb(stack, problem, top, leaf, thr, excl=excl)
+
+    def share(j: int):
+        rows = np.arange(j, len(problem.angle_index), parts)
+        sub = problem._replace(angle_index=np.ascontiguousarray(problem.angle_index[rows]),
+                               discrete=np.ascontiguousarray(problem.discrete[rows]),
+                               bbox=np.ascontiguousarray(problem.bbox[rows]),
+                               bounds=np.ascontiguousarray(problem.bounds[rows]))
+        return _run_bnb(stack, sub, top, leaf, thr, excl=excl)
+
+    found = [r for r in map_ordered(share, range(parts), parts) if r[0]]
+    if not found:
+        return False, 0, 0, 0, 0
+    return min(found, key=lambda r: (-r[4], abs(r[1]), r[2] * r[2] + r[3] * r[3], r[1], r[2], r[3]))
+
+
 class SearchCost(NamedTuple):
     """What a windowed search cost: the candidates it scored per level against the candidates in its window."""
 
@@ -487,7 +512,7 @@ def exhaustive_match(stack: PrecomputationGridStack, points, initial_pose_estima
 def peaks(stack: PrecomputationGridStack, points, initial_pose_estimate, *, linear_search_window: float,
           angular_search_window: float, min_score: float, levels: Sequence[tuple[float, int]], count: int,
           distinct_xy: float, distinct_yaw: float, exclude: Sequence[np.ndarray] = (), tries: int | None = None,
-          coarse_min_score: float | None = None) -> list[MatchResult]:
+          coarse_min_score: float | None = None, jobs: int | None = 1) -> list[MatchResult]:
     """Up to ``count`` best poses of the window at *different places* (pairwise farther apart than
     ``distinct_xy`` or ``distinct_yaw``, and from every pose of ``exclude``), best first; none below ``min_score``.
 
@@ -497,6 +522,7 @@ def peaks(stack: PrecomputationGridStack, points, initial_pose_estimate, *, line
     count + 2; on bench-dense/intel's map image 3 tries put 92 % of global queries right, 6 tries 97 % in twice
     the time), stopping once a coarse bound falls below the ``count``-th place found. A whole-map search
     so keeps its second place (the answer's rival, and the right answer when the best coarse block was not).
+    ``jobs``: threads for each coarse stage (None: every core), the same answer for any number.
     """
     levels = [(float(sc), int(lv)) for sc, lv in levels]
     if not levels or levels[-1][1] != 0:
@@ -540,8 +566,9 @@ def peaks(stack: PrecomputationGridStack, points, initial_pose_estimate, *, line
     found: list[MatchResult] = []
     limit = count + 2 if tries is None else int(tries)
     for _ in range(limit):
-        ok, a, x, y, s = _run_bnb(stack, problem, stack.depth - 1, lv, thr if len(levels) == 1 else coarse_thr,
-                                  excl=np.array(excl, dtype=np.int64).reshape(-1, 6))
+        ok, a, x, y, s = _run_bnb_split(stack, problem, stack.depth - 1, lv,
+                                        thr if len(levels) == 1 else coarse_thr,
+                                        np.array(excl, dtype=np.int64).reshape(-1, 6), jobs)
         if not ok:
             break
         if len(found) >= count and float(cell_value_to_probability(s / n)) <= found[-1].score:

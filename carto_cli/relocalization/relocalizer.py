@@ -198,10 +198,13 @@ class Relocalizer:
     ``options`` defaults to the map's own; its ``relocalization`` section drives the search,
     ``trajectory_builder_2d`` the scan preprocessing and ``pose_graph.constraint_builder.
     ceres_scan_matcher`` the refinement. ``cache_budget_bytes`` defaults to
-    ``relocalization.cache_budget_mb``.
+    ``relocalization.cache_budget_mb``. ``jobs``: threads for each coarse stage of a whole-map search
+    (None: every core; ``branch_and_bound.peaks``), the same answers for any number.
     """
 
-    def __init__(self, loaded_map, options: Options | None = None, *, cache_budget_bytes: int | None = None):
+    def __init__(self, loaded_map, options: Options | None = None, *, cache_budget_bytes: int | None = None,
+                 jobs: int | None = None):
+        self.jobs = jobs
         self.map = loaded_map
         self.options = loaded_map.options if options is None else options
         self.ro = self.options.relocalization
@@ -480,7 +483,7 @@ class Relocalizer:
                 ps = branch_and_bound.peaks(stack, points, estimate, linear_search_window=lin,
                                             angular_search_window=math.pi, min_score=min_score, levels=levels,
                                             count=2, distinct_xy=_DISTINCT_XY, distinct_yaw=_DISTINCT_YAW,
-                                            tries=tries, coarse_min_score=min_score)
+                                            tries=tries, coarse_min_score=min_score, jobs=self.jobs)
                 tm.add("pose search", t)
                 if ps and ps[0].score > floor:
                     found.append(Candidate(i, ps[0].pose, ps[0].score, estimate, lin, math.pi, levels,
@@ -885,7 +888,7 @@ class Relocalizer:
             ps = branch_and_bound.peaks(
                 stack, s.search_pts, cand.estimate, linear_search_window=cand.lin, angular_search_window=cand.ang,
                 min_score=max(s.search_floor * 0.8, 0.1), levels=cand.levels, count=1, distinct_xy=_DISTINCT_XY,
-                distinct_yaw=_DISTINCT_YAW, exclude=[grid_pose, cand.grid_pose])
+                distinct_yaw=_DISTINCT_YAW, exclude=[grid_pose, cand.grid_pose], jobs=self.jobs)
             r = ps[0] if ps else None
         if r is not None and cand.score > 0 and r.score / cand.score > best[0]:
             p = transform.compose(self.grid_to_map[cand.submap], r.pose)
@@ -999,10 +1002,16 @@ def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query
 
     jobs = available_cores() if jobs is None else max(1, int(jobs))
     results = []
-    with ThreadPoolExecutor(max_workers=jobs) if jobs > 1 else nullcontext() as pool:
-        answers = pool.map(run, range(len(queries))) if pool is not None else map(run, range(len(queries)))
-        for result in answers:  # in file order, as each is done
-            results.append(result)
-            if on_query is not None:
-                on_query(1)
+    inner = relocalizer.jobs
+    if jobs > 1:
+        relocalizer.jobs = 1  # the queries share the cores; a query's own searches then take one each
+    try:
+        with ThreadPoolExecutor(max_workers=jobs) if jobs > 1 else nullcontext() as pool:
+            answers = pool.map(run, range(len(queries))) if pool is not None else map(run, range(len(queries)))
+            for result in answers:  # in file order, as each is done
+                results.append(result)
+                if on_query is not None:
+                    on_query(1)
+    finally:
+        relocalizer.jobs = inner
     return results, summarize(results)

@@ -209,3 +209,31 @@ def test_matcher_object_uses_the_options():
     assert matcher.stack.depth == 3
     result = matcher.match([[0.0, 0.0]], (0.9, 1.1, 0.0), min_score=0.5)
     assert result.found and result.score == pytest.approx(0.9, abs=0.01)
+
+
+@pytest.mark.slow_without_jit
+def test_peaks_answers_the_same_on_any_number_of_threads(building):
+    """Each coarse stage's angles dealt to threads: the kernel orders leaves totally, so the best of the shares'
+    bests is the whole search's (ties included: grids of three values)."""
+    rng = np.random.default_rng(11)
+    cases = []
+    for trial in range(25):
+        stack, pts, initial, kw = random_problem(rng, ties=trial % 2 == 0)
+        kw["angular_search_window"] = float(rng.uniform(0.3, math.pi))
+        cases.append((stack, pts, initial, kw, [(1.0, min(2, stack.depth - 1)), (0.0, 0)]))
+    world, grid, stack = building
+    for k, truth in enumerate(TRUTHS):
+        pts = scan(world, truth, np.random.default_rng(20 + k))
+        centre = bnb.full_submap_center(stack)
+        nx, ny = stack.num_cells
+        cases.append((stack, pts, centre, dict(linear_search_window=(nx + ny) * grid.resolution,
+                                               angular_search_window=math.pi, min_score=0.4),
+                      [(1.0, 3), (0.0, 0)]))
+    for stack, pts, initial, kw, levels in cases:
+        answers = [bnb.peaks(stack, pts, initial, levels=levels, count=2, distinct_xy=0.3, distinct_yaw=0.3,
+                             tries=4, jobs=jobs, **kw) for jobs in (1, 2, 3)]
+        for other in answers[1:]:
+            assert len(other) == len(answers[0])
+            for a, b in zip(answers[0], other):
+                assert_same(a, b)
+    assert answers[0], "the last case, a scan of the building searched over the whole map, finds places"
