@@ -403,6 +403,11 @@ def _run_bnb(stack, problem: _Problem, top: int, leaf: int, thr: int, scored=Non
                              scored, _NO_EXCLUSION if excl is None else excl)
 
 
+# Fewer angles than this stay on one thread: a windowed search's coarse stage (7-40 angles, about a millisecond)
+# took twice as long dealt to two threads (aces, rival searches with a prior); a whole map's has hundreds.
+SPLIT_MIN_ANGLES = 128
+
+
 def _run_bnb_split(stack, problem: _Problem, top: int, leaf: int, thr: int, excl, jobs: int | None):
     """:func:`_run_bnb`'s answer, the angles dealt to ``jobs`` threads (every ``jobs``-th angle to each, so that
     every share holds angles near the best and prunes as early). Each share's best is exact and the kernel
@@ -411,7 +416,7 @@ def _run_bnb_split(stack, problem: _Problem, top: int, leaf: int, thr: int, excl
     from carto_cli.core.parallel import available_cores, map_ordered
 
     parts = min(available_cores() if jobs is None else max(1, int(jobs)), len(problem.angle_index))
-    if parts < 2:
+    if parts < 2 or len(problem.angle_index) < SPLIT_MIN_ANGLES:
         return _run_bnb(stack, problem, top, leaf, thr, excl=excl)
 
     def share(j: int):
