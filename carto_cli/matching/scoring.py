@@ -9,7 +9,7 @@ import numpy as np
 
 from carto_cli.core import transform
 
-__all__ = ["inlier_fraction", "known_score", "score_at"]
+__all__ = ["fit_scores", "inlier_fraction", "known_score", "score_at"]
 
 
 def score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
@@ -38,9 +38,31 @@ def inlier_fraction(grid, points: np.ndarray, pose: np.ndarray, *, min_probabili
     if len(points) == 0:
         return 0.0
     cells = grid.cell_index(transform.apply(pose, points))
-    hit = np.zeros(len(cells), dtype=bool)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            p = grid.probability(cells + np.array([dx, dy]), unknown=0.0)
-            hit |= p >= min_probability
-    return float(hit.mean())
+    # The nine cells of every point in one lookup (nine lookups were a fifth of a tracked scan's judging)
+    around = (cells[:, None, :] + _NEIGHBOURS[None, :, :]).reshape(-1, 2)
+    p = np.asarray(grid.probability(around, unknown=0.0)).reshape(len(cells), 9)
+    return float((p >= min_probability).any(axis=1).mean())
+
+
+_NEIGHBOURS = np.array([[dx, dy] for dx in (-1, 0, 1) for dy in (-1, 0, 1)], dtype=np.int64)
+
+
+def fit_scores(grid, points: np.ndarray, pose: np.ndarray, *,
+               min_probability: float = 0.5) -> tuple[float, float, float, float]:
+    """(:func:`score_at`, :func:`known_score`'s share and mean, :func:`inlier_fraction`) of ``points`` at
+    ``pose``, the same numbers from one placement and one lookup of every point's nine cells: what judging a
+    tracked scan asks every scan. ``min_probability`` > 0 (an unknown cell never reaches it)."""
+    if not min_probability > 0:
+        raise ValueError(f"min_probability must be > 0, got {min_probability}")
+    if len(points) == 0:
+        return 0.0, 0.0, 0.0, 0.0
+    cells = grid.cell_index(transform.apply(pose, points))
+    p = np.asarray(grid.probability((cells[:, None, :] + _NEIGHBOURS[None, :, :]).reshape(-1, 2)),
+                   dtype=np.float64).reshape(len(cells), 9)  # NaN where unknown
+    centre = p[:, 4]
+    known = ~np.isnan(centre)
+    n = int(known.sum())
+    score = float(np.mean(np.where(known, centre, 0.1)))
+    with np.errstate(invalid="ignore"):
+        inliers = float((p >= min_probability).any(axis=1).mean())
+    return score, n / len(centre), (float(centre[known].mean()) if n else 0.0), inliers

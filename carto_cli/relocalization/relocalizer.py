@@ -82,7 +82,7 @@ from carto_cli.grid.probability_grid import UNKNOWN_VALUE, VALUE_TO_PROBABILITY
 from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import stack_bytes
 from carto_cli.matching.ray_consistency import see_through_fraction
-from carto_cli.matching.scoring import inlier_fraction, known_score, score_at
+from carto_cli.matching.scoring import fit_scores
 from carto_cli.matching.stack_cache import StackCache
 from carto_cli.options import Options
 from carto_cli.relocalization.queries import Query, scans_for_queries
@@ -534,10 +534,8 @@ class Relocalizer:
         a match, for a search's answer and a tracked scan."""
         grid = self.grids[submap]
         laser = transform.apply(grid_pose, np.asarray(sensor, dtype=np.float64).reshape(1, 2))[0]
-        score = score_at(grid, points, grid_pose)
-        known, kscore = known_score(grid, points, grid_pose)
+        score, known, kscore, inliers = fit_scores(grid, points, grid_pose)
         see = see_through_fraction(grid, points, grid_pose, sensor)
-        inliers = inlier_fraction(grid, points, grid_pose)
         # Points on cells the map never saw say nothing; of the others, a right answer puts >= 0.92 on walls
         # (bench-dense's map images, every right answer), a scan of another building 0.5-0.87.
         on_walls = inliers / known if known > 0 else 0.0

@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from carto_cli.grid.probability_grid import ProbabilityGrid
-from carto_cli.matching.scoring import known_score, score_at
+from carto_cli.grid.probability_grid import ProbabilityGrid, probability_to_value
+from carto_cli.matching.scoring import fit_scores, inlier_fraction, known_score, score_at
 
 
 def _grid():
@@ -55,3 +55,20 @@ def test_the_constraint_builder_scores_with_the_same_function():
     from carto_cli.mapping import constraint_builder
 
     assert constraint_builder.score_at is score_at
+
+
+def test_fit_scores_are_the_three_scores_of_one_lookup():
+    rng = np.random.default_rng(4)
+    for trial in range(200):
+        nx, ny = (int(v) for v in rng.integers(3, 50, 2))
+        grid = ProbabilityGrid(0.05, rng.uniform(-1, 1, 2), (nx, ny))
+        known = rng.random((ny, nx)) < rng.uniform(0.1, 0.9)
+        grid.cells[known] = probability_to_value(rng.uniform(0.12, 0.9, known.sum()))
+        points = rng.uniform(-2, 4, (int(rng.integers(0, 60)), 2))  # partly off the grid
+        pose = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-3, 3)])
+        mp = float(rng.choice([0.5, 0.3, 0.7]))
+        expected = (score_at(grid, points, pose), *known_score(grid, points, pose),
+                    inlier_fraction(grid, points, pose, min_probability=mp))
+        assert fit_scores(grid, points, pose, min_probability=mp) == expected, trial
+    with pytest.raises(ValueError):
+        fit_scores(grid, points, pose, min_probability=0.0)
