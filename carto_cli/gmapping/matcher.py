@@ -28,6 +28,11 @@ MAX_CLIMBS_PER_LEVEL = 10  # bounds a slow drift at one step size; a level norma
 # degrees apart (docs/gmapping.md)
 SWEEP_EVERY = 4
 SWEEP_FINALISTS = 3
+# A move is scored only as far as it can still beat the best pose: each point adds at most 1, so once the sum
+# plus the points left falls below the best, the rest cannot change the decision (checked every 16 points; the
+# slack keeps rounding from ever deciding). 10 % fewer points scored by the climb on replayed orebro and fhw
+# inputs, the same poses and scores (docs/gmapping.md).
+BOUND_SLACK = 1e-9
 
 
 @njit(cache=True, inline="always")
@@ -63,18 +68,22 @@ def _back_steps(points, lx, ly, res):
 
 @njit(cache=True)
 def _evaluate(table, p, state, mean, ox, oy, res, points, back, x, y, th, kernel, sigma, lsigma, stride,
-              unknown_ll, every=1):
+              unknown_ll, every=1, beat=-1.0):
     """(score, log-likelihood) of ``points`` (tracking frame) seen from pose (x, y, th) in particle p's map;
     the likelihood uses every ``stride``-th point, and ``unknown_ll`` for one with no wall near it that fell
     in a cell never observed (GMapping: the same as one in free space). ``every`` > 1 looks at only every
-    ``every``-th point (both values)."""
+    ``every``-th point (both values). ``beat`` >= 0: the caller only asks whether the score exceeds ``beat``;
+    scoring stops, returning a score below ``beat``, as soon as the points left cannot lift it there."""
     h, w = table.shape[1], table.shape[2]
     c, s = math.cos(th), math.sin(th)
     inv_two_sigma2 = 0.5 / (sigma * sigma)
     inv_res = 1.0 / res
     score = 0.0
     loglik = 0.0
-    for i in range(0, points.shape[0], every):
+    n = points.shape[0]
+    for i in range(0, n, every):
+        if beat >= 0.0 and (i & 15) == 0 and score + (n - i) < beat - BOUND_SLACK:
+            return score, loglik
         px = x + c * points[i, 0] - s * points[i, 1]
         py = y + s * points[i, 0] + c * points[i, 1]
         # The cell one step back towards the sensor: a wall only counts if the beam came from free space.
@@ -168,7 +177,7 @@ def climb(table, state, mean, ox, oy, res, points, lx, ly, poses, kernel, sigma,
                 if k == 0:
                     continue
                 sc, _ = _evaluate(table, p, state, mean, ox, oy, res, points, back, x, y, th0 + k * step,
-                                  kernel, sigma, 1.0, 1, 0.0)
+                                  kernel, sigma, 1.0, 1, 0.0, 1, best)
                 if sc > best:
                     best = sc
                     th = th0 + k * step
@@ -199,7 +208,7 @@ def climb(table, state, mean, ox, oy, res, points, lx, ly, poses, kernel, sigma,
                 else:
                     ct -= a
                 sc, _ = _evaluate(table, p, state, mean, ox, oy, res, points, back, cx, cy, ct, kernel,
-                                  sigma, 1.0, 1, 0.0)
+                                  sigma, 1.0, 1, 0.0, 1, best)
                 if sc > best:
                     best = sc
                     bx, by, bt = cx, cy, ct

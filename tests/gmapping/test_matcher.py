@@ -3,6 +3,7 @@ import math
 
 import numpy as np
 import pytest
+from reference.gmapping import hill_climb
 from room_sim import beam_angles, cast
 
 from carto_cli.core.transform import compose, wrap_angle
@@ -83,6 +84,22 @@ def test_climb_finds_the_pose_of_a_scan_from_5_to_10_cm_and_3_degrees_off(room_m
         assert np.all(np.hypot(err[:, 0], err[:, 1]) < 0.015), err
         assert np.all(np.abs(np.degrees(wrap_angle(err[:, 2]))) < 0.5), err
         assert np.all(scores > 0.8 * len(points)), scores  # most endpoints lie on a wall of the map
+
+
+def test_climb_makes_the_decisions_of_a_climb_that_scores_every_move_in_full():
+    """The kernel stops scoring a move once the points left cannot lift it above the best pose; a plain climb
+    that scores every move in full (tests/reference) must reach the same poses and scores, from starts near the
+    match and from starts far enough off that many moves lose by a wide margin."""
+    walls = _room()
+    points = _scan(TRUTH, walls, noise=0.005, seed=30, n=120)
+    starts = np.concatenate([TRUTH + OFFSETS, TRUTH + 2.0 * OFFSETS])
+    maps = _map(len(starts), MAP_POSE, _scan(MAP_POSE, walls, noise=0.005, seed=1))
+    poses, scores = _climb(maps, points, starts)
+    for p, start in enumerate(starts):
+        pose, score = hill_climb(maps, p, points, MOUNT[:2], start, KERNEL, SIGMA, LSTEP, ASTEP, ITERATIONS,
+                                 matcher.MAX_CLIMBS_PER_LEVEL)
+        np.testing.assert_array_equal(poses[p], pose)
+        assert scores[p] == pytest.approx(score, rel=1e-12, abs=1e-12)
 
 
 def test_the_heading_sweep_recovers_a_turn_the_climb_alone_cannot():

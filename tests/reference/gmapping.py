@@ -1,5 +1,5 @@
-"""Plain-Python references for carto_cli.gmapping.maps: the cells a segment crosses, and the counts a
-bundle of rays leaves in one particle's map.
+"""Plain-Python references for carto_cli.gmapping.maps and .matcher: the cells a segment crosses, the counts a
+bundle of rays leaves in one particle's map, the match score and the hill climb.
 
 The cells are found from where the segment crosses the grid lines (every crossing parameter, sorted),
 not by stepping from cell to cell as the kernel does, so the two share no arithmetic. Where a segment
@@ -12,7 +12,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from carto_cli.gmapping.maps import TILE
+from carto_cli.gmapping.maps import TILE, TILE_BITS, UNKNOWN, WALL
 
 
 def crossed_cells(x0, y0, x1, y1, size):
@@ -79,3 +79,80 @@ def map_counts(maps, particle):
             out[cell] = [n, int(maps.visits[t, v, u]), n * float(maps.mean[t, v, u, 0]),
                          n * float(maps.mean[t, v, u, 1])]
     return out
+
+
+def _state_at(maps, particle, cx, cy):
+    """(state, tile) of cell (cx, cy) in ``particle``'s map: (UNKNOWN, -1) where it has no tile."""
+    ox, oy = maps.tile_origin
+    tx, ty = (cx >> TILE_BITS) - ox, (cy >> TILE_BITS) - oy
+    h, w = maps.table.shape[1:]
+    if not (0 <= tx < w and 0 <= ty < h) or maps.table[particle, ty, tx] < 0:
+        return UNKNOWN, -1
+    t = int(maps.table[particle, ty, tx])
+    return int(maps.state[t, cy & (TILE - 1), cx & (TILE - 1)]), t
+
+
+def match_score(maps, particle, points, sensor, pose, kernel, sigma, every=1):
+    """GMapping's match score of ``points`` (tracking frame, the sensor at ``sensor``) at ``pose``: the sum over
+    the points of exp(-d^2 / 2 sigma^2), d the distance to the nearest wall's mean endpoint among the cells within
+    ``kernel`` of the point's cell whose cell sqrt(2) cells back towards the sensor is not a wall; every
+    ``every``-th point. Written per cell with dictionaries of nothing shared with the kernel's tile arithmetic."""
+    res = maps.resolution
+    x, y, th = (float(v) for v in pose)
+    c, s = math.cos(th), math.sin(th)
+    inv_res = 1.0 / res
+    inv_two_sigma2 = 0.5 / (sigma * sigma)
+    score = 0.0
+    for i in range(0, len(points), every):
+        ux, uy = float(points[i, 0]), float(points[i, 1])
+        dx, dy = ux - sensor[0], uy - sensor[1]
+        norm = math.sqrt(dx * dx + dy * dy)
+        if norm <= res:
+            continue
+        bxr, byr = math.sqrt(2.0) * res * dx / norm, math.sqrt(2.0) * res * dy / norm
+        px = x + c * ux - s * uy
+        py = y + s * ux + c * uy
+        ix, iy = math.floor(px * inv_res), math.floor(py * inv_res)
+        bx = math.floor((px - (c * bxr - s * byr)) * inv_res) - ix
+        by = math.floor((py - (s * bxr + c * byr)) * inv_res) - iy
+        best = None
+        for ky in range(-kernel, kernel + 1):
+            for kx in range(-kernel, kernel + 1):
+                state, t = _state_at(maps, particle, ix + kx, iy + ky)
+                if state != WALL or _state_at(maps, particle, ix + kx + bx, iy + ky + by)[0] == WALL:
+                    continue
+                mx, my = maps.mean[t, (iy + ky) & (TILE - 1), (ix + kx) & (TILE - 1)]
+                d2 = (px - float(mx)) * (px - float(mx)) + (py - float(my)) * (py - float(my))
+                best = d2 if best is None else min(best, d2)
+        if best is not None:
+            score += math.exp(-best * inv_two_sigma2)
+    return score
+
+
+def hill_climb(maps, particle, points, sensor, start, kernel, sigma, lstep, astep, iterations, max_climbs):
+    """GMapping's hill climb without a heading sweep, every move scored in full: from ``start``, the best of the
+    six moves (+-lstep in x and y, +-astep in heading, never straight back) while one improves, at most
+    ``max_climbs`` times per step size, then the steps halved, ``iterations`` times. Returns (pose, score)."""
+    pose = np.array(start, dtype=np.float64)
+    best = match_score(maps, particle, points, sensor, pose, kernel, sigma)
+    ls, a, level, climbs, undo = lstep, astep, 0, 0, -1
+    while level <= iterations:
+        climbs += 1
+        taken = -1
+        chosen = pose
+        for move in range(6):
+            if move == undo:
+                continue
+            trial = pose.copy()
+            axis, sign = (0, 1, 2)[move // 2], (1.0, -1.0)[move % 2]
+            trial[axis] += sign * (ls if axis < 2 else a)
+            sc = match_score(maps, particle, points, sensor, trial, kernel, sigma)
+            if sc > best:
+                best, chosen, taken = sc, trial, move
+        undo = taken ^ 1 if taken >= 0 else -1
+        pose = chosen
+        if taken < 0 or climbs >= max_climbs:
+            undo, climbs, level = -1, 0, level + 1
+            ls *= 0.5
+            a *= 0.5
+    return pose, best
