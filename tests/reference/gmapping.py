@@ -92,18 +92,19 @@ def _state_at(maps, particle, cx, cy):
     return int(maps.state[t, cy & (TILE - 1), cx & (TILE - 1)]), t
 
 
-def match_score(maps, particle, points, sensor, pose, kernel, sigma, every=1):
+def match_score(maps, particle, points, sensor, pose, kernel, sigma):
     """GMapping's match score of ``points`` (tracking frame, the sensor at ``sensor``) at ``pose``: the sum over
     the points of exp(-d^2 / 2 sigma^2), d the distance to the nearest wall's mean endpoint among the cells within
-    ``kernel`` of the point's cell whose cell sqrt(2) cells back towards the sensor is not a wall; every
-    ``every``-th point. Written per cell with dictionaries of nothing shared with the kernel's tile arithmetic."""
+    ``kernel`` of the point's cell whose cell sqrt(2) cells back towards the sensor is not a wall. Every point
+    scored in full, each cell looked up on its own through the maps' arrays (the kernel reads a tile's cells
+    directly where the neighbourhood fits in one)."""
     res = maps.resolution
     x, y, th = (float(v) for v in pose)
     c, s = math.cos(th), math.sin(th)
     inv_res = 1.0 / res
     inv_two_sigma2 = 0.5 / (sigma * sigma)
     score = 0.0
-    for i in range(0, len(points), every):
+    for i in range(len(points)):
         ux, uy = float(points[i, 0]), float(points[i, 1])
         dx, dy = ux - sensor[0], uy - sensor[1]
         norm = math.sqrt(dx * dx + dy * dy)
