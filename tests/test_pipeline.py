@@ -3,9 +3,10 @@ import numpy as np
 import pytest
 
 from carto_cli.core.errors import TopicError
+from carto_cli.core.timing import StageTimer
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.options import load_options
-from carto_cli.pipeline import opened, read_options, resolve_laser_pose
+from carto_cli.pipeline import build, opened, read_options, resolve_laser_pose
 from carto_cli.sim import loop_building, loop_trajectory, simulate
 
 
@@ -96,3 +97,18 @@ def test_no_fallback_when_the_user_chose_gmapping(monkeypatch):
     named = pipeline.Configured(load_options(), algorithm="gmapping")
     _, configured = pipeline.build_configured(None, named, load_options())
     assert calls == ["gmapping", "gmapping"] and configured is named
+
+
+def test_reading_the_recording_is_a_stage_of_its_own(sim_bag):
+    """Decoding happens between scans, where no other stage sees it: it is timed as "read recording", one call a
+    record the mapping loop took (scans and odometry)."""
+    path, sim = sim_bag
+    options = load_options(None)
+    timer = StageTimer()
+    with opened(path, read_options(options)) as o:
+        build(o.recording, options, selection=o.selection, timer=timer, loop_closure=False, jobs=1)
+        records = sum(1 for _ in o.recording.records([o.selection.scan, o.selection.odometry]))
+    timer.stop()
+    read = timer.snapshot().find("read recording")
+    assert read is not None and read.count == records > len(sim.scan_times)
+    assert 0 < read.total_ns < timer.snapshot().wall_ns
