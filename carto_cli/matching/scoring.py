@@ -9,16 +9,18 @@ import numpy as np
 
 from carto_cli.core import transform
 
-__all__ = ["fit_scores", "inlier_fraction", "known_score", "score_at"]
+__all__ = ["UNKNOWN_SCORE", "fit_scores", "inlier_fraction", "known_score", "score_at"]
+
+UNKNOWN_SCORE = 0.1  # what a point on a never-observed cell adds to score_at's mean
 
 
 def score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
-    """Mean occupancy probability under ``points`` placed at ``pose`` (unknown cells count as 0.1)."""
+    """Mean occupancy probability under ``points`` placed at ``pose`` (unknown cells count as ``UNKNOWN_SCORE``)."""
     if len(points) == 0:
         return 0.0
     cells = grid.cell_index(transform.apply(pose, points))
-    p = grid.probability(cells, unknown=0.1)
-    return float(np.mean(np.where(np.isnan(p), 0.1, p)))
+    p = grid.probability(cells, unknown=UNKNOWN_SCORE)
+    return float(np.mean(np.where(np.isnan(p), UNKNOWN_SCORE, p)))
 
 
 def known_score(grid, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
@@ -66,7 +68,7 @@ def fit_scores(grid, points: np.ndarray, pose: np.ndarray, *,
     centre = p[:, 4]
     known = ~np.isnan(centre)
     n = int(known.sum())
-    score = float(np.mean(np.where(known, centre, 0.1)))
+    score = float(np.mean(np.where(known, centre, UNKNOWN_SCORE)))
     with np.errstate(invalid="ignore"):
         inliers = float((p >= min_probability).any(axis=1).mean())
     return score, n / len(centre), (float(centre[known].mean()) if n else 0.0), inliers
