@@ -58,7 +58,7 @@ def warm_up() -> None:
     modes, _ = matcher.climb(maps.table, maps.state, maps.mean, ox, oy, 0.05, ends, 0.0, 0.0, poses, 1,
                              0.05, 0.05, 0.05, 1, np.full(2, 0.05))
     matcher.propose(maps.table, maps.state, maps.mean, ox, oy, 0.05, ends, 0.0, 0.0, modes, poses,
-                    np.full((2, 3), 0.1), np.zeros((2, 3)), 1, 0.05, 0.075, 1, -0.1, 0.01, 0.01, 0.005, 0.005)
+                    np.full((2, 3), 0.1), np.zeros((2, 3)), 1, 0.075, 1, -0.1, 0.01, 0.01, 0.005, 0.005)
     maps.occupancy(0)
     maps.entropy(0)
     # the final refinement's pruned correlative search (loops, refine)
@@ -264,7 +264,7 @@ class GMappingSlam:
             normals = self.rng.standard_normal((n, 3))
             self.poses, log_eta, _ = matcher.propose(
                 maps.table, maps.state, maps.mean, ox, oy, g.delta, beams.points, lx, ly, modes, means,
-                world_sigma, normals, g.kernelSize, g.sigma, g.lsigma, g.lskip + 1, self._unknown_ll, g.llsamplerange,
+                world_sigma, normals, g.kernelSize, g.lsigma, g.lskip + 1, self._unknown_ll, g.llsamplerange,
                 g.llsamplestep, g.lasamplerange, g.lasamplestep)
             self.poses[:, 2] = transform.wrap_angle(self.poses[:, 2])
             self.log_weights += log_eta

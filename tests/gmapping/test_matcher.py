@@ -3,7 +3,7 @@ import math
 
 import numpy as np
 import pytest
-from reference.gmapping import hill_climb
+from reference.gmapping import hill_climb, log_likelihood
 from room_sim import beam_angles, cast
 
 from carto_cli.core.transform import compose, wrap_angle
@@ -58,7 +58,7 @@ def _propose(maps, points, modes, means, sigmas, normals, lin=(0.01, 0.01), ang=
     f = np.ascontiguousarray
     return matcher.propose(maps.table, maps.state, maps.mean, ox, oy, RES, points, MOUNT[0], MOUNT[1],
                            f(modes, dtype=np.float64), f(means, dtype=np.float64), f(sigmas, dtype=np.float64),
-                           f(normals, dtype=np.float64), kernel=KERNEL, sigma=SIGMA, lsigma=LSIGMA, stride=1,
+                           f(normals, dtype=np.float64), kernel=KERNEL, lsigma=LSIGMA, stride=1,
                            unknown_ll=unknown_ll, lin_range=lin[0], lin_step=lin[1], ang_range=ang[0],
                            ang_step=ang[1])
 
@@ -148,6 +148,43 @@ def test_propose_draws_near_the_mode_with_finite_weights(room_map):
     assert np.all(np.abs(mean_poses[:, :2] - modes[:, :2]) <= 0.01 + 1e-12)
     assert np.all(np.abs(mean_poses[:, 2] - modes[:, 2]) <= 0.005 + 1e-12)
     np.testing.assert_array_equal(log_eta0, log_eta)  # the weight does not depend on the draw
+
+
+def test_propose_weighs_the_lattice_by_the_log_likelihood_of_each_pose_scored_alone():
+    """The kernel looks the walls up once per cell the lattice's positions meet; scoring each lattice pose on its
+    own (tests/reference) must give the same log-likelihoods, so the same weights: at the mode, and summed over
+    the lattice with the motion model's terms. Modes near the match (endpoints on walls, many near tile edges:
+    the room spans four tiles), 6 cm and 3 degrees off it, and half out of the mapped room (never observed);
+    every second point counted, the lattice +-2 cm by 1 cm, +-0.01 rad by 0.005."""
+    walls = _room()
+    points = _scan(TRUTH, walls, noise=0.005, seed=50, n=150)
+    modes = np.array([TRUTH, TRUTH + [0.004, -0.003, 0.001], TRUTH + [0.06, 0.0, math.radians(3)],
+                      TRUTH + [-2.9, 0.4, 0.0]])
+    maps = _map(len(modes), MAP_POSE, _scan(MAP_POSE, walls, noise=0.005, seed=1))
+    means = modes + [0.01, -0.02, 0.01]
+    sigmas = np.tile([0.05, 0.04, 0.03], (len(modes), 1))
+    lin, ang, stride, unknown_ll = (0.02, 0.01), (0.01, 0.005), 2, -1.25
+    ox, oy = maps.tile_origin
+    _, log_eta, at_mode = matcher.propose(
+        maps.table, maps.state, maps.mean, ox, oy, RES, points, MOUNT[0], MOUNT[1], modes, means, sigmas,
+        np.zeros_like(modes), kernel=KERNEL, lsigma=LSIGMA, stride=stride, unknown_ll=unknown_ll,
+        lin_range=lin[0], lin_step=lin[1], ang_range=ang[0], ang_step=ang[1])
+    steps = range(-2, 3)
+    for p, mode in enumerate(modes):
+        terms = []
+        for i in steps:
+            for j in steps:
+                for a in range(-2, 3):
+                    pose = np.array([mode[0] + i * lin[1], mode[1] + j * lin[1], mode[2] + a * ang[1]])
+                    ll = log_likelihood(maps, p, points, MOUNT[:2], pose, KERNEL, LSIGMA, stride, unknown_ll,
+                                        matcher.NULL_LIKELIHOOD)
+                    if i == j == a == 0:
+                        assert at_mode[p] == pytest.approx(ll, rel=1e-12, abs=1e-12)
+                    z = (pose - means[p]) / sigmas[p]
+                    terms.append(ll - 0.5 * float(z @ z))
+        top = max(terms)
+        assert log_eta[p] == pytest.approx(top + math.log(sum(math.exp(t - top) for t in terms)), rel=1e-12)
+    assert at_mode[3] < at_mode[0] - 50.0  # half the points out of the map cost unknown_ll each
 
 
 def test_a_mode_far_from_the_motion_mean_weighs_less(room_map):

@@ -1,5 +1,5 @@
 """Plain-Python references for carto_cli.gmapping.maps and .matcher: the cells a segment crosses, the counts a
-bundle of rays leaves in one particle's map, the match score and the hill climb.
+bundle of rays leaves in one particle's map, the match score, the hill climb and the proposal's log-likelihood.
 
 The cells are found from where the segment crosses the grid lines (every crossing parameter, sorted),
 not by stepping from cell to cell as the kernel does, so the two share no arithmetic. Where a segment
@@ -92,42 +92,64 @@ def _state_at(maps, particle, cx, cy):
     return int(maps.state[t, cy & (TILE - 1), cx & (TILE - 1)]), t
 
 
-def match_score(maps, particle, points, sensor, pose, kernel, sigma):
-    """GMapping's match score of ``points`` (tracking frame, the sensor at ``sensor``) at ``pose``: the sum over
-    the points of exp(-d^2 / 2 sigma^2), d the distance to the nearest wall's mean endpoint among the cells within
-    ``kernel`` of the point's cell whose cell sqrt(2) cells back towards the sensor is not a wall. Every point
-    scored in full, each cell looked up on its own through the maps' arrays (the kernel reads a tile's cells
-    directly where the neighbourhood fits in one)."""
+def nearest_wall(maps, particle, point, sensor, pose, kernel):
+    """For one point (tracking frame, the sensor at ``sensor``) seen from ``pose``: the squared distance to the
+    nearest wall's mean endpoint among the cells within ``kernel`` of the point's cell whose cell sqrt(2) cells
+    back towards the sensor is not a wall (None: no such wall, or the point within a cell of the sensor), and
+    whether the point's cell was ever observed. Each cell looked up on its own through the maps' arrays (the
+    kernels read a tile's cells directly where the neighbourhood fits in one)."""
     res = maps.resolution
     x, y, th = (float(v) for v in pose)
     c, s = math.cos(th), math.sin(th)
     inv_res = 1.0 / res
+    ux, uy = float(point[0]), float(point[1])
+    dx, dy = ux - sensor[0], uy - sensor[1]
+    norm = math.sqrt(dx * dx + dy * dy)
+    if norm <= res:
+        return None, None
+    bxr, byr = math.sqrt(2.0) * res * dx / norm, math.sqrt(2.0) * res * dy / norm
+    px = x + c * ux - s * uy
+    py = y + s * ux + c * uy
+    ix, iy = math.floor(px * inv_res), math.floor(py * inv_res)
+    bx = math.floor((px - (c * bxr - s * byr)) * inv_res) - ix
+    by = math.floor((py - (s * bxr + c * byr)) * inv_res) - iy
+    best = None
+    for ky in range(-kernel, kernel + 1):
+        for kx in range(-kernel, kernel + 1):
+            state, t = _state_at(maps, particle, ix + kx, iy + ky)
+            if state != WALL or _state_at(maps, particle, ix + kx + bx, iy + ky + by)[0] == WALL:
+                continue
+            mx, my = maps.mean[t, (iy + ky) & (TILE - 1), (ix + kx) & (TILE - 1)]
+            d2 = (px - float(mx)) * (px - float(mx)) + (py - float(my)) * (py - float(my))
+            best = d2 if best is None else min(best, d2)
+    return best, _state_at(maps, particle, ix, iy)[0] != UNKNOWN
+
+
+def match_score(maps, particle, points, sensor, pose, kernel, sigma):
+    """GMapping's match score of ``points`` (tracking frame, the sensor at ``sensor``) at ``pose``: the sum over
+    the points of exp(-d^2 / 2 sigma^2), d the distance to the nearest wall (``nearest_wall``), every point
+    scored in full."""
     inv_two_sigma2 = 0.5 / (sigma * sigma)
     score = 0.0
-    for i in range(len(points)):
-        ux, uy = float(points[i, 0]), float(points[i, 1])
-        dx, dy = ux - sensor[0], uy - sensor[1]
-        norm = math.sqrt(dx * dx + dy * dy)
-        if norm <= res:
-            continue
-        bxr, byr = math.sqrt(2.0) * res * dx / norm, math.sqrt(2.0) * res * dy / norm
-        px = x + c * ux - s * uy
-        py = y + s * ux + c * uy
-        ix, iy = math.floor(px * inv_res), math.floor(py * inv_res)
-        bx = math.floor((px - (c * bxr - s * byr)) * inv_res) - ix
-        by = math.floor((py - (s * bxr + c * byr)) * inv_res) - iy
-        best = None
-        for ky in range(-kernel, kernel + 1):
-            for kx in range(-kernel, kernel + 1):
-                state, t = _state_at(maps, particle, ix + kx, iy + ky)
-                if state != WALL or _state_at(maps, particle, ix + kx + bx, iy + ky + by)[0] == WALL:
-                    continue
-                mx, my = maps.mean[t, (iy + ky) & (TILE - 1), (ix + kx) & (TILE - 1)]
-                d2 = (px - float(mx)) * (px - float(mx)) + (py - float(my)) * (py - float(my))
-                best = d2 if best is None else min(best, d2)
+    for point in points:
+        best, _ = nearest_wall(maps, particle, point, sensor, pose, kernel)
         if best is not None:
             score += math.exp(-best * inv_two_sigma2)
     return score
+
+
+def log_likelihood(maps, particle, points, sensor, pose, kernel, lsigma, stride, unknown_ll, null_likelihood):
+    """GMapping's log-likelihood of every ``stride``-th point at ``pose``: -d^2 / lsigma for the nearest wall
+    (``nearest_wall``), ``null_likelihood`` / lsigma without one in an observed cell, ``unknown_ll`` in a cell
+    never observed; a point within a cell of the sensor counts nothing."""
+    total = 0.0
+    for point in points[::stride]:
+        best, known = nearest_wall(maps, particle, point, sensor, pose, kernel)
+        if best is not None:
+            total -= best / lsigma
+        elif known is not None:
+            total += null_likelihood / lsigma if known else unknown_ll
+    return total
 
 
 def hill_climb(maps, particle, points, sensor, start, kernel, sigma, lstep, astep, iterations, max_climbs):
