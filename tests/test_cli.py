@@ -129,6 +129,32 @@ def test_real_subprocess_entry_point(tmp_path):
     assert bad.stderr.count("\n") == 1 and "Traceback" not in bad.stderr
 
 
+LEAVING = """
+import atexit, sys, threading, time
+from carto_cli.cli import main
+atexit.register(lambda: print("exit handler ran"))
+if {thread}:
+    threading.Thread(target=lambda: (time.sleep(3.0), print("thread finished"))).start()  # outlasts the command
+sys.argv = ["carto", "info", {path!r}]
+main()
+"""
+
+
+@pytest.mark.parametrize("thread", [False, True], ids=["alone", "a-thread-still-working"])
+def test_the_entry_point_exits_with_the_commands_status_after_the_exit_handlers_and_waits_for_a_working_thread(
+        tmp_path, thread):
+    """main() skips the interpreter's teardown (os._exit) but not what an exit must do: the status, the exit
+    handlers, flushed output, and a thread still working is waited for."""
+    ok = subprocess.run([sys.executable, "-c", LEAVING.format(thread=thread, path=str(SAMPLE_BAG))],
+                        capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    assert "ccny_laser_scan_matcher_demo.bag" in ok.stdout and ok.stdout.rstrip().endswith("exit handler ran")
+    assert ("thread finished" in ok.stdout) == thread
+    bad = subprocess.run([sys.executable, "-c", LEAVING.format(thread=thread, path=str(tmp_path / "nope.bag"))],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "nope.bag" in bad.stderr and "exit handler ran" in bad.stdout
+
+
 def test_map_with_no_profile_says_what_auto_chose_and_judges_the_map(tmp_path):
     out = tmp_path / "m"
     result = run("map", SAMPLE_BAG, "-o", out)
