@@ -173,9 +173,12 @@ def summary_line(result: MapResult) -> str:
             f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s{peak}")
 
 
-def compile_note(timer) -> str:
-    """' (incl. N s compiling kernels: ...)' when the run paid noticeably for numba, else ''."""
+def compile_note(timer, compiled: bool | None = None) -> str:
+    """' (incl. N s compiling kernels: ...)' when the run compiled kernels (``compiled``; None: whether this process
+    did) and paid noticeably for it, else ''. Loading cached kernels can take a second too, and is no news."""
+    if compiled is None:
+        compiled = kernels.compiled_here()
     warm_up = timer.snapshot().find(kernels.STAGE)
-    if warm_up is not None and warm_up.total_ns > COMPILE_NOTE_MIN_S * 1e9:
+    if compiled and warm_up is not None and warm_up.total_ns > COMPILE_NOTE_MIN_S * 1e9:
         return f" (incl. {warm_up.total_ns / 1e9:.0f} s compiling kernels: later runs load them from the cache)"
     return ""

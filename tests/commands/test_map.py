@@ -120,6 +120,26 @@ def test_run_map_as_a_library_call(sim_bag, tmp_path):
     assert note == "" or note.startswith(" (incl. ")
 
 
+def test_the_compile_note_speaks_only_of_compiling():
+    """A warm-up stage over a second is named compiling only when kernels were compiled, not when a busy machine
+    took that long to load them from the cache."""
+    from carto_cli.commands.map import compile_note
+    from carto_cli.core import kernels
+    from carto_cli.core.timing import StageTimer
+
+    ticks = iter(range(0, 10**12, 1_600_000_000))  # every clock read 1.6 s after the one before
+    timer = StageTimer(clock=lambda: next(ticks))
+    with timer.stage(kernels.STAGE):
+        pass
+    timer.stop()
+    assert compile_note(timer, compiled=False) == ""
+    assert compile_note(timer, compiled=True) == " (incl. 2 s compiling kernels: later runs load them from the cache)"
+    quick = StageTimer(clock=lambda: 0)
+    with quick.stage(kernels.STAGE):
+        pass
+    assert compile_note(quick, compiled=True) == ""
+
+
 GMAPPING_FAST = ["--algorithm", "gmapping", "--set", "gmapping.particles=5"]
 
 

@@ -9,6 +9,7 @@ def empty_registry(monkeypatch):
     """No warm-up registered or run: each test registers its own toys."""
     monkeypatch.setattr(kernels, "_registered", [])
     monkeypatch.setattr(kernels, "_done", set())
+    monkeypatch.setattr(kernels, "_compiled", [])
 
 
 def test_each_registered_warm_up_runs_once_inside_the_stage(empty_registry):
@@ -63,3 +64,24 @@ def test_a_warm_cache_starts_no_helper(monkeypatch):
     monkeypatch.setattr(kernels, "_cold", lambda fn: True)
     monkeypatch.setenv(kernels.HELPER_ENV, "1")  # a helper never starts helpers of its own
     assert not kernels.cold_cache([lambda: None, lambda: None])
+
+
+def test_a_warm_up_that_finds_its_kernels_uncached_counts_as_compiling(empty_registry, monkeypatch):
+    """What the summary line's compile note asks: a warm-up of this process met a module whose kernels were not
+    in the cache yet; one that loaded them all from it is no compiling however long it took."""
+    cold = {"warm": False, "fresh": True}
+
+    @kernels.register_warm_up
+    def warm():
+        pass
+
+    @kernels.register_warm_up(system="gmapping")
+    def fresh():
+        pass
+
+    monkeypatch.setattr(kernels, "_cold", lambda fn: cold[fn.__name__])
+    monkeypatch.setattr(kernels, "cold_cache", lambda wanted: False)  # no helper processes for toys
+    kernels.warm_up(systems=("cartographer",))
+    assert not kernels.compiled_here()
+    kernels.warm_up(systems=("gmapping",))
+    assert kernels.compiled_here()
