@@ -325,28 +325,46 @@ def _fill_tiles(sources, targets, hits, visits, mean, state):
 
 
 @njit(cache=True, inline="always")
-def _touch(hits, visits, mean, state, t, u, v, last_hit, ex, ey):
-    """One cell of a ray: crossed, or (``last_hit``) the wall the ray ended in at (ex, ey)."""
-    visits[t, v, u] += 1
+def _touch(hits, visits, mean, state, q, last_hit, ex, ey):
+    """One cell of a ray (flat index ``q`` into the pool): crossed, or (``last_hit``) the wall the ray ended in at
+    (ex, ey)."""
+    visits[q] += 1
     if last_hit:
-        m = hits[t, v, u] + 1
-        hits[t, v, u] = m
-        mean[t, v, u, 0] += (ex - mean[t, v, u, 0]) / m
-        mean[t, v, u, 1] += (ey - mean[t, v, u, 1]) / m
-        state[t, v, u] = WALL if m > FULLNESS * visits[t, v, u] else SEEN
-    elif state[t, v, u] == WALL:
-        state[t, v, u] = WALL if hits[t, v, u] > FULLNESS * visits[t, v, u] else SEEN
+        m = hits[q] + 1
+        hits[q] = m
+        mean[2 * q] += (ex - mean[2 * q]) / m
+        mean[2 * q + 1] += (ey - mean[2 * q + 1]) / m
+        state[q] = WALL if m > FULLNESS * visits[q] else SEEN
     else:
-        state[t, v, u] = SEEN  # a ray through a cell that was no wall leaves it none
+        s = state[q]
+        if s == WALL:
+            state[q] = WALL if hits[q] > FULLNESS * visits[q] else SEEN
+        elif s == UNKNOWN:
+            state[q] = SEEN  # a ray through a cell that was no wall leaves it none
+
+
+@njit(cache=True, inline="always")
+def _own_tile(table, marks, p, h, w, tx, ty):
+    """The first flat index of tile (tx, ty) of particle p, if it is one p may write (-1: not marked, outside):
+    outside its marked tiles only on a ray grazing a tile corner the tile walk rounded the other way."""
+    if 0 <= tx < w and 0 <= ty < h and marks[p, ty, tx]:
+        t = table[p, ty, tx]
+        if t >= 0:
+            return t << (2 * TILE_BITS)
+    return -1
 
 
 @njit(cache=True, parallel=True)
 def _update_cells(table, marks, hits, visits, mean, state, poses, lx, ly, ends, hit, res, ox, oy):
     """Every particle's rays into its own tiles. The cells are those ``traverse`` gives (the last one always the
-    ray's end cell), walked here without a buffer and with the tile looked up once per run of cells in it: the
-    map update is a fifth to a third of the filter's time (edmonton's 51 m beams cross ~1,000 cells each)."""
+    ray's end cell), walked here without a buffer, the tile looked up only when the walk leaves one: the map
+    update is a fifth to a third of the filter's time (edmonton's 51 m beams cross ~1,000 cells each)."""
     n_particles = poses.shape[0]
     h, w = table.shape[1], table.shape[2]
+    fh = hits.reshape(-1)
+    fv = visits.reshape(-1)
+    fm = mean.reshape(-1)
+    fs = state.reshape(-1)
     for p in prange(n_particles):
         sx, sy, world = _rays_in_world(poses[p], lx, ly, ends)
         for i in range(ends.shape[0]):
@@ -355,32 +373,31 @@ def _update_cells(table, marks, hits, visits, mean, state, poses, lx, ly, ends, 
             ix, iy, ex, ey, step_x, step_y, t_max_x, t_delta_x, t_max_y, t_delta_y = _walk_start(sx, sy, x1, y1, res)
             limit = abs(ex - ix) + abs(ey - iy) + 1
             n = 1
-            ltx = -1 << 40  # the tile of the previous cell, and its id (-1: not this particle's to write)
-            lty = -1 << 40
-            t = -1
+            u = ix & TILE_MASK
+            v = iy & TILE_MASK
+            base = _own_tile(table, marks, p, h, w, (ix >> TILE_BITS) - ox, (iy >> TILE_BITS) - oy)
             while n < limit and (ix != ex or iy != ey):
-                tx = (ix >> TILE_BITS) - ox
-                ty = (iy >> TILE_BITS) - oy
-                if tx != ltx or ty != lty:
-                    ltx, lty = tx, ty
-                    t = -1
-                    # outside its marked tiles only on a ray grazing a tile corner the tile walk rounded the other way
-                    if 0 <= tx < w and 0 <= ty < h and marks[p, ty, tx]:
-                        t = table[p, ty, tx]
-                if t >= 0:
-                    _touch(hits, visits, mean, state, t, ix & TILE_MASK, iy & TILE_MASK, False, x1, y1)
+                if base >= 0:
+                    _touch(fh, fv, fm, fs, base + (v << TILE_BITS) + u, False, x1, y1)
                 if t_max_x < t_max_y:
                     t_max_x += t_delta_x
                     ix += step_x
+                    u += step_x
+                    if u < 0 or u >= TILE:
+                        u = ix & TILE_MASK
+                        base = _own_tile(table, marks, p, h, w, (ix >> TILE_BITS) - ox, (iy >> TILE_BITS) - oy)
                 else:
                     t_max_y += t_delta_y
                     iy += step_y
+                    v += step_y
+                    if v < 0 or v >= TILE:
+                        v = iy & TILE_MASK
+                        base = _own_tile(table, marks, p, h, w, (ix >> TILE_BITS) - ox, (iy >> TILE_BITS) - oy)
                 n += 1
             # the walk's last cell is the end cell, whatever rounding left it at
-            tx = (ex >> TILE_BITS) - ox
-            ty = (ey >> TILE_BITS) - oy
-            if 0 <= tx < w and 0 <= ty < h and marks[p, ty, tx]:
-                _touch(hits, visits, mean, state, table[p, ty, tx], ex & TILE_MASK, ey & TILE_MASK, hit[i], x1, y1)
+            last = _own_tile(table, marks, p, h, w, (ex >> TILE_BITS) - ox, (ey >> TILE_BITS) - oy)
+            if last >= 0:
+                _touch(fh, fv, fm, fs, last + ((ey & TILE_MASK) << TILE_BITS) + (ex & TILE_MASK), hit[i], x1, y1)
         marks[p, :, :] = 0
 
 
