@@ -720,7 +720,7 @@ def leave(code) -> None:
     elif isinstance(code, int):
         status = code
     else:
-        print(code, file=sys.stderr)
+        typer.echo(str(code), err=True)
         status = 1
     atexit._run_exitfuncs()  # what the interpreter's own exit would run first: logging, coverage, finalizers
     for stream in (sys.stdout, sys.stderr):
