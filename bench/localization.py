@@ -58,12 +58,27 @@ def _data() -> Path:
     raise SystemExit("no shared data (set CARTO_SHARED_DATA)")
 
 
-def _scans(path: Path) -> list:
-    from carto_cli.core.records import Scan
-    from carto_cli.io.sources.open import open_recording
+class _Recording:
+    """A recording's scans, and each one's records around it as ``carto relocalize`` gathers them."""
 
-    with open_recording(path) as rec:
-        return [r for r in rec.records() if isinstance(r, Scan)]
+    def __init__(self, path: Path):
+        from carto_cli.core.records import Odometry, Scan
+        from carto_cli.io.sources.open import open_recording
+
+        with open_recording(path) as rec:
+            self.records = [r for r in rec.records() if isinstance(r, (Scan, Odometry))]
+        self.at = [k for k, r in enumerate(self.records) if isinstance(r, Scan)]
+        self.scans = [self.records[k] for k in self.at]
+        self.times = np.array([r.time for r in self.records])
+
+    def context(self, i: int):
+        from carto_cli.relocalization import ScanContext
+        from carto_cli.relocalization.following import CONTEXT_SECONDS
+
+        k, t = self.at[i], self.scans[i].time
+        lo = int(np.searchsorted(self.times, t - CONTEXT_SECONDS, side="left"))
+        hi = int(np.searchsorted(self.times, t + CONTEXT_SECONDS, side="right"))
+        return ScanContext(self.records[lo:k], self.records[k + 1:hi])
 
 
 def _err(pose, ref) -> tuple[float, float]:
@@ -76,6 +91,25 @@ def _err(pose, ref) -> tuple[float, float]:
 def _lat(ms) -> dict:
     v = np.asarray(ms, float)
     return {"p50_ms": float(np.percentile(v, 50)), "p99_ms": float(np.percentile(v, 99)), "max_ms": float(v.max())}
+
+
+def _vetoed(res) -> bool:
+    """Judged ok on its own, lost by the scans around it (``Relocalizer.relocalize``'s context)."""
+    return res.verdict == "lost" and res.context_checked > 0
+
+
+def _row(res, ref) -> tuple:
+    e = _err(res.pose, ref)
+    return res.verdict, e[0] < 0.2 and e[1] < 2.0, res.total_ms, _vetoed(res), res.context_checked > 0
+
+
+def _answers(rows) -> dict:
+    """Counts over (verdict, within 0.2 m / 2 deg, ms, vetoed by the context, context checked) rows."""
+    return {"n": len(rows), "right": sum(r[0] == "ok" and r[1] for r in rows),
+            "false_ok": sum(r[0] == "ok" and not r[1] for r in rows),
+            "verdicts": {v: sum(r[0] == v for r in rows) for v in ("ok", "ambiguous", "lost")},
+            "context_checked": sum(r[4] for r in rows), "context_vetoed": sum(r[3] for r in rows),
+            "context_vetoed_right": sum(r[3] and r[1] for r in rows), **_lat([r[2] for r in rows])}
 
 
 def _track_from(reloc, building: Path, first: int, pose, n: int) -> dict:
@@ -108,7 +142,8 @@ def run_case(case: Path, foreign: list[Path], args) -> dict:
 
     rng = np.random.default_rng(args.seed)
     gt = np.loadtxt(case / "groundtruth.txt")
-    scans = _scans(case / "scans.clf.gz")
+    own = _Recording(case / "scans.clf.gz")
+    scans = own.scans
     if len(scans) != len(gt):
         raise SystemExit(f"{case}: {len(scans)} scans, {len(gt)} reference poses")
     t = time.perf_counter()
@@ -130,33 +165,29 @@ def run_case(case: Path, foreign: list[Path], args) -> dict:
         ref = gt[i, 1:4]
         r, a = 1.5 * math.sqrt(rng.uniform()), rng.uniform(0, 2 * math.pi)
         prior = ref + [r * math.cos(a), r * math.sin(a), math.radians(rng.uniform(-15, 15))]
-        res = reloc.relocalize(scans[i], prior, sigma_xy=0.5, sigma_yaw=math.radians(5))
-        e = _err(res.pose, ref)
-        rows.append((res.verdict, e[0] < 0.2 and e[1] < 2.0, res.total_ms))
-    out["prior"] = {"n": len(rows), "right": sum(v == "ok" and ok for v, ok, _ in rows),
-                    "false_ok": sum(v == "ok" and not ok for v, ok, _ in rows),
-                    "verdicts": {v: sum(r[0] == v for r in rows) for v in ("ok", "ambiguous", "lost")},
-                    **_lat([r[2] for r in rows])}
+        res = reloc.relocalize(scans[i], prior, sigma_xy=0.5, sigma_yaw=math.radians(5), context=own.context(i))
+        rows.append(_row(res, ref))
+    out["prior"] = _answers(rows)
     rows = []
     for i in idx[:args.global_queries]:
-        res = reloc.relocalize(scans[i])
-        e = _err(res.pose, gt[i, 1:4])
-        rows.append((res.verdict, e[0] < 0.2 and e[1] < 2.0, res.total_ms))
-    out["global"] = {"n": len(rows), "right": sum(v == "ok" and ok for v, ok, _ in rows),
-                     "false_ok": sum(v == "ok" and not ok for v, ok, _ in rows),
-                     "verdicts": {v: sum(r[0] == v for r in rows) for v in ("ok", "ambiguous", "lost")},
-                     **_lat([r[2] for r in rows])}
+        res = reloc.relocalize(scans[i], context=own.context(i))
+        rows.append(_row(res, gt[i, 1:4]))
+    out["global"] = _answers(rows)
 
-    ok_prior = ok_global = n_foreign = 0
+    ok_prior = ok_global = n_foreign = vetoed = 0
     wrong = []
     for building in foreign:
-        other = _scans(building / "scans.clf.gz")
+        rec = _Recording(building / "scans.clf.gz")
+        other = rec.scans
         fidx = rng.choice(len(other), min(args.foreign_queries, len(other)), replace=False)
         n_foreign += len(fidx)
         for i in fidx:
             prior = gt[rng.integers(len(gt)), 1:4]
-            for kind, res in (("prior", reloc.relocalize(other[i], prior, sigma_xy=0.5, sigma_yaw=math.radians(5))),
-                              ("global", reloc.relocalize(other[i]))):
+            ctx = rec.context(int(i))
+            for kind, res in (("prior", reloc.relocalize(other[i], prior, sigma_xy=0.5, sigma_yaw=math.radians(5),
+                                                         context=ctx)),
+                              ("global", reloc.relocalize(other[i], context=ctx))):
+                vetoed += _vetoed(res)
                 if res.verdict == "ok":
                     ok_prior += kind == "prior"
                     ok_global += kind == "global"
@@ -165,7 +196,7 @@ def run_case(case: Path, foreign: list[Path], args) -> dict:
                                   "ambiguity": res.ambiguity,
                                   **_track_from(reloc, building, int(i), res.pose, args.foreign_track)})
     out["foreign"] = {"buildings": [b.name for b in foreign], "n": n_foreign, "ok_with_prior": ok_prior,
-                      "ok_global": ok_global, "ok_answers": wrong}
+                      "ok_global": ok_global, "context_vetoed": vetoed, "ok_answers": wrong}
 
     if not args.no_track:
         with tempfile.TemporaryDirectory() as d:
@@ -232,6 +263,14 @@ def render(cases: list[dict], argv: list[str], wall_s: float) -> str:
                    f"{_pct(p['right'], p['n'])} | {p['false_ok']} | {p['p50_ms']:.1f} / {p['p99_ms']:.1f} | "
                    f"{_pct(g['right'], g['n'])} | {g['false_ok']} | {g['p50_ms']:.0f} / {g['p99_ms']:.0f} | "
                    f"{f['ok_with_prior']} / {f['ok_global']} of {f['n']} ({', '.join(f['buildings'])}) " + track)
+    out += ["", "The scans around each query (docs/localization.md, *The scans around an answer*) checked the answers "
+            "no window around the prior confirmed; answers judged `ok` on their own and `lost` by them:", ""]
+    for c in cases:
+        p, g, f = c["prior"], c["global"], c["foreign"]
+        out.append(f"- {c['case']}: with a prior {p['context_vetoed']} of {p['context_checked']} checked "
+                   f"({p['context_vetoed_right']} of them right), global {g['context_vetoed']} of "
+                   f"{g['context_checked']} ({g['context_vetoed_right']} right); scans of another building "
+                   f"{f['context_vetoed']}")
     out += ["", "Verdicts and settings:", ""]
     for c in cases:
         line = (f"- {c['case']}: auto {c['auto']}; prior {c['prior']['verdicts']}, global {c['global']['verdicts']}")

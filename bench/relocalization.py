@@ -139,7 +139,7 @@ def explained(reloc, points: np.ndarray, pose: np.ndarray) -> tuple[float, float
 def run_case(name: str, path: Path, args) -> dict:
     from carto_cli.core import transform
     from carto_cli.evaluation.metrics import align_se2, interpolate_poses
-    from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, within
+    from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, scans_with_context, within
     from carto_cli.io.map_file import load_map, save_map
     from carto_cli.io.sources.open import open_recording
     from carto_cli.io.topics import select_topics
@@ -288,10 +288,12 @@ def run_case(name: str, path: Path, args) -> dict:
             def measure(with_prior: bool, which) -> tuple[list[dict], list]:
                 if len(which) == 0:
                     return [], []
-                picked = scans_by_index(rec, [int(idx[j]) for j in which])
+                # As `carto relocalize` reads them: each scan with the recording's records around it
+                picked = scans_with_context(rec, [int(idx[j]) for j in which])
                 probes = [Probe(i, scan, tuple(map(float, priors[j])) if with_prior else None, ref_map[j],
-                                PRIOR_SIGMA_XY if with_prior else None, PRIOR_SIGMA_YAW if with_prior else None)
-                          for j, (i, scan) in zip(which, picked)]
+                                PRIOR_SIGMA_XY if with_prior else None, PRIOR_SIGMA_YAW if with_prior else None,
+                                context)
+                          for j, (i, scan, context) in zip(which, picked)]
                 outcomes = run_probes(reloc, probes, tolerance=(OK_XY, OK_YAW))
                 rows = []
                 for j, o in zip(which, outcomes):
@@ -318,6 +320,8 @@ def run_case(name: str, path: Path, args) -> dict:
                                  "ref_track_m": float(pool_track[sel[j]]),
                                  "see_through": res.see_through, "known": res.known_fraction,
                                  "inliers": res.inlier_fraction, "ambiguity": res.ambiguity, "verdict": res.verdict,
+                                 "context_checked": res.context_checked,
+                                 "context_through_walls": res.context_through_walls,
                                  "reason": res.reason, "submap": res.submap,
                                  "pose": [round(float(v), 4) for v in res.pose],
                                  "reference": [round(float(v), 4) for v in ref_map[j]],

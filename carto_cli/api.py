@@ -36,11 +36,12 @@ from carto_cli.io.sources.memory import MemoryRecording
 from carto_cli.io.topics import select_topics
 from carto_cli.options import Options, load_options
 from carto_cli.pipeline import Auto, MapResult, build_configured, configure
-from carto_cli.relocalization import RelocalizationResult, Relocalizer
+from carto_cli.relocalization import RelocalizationResult, Relocalizer, ScanContext
 
 __all__ = [
     "CartoError",
     "MapRun",
+    "ScanContext",
     "evaluate",
     "map_recording",
     "map_records",
@@ -149,18 +150,21 @@ def odometry(time: float, x: float, y: float, yaw: float) -> Odometry:
 
 def relocalize(map_file: str | Path, query: Scan, prior: Sequence[float] | None = None, *,
                sigma_xy: float | None = None, sigma_yaw: float | None = None, max_jump: float | None = None,
-               laser_pose: Sequence[float] | None = None, profile: str | Path | None = None) -> RelocalizationResult:
+               laser_pose: Sequence[float] | None = None, profile: str | Path | None = None,
+               context: ScanContext | None = None) -> RelocalizationResult:
     """Where ``query`` is in the map (map.carto or a map_server YAML): from ``prior`` (x, y, yaw) or, without,
     by a global search. The answer carries ``pose``, ``verdict`` ('ok' | 'ambiguous' | 'lost') and ``reason``,
     ``covariance``, ``ambiguity`` and ``inlier_fraction`` (docs/localization.md). A map_server map takes carto's
     defaults or ``profile`` (the command line also fits the range to the recording's first scans, which one query
     cannot do); a map.carto without ``profile`` gets its score thresholds scaled to the map, as on the command
-    line (``relocalization.auto.choose_for_map``). For many queries against one map, build a
+    line (``relocalization.auto.choose_for_map``). ``context``: the records of the recording around ``query``
+    (``carto_cli.relocalization.ScanContext``), which check an answer no window around the prior confirmed, as
+    on the command line. For many queries against one map, build a
     ``carto_cli.relocalization.Relocalizer`` once instead."""
     loaded = load_relocalization_map(Path(map_file), profile)
     apply_map_auto(loaded, profile)
     return Relocalizer(loaded).relocalize(query, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw,
-                                          laser_pose=laser_pose, max_jump=max_jump)
+                                          laser_pose=laser_pose, max_jump=max_jump, context=context)
 
 
 def evaluate(trajectory: str | Path, *, relations: str | Path | None = None,

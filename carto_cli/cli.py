@@ -438,7 +438,9 @@ def relocalize_(
         "search, then odometry-predicted matches; writes trajectory.tum, track.csv, track.json into -o."),
     output: Path | None = typer.Option(None, "--output", "-o", help="--track: output directory (default NAME_track "
                                        "next to the recording)."),
-    odom_topic: str | None = typer.Option(None, "--odom-topic", help="--track: odometry topic for predictions."),
+    odom_topic: str | None = typer.Option(
+        None, "--odom-topic", help="Odometry topic: --track's predictions, and the scans around a query that check "
+        "an answer no prior's window confirmed."),
     odom_frame: str | None = ODOM_FRAME,
     base_frame: str | None = BASE_FRAME,
     min_z: float = MIN_Z,
@@ -463,8 +465,8 @@ def relocalize_(
                profile=profile, max_jump=max_jump, force=force,
                read=z_slice(min_z, max_z), as_json=as_json)
         return
-    if output is not None or odom_topic is not None or odom_frame is not None or base_frame is not None:
-        raise CartoError("--output, --odom-topic, --odom-frame and --base-frame go with --track")
+    if output is not None:
+        raise CartoError("--output goes with --track")
     from carto_cli.commands.relocalize import run_relocalize
 
     run = run_relocalize(
@@ -472,7 +474,8 @@ def relocalize_(
         sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), corridor=corridor, global_search=global_,
         queries=queries, csv_out=csv_out, scan_topic=scan_topic, overrides=overrides,
         on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force,
-        read=z_slice(min_z, max_z), profile=profile, max_jump=max_jump, jobs=jobs)
+        read=z_slice(min_z, max_z), profile=profile, max_jump=max_jump, jobs=jobs, odom_topic=odom_topic,
+        odom_frame=odom_frame, base_frame=base_frame)
     if run.auto is not None and not as_json:
         typer.echo(f"auto: {run.auto.describe()}", err=True)
     if as_json:

@@ -29,6 +29,7 @@ from carto_cli.relocalization import (
     QueryResult,
     RelocalizationResult,
     Relocalizer,
+    context_at,
     iter_scans,
     parse_pose,
     read_queries,
@@ -38,6 +39,7 @@ from carto_cli.relocalization import (
     write_results_csv,
 )
 from carto_cli.relocalization.auto import AutoRelocalization, choose_for_map, choose_for_scans
+from carto_cli.relocalization.following import CONTEXT_SECONDS
 from carto_cli.relocalization.tracking import TRACK_COLUMNS, TrackedScan, Tracker, TrackSummary, summarize_track
 
 __all__ = ["TRACK_OUTPUTS", "RelocalizeRun", "TrackRun", "apply_map_auto", "default_track_dir",
@@ -169,6 +171,9 @@ def run_relocalize(
     profile: str | Path | None = None,
     max_jump: float | None = None,
     jobs: int | None = 1,
+    odom_topic: str | None = None,
+    odom_frame: str | None = None,
+    base_frame: str | None = None,
 ) -> RelocalizeRun:
     """Relocalize one scan (``at`` / ``scan_index``, default the first) from ``initial_pose`` ('x,y,yaw' text or
     a pose) or globally, or every line of ``queries`` (results to ``csv_out``, default QUERIES.results.csv).
@@ -181,6 +186,8 @@ def run_relocalize(
     does not know where the laser sits (a map_server image) takes it from the recording's static TF.
     ``max_jump`` (m): an answer farther than this from its prior is 'lost'. ``jobs``: threads for a batch,
     or for one query's whole-map search (None: every core); the answers are the same for any number.
+    An answer no window around its prior confirmed is checked by the scans around its own in the recording,
+    moved by the odometry of ``odom_topic`` (or TF: ``odom_frame`` / ``base_frame``; default the recording's).
     """
     if max_jump is not None and not max_jump > 0:
         raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
@@ -205,20 +212,27 @@ def run_relocalize(
         if relocalizer is None:
             mount, run.auto = _from_scans(loaded, rec, select_scan_topic(rec, scan_topic), profile)
             relocalizer = _relocalizer(loaded, overrides, run.warnings, on_warning, jobs)
+        selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
         if queries is not None:
             qs = read_queries(queries)
             with progress("relocalizing", len(qs), quiet) as bar:
                 run.results, run.summary = relocalize_many(relocalizer, rec, qs, scan_topic=scan_topic,
                                                            corridor=corridor, on_query=bar.advance,
-                                                           laser_pose=mount, max_jump=max_jump, jobs=jobs)
+                                                           laser_pose=mount, max_jump=max_jump, jobs=jobs,
+                                                           selection=selection)
             assert csv_out is not None
             run.csv = write_results_csv(csv_out, run.results)
             return run
-        run.scan_index, run.scan = scan_at(rec, time=at, index=scan_index, scan_topic=scan_topic)
+        context = None
+        if relocalizer.ro.context_scans > 0:
+            run.scan_index, run.scan, context = context_at(rec, time=at, index=scan_index, scan_topic=scan_topic,
+                                                           context_seconds=CONTEXT_SECONDS, selection=selection)
+        else:
+            run.scan_index, run.scan = scan_at(rec, time=at, index=scan_index, scan_topic=scan_topic)
     # Parsed only now, as the command always has: a bad --initial-pose is reported after the map and the scan.
     prior = None if global_search else (parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose)
     run.result = relocalizer.relocalize(run.scan, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, corridor=corridor,
-                                        laser_pose=mount, max_jump=max_jump)
+                                        laser_pose=mount, max_jump=max_jump, context=context)
     return run
 
 

@@ -22,13 +22,16 @@ from carto_cli.relocalization import (
     Query,
     RelocalizationResult,
     Relocalizer,
+    ScanContext,
+    contexts_for,
     iter_scans,
     scans_for_queries,
     select_scan_topic,
 )
+from carto_cli.relocalization.following import CONTEXT_SECONDS
 
 __all__ = ["Outcome", "Probe", "Summary", "every_nth_scan", "pose_error", "run_probes", "scans_by_index",
-           "summarize_outcomes", "within"]
+           "scans_with_context", "summarize_outcomes", "within"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,7 @@ class Probe:
     reference: object = None  # (x, y, yaw) in the map frame; None: the relocalizer's own verdict is taken
     sigma_xy: float | None = None  # None: the relocalizer's default
     sigma_yaw: float | None = None
+    context: ScanContext | None = None  # the recording around the scan, as `carto relocalize` passes it
 
 
 @dataclass
@@ -102,6 +106,14 @@ def scans_by_index(recording, indices: Sequence[int], scan_topic: str | None = N
     return [found[k] for k in range(len(indices))]
 
 
+def scans_with_context(recording, indices: Sequence[int], scan_topic: str | None = None, *,
+                       context_seconds: float = CONTEXT_SECONDS) -> list[tuple[int, Scan, ScanContext]]:
+    """``scans_by_index`` with each scan's records around it (``relocalization.contexts_for``), in one pass."""
+    found, contexts = contexts_for(recording, [Query(None, int(i), None) for i in indices], scan_topic,
+                                   context_seconds=context_seconds)
+    return [(*found[k], contexts.get(k, ScanContext())) for k in range(len(indices))]
+
+
 def every_nth_scan(recording, every: int, scan_topic: str | None = None) -> Iterator[tuple[int, Scan]]:
     """(index, scan) of scans 0, every, 2 every, ... as the recording is read."""
     for i, scan in iter_scans(recording, select_scan_topic(recording, scan_topic)):
@@ -120,7 +132,8 @@ def run_probes(relocalizer: Relocalizer, probes: Iterable[Probe], *, tolerance: 
     out: list[Outcome] = []
     for probe in probes:
         try:
-            r = relocalizer.relocalize(probe.scan, probe.prior, sigma_xy=probe.sigma_xy, sigma_yaw=probe.sigma_yaw)
+            r = relocalizer.relocalize(probe.scan, probe.prior, sigma_xy=probe.sigma_xy, sigma_yaw=probe.sigma_yaw,
+                                       context=probe.context)
         except CartoError as e:
             if not record_refusals:
                 raise

@@ -385,6 +385,12 @@ class Relocalization:
     max_ambiguity: float = _opt(
         0.95, "an answer whose best rival at a different place (> 1 m or > 10 deg away) scores at least this "
         "share of its score is 'ambiguous', not 'ok'", gt=0, le=1)
+    context_scans: int = _opt(
+        8, "an answer no window around the prior confirmed (a fallback's, a whole-map search's) is checked by up "
+        "to this many scans of the recording each way from the query, one each 0.5 m of odometry (0: off)", ge=0)
+    context_max_through_walls: int = _opt(
+        2, "... and is 'lost' when more of those than this see through walls of the map (more than max_see_through "
+        "of their rays): one scan of another building can fit a corridor, the robot's path there cannot", ge=0)
     fallback_max_submaps: int = _opt(
         8, "a reliable prior no window confirms is searched for in at most this many more submaps, nearest first "
         "(0: no limit); such a prior is mostly a place the map never saw, where failing fast is the answer", ge=0)

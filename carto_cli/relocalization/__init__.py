@@ -4,8 +4,11 @@
 stacks, ``queries`` the query files and scan selection, ``result`` what a query or a batch answers.
 """
 from carto_cli.matching.stack_cache import StackCache
+from carto_cli.relocalization.following import ScanContext
 from carto_cli.relocalization.queries import (
     Query,
+    context_at,
+    contexts_for,
     iter_scans,
     parse_pose,
     read_queries,
@@ -30,7 +33,8 @@ from carto_cli.relocalization.result import (
 
 __all__ = [
     "CSV_COLUMNS", "PATHS", "TIMING_BUCKETS", "VERDICTS", "BatchSummary", "Candidate", "Latency", "Query",
-    "QueryResult", "RelocalizationResult", "Relocalizer", "StackCache", "Timings", "iter_scans", "parse_pose",
+    "QueryResult", "RelocalizationResult", "Relocalizer", "ScanContext", "StackCache", "Timings", "context_at",
+    "contexts_for", "iter_scans", "parse_pose",
     "read_queries", "relocalize_many", "scan_at", "scans_for_queries", "select_scan_topic", "summarize",
     "write_results_csv",
 ]

@@ -2,16 +2,21 @@
 from __future__ import annotations
 
 import re
+from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from carto_cli.core import parse
 from carto_cli.core.errors import CartoError
-from carto_cli.core.records import Scan
-from carto_cli.io.topics import select_topics
+from carto_cli.core.records import Record, Scan
+from carto_cli.io.topics import TopicSelection, select_topics, selected_records
+from carto_cli.relocalization.following import ScanContext
 
-__all__ = ["Query", "iter_scans", "parse_pose", "read_queries", "scan_at", "scans_for_queries", "select_scan_topic"]
+__all__ = [
+    "Query", "context_at", "contexts_for", "iter_scans", "parse_pose", "read_queries", "scan_at", "scans_for_queries",
+    "select_scan_topic",
+]
 
 
 @dataclass(frozen=True)
@@ -138,7 +143,66 @@ def scans_for_queries(recording, queries: Sequence[Query], scan_topic: str | Non
 
     A timed query gets the scan nearest its time (the earlier one on a tie), an error beyond ``max_time_offset``.
     """
-    topic = select_scan_topic(recording, scan_topic)
+    return _scan_pass(recording, queries, scan_topic, max_time_offset, 0.0, None)[0]
+
+
+def contexts_for(recording, queries: Sequence[Query], scan_topic: str | None = None, max_time_offset: float = 1.0,
+                 *, context_seconds: float, selection: TopicSelection | None = None
+                 ) -> tuple[dict[int, tuple[int, Scan]], dict[int, ScanContext]]:
+    """``scans_for_queries`` and each query's records around its scan (``ScanContext``: the scans and the
+    odometry of ``selection``, default the recording's own, ``context_seconds`` either side), in one pass."""
+    return _scan_pass(recording, queries, scan_topic, max_time_offset, context_seconds, selection)
+
+
+class _Gatherer:
+    """The records within ``seconds`` before the newest (``recent``) and, for each query whose scan has been
+    found, those after its scan until ``seconds`` have passed."""
+
+    def __init__(self, seconds: float):
+        self.seconds = seconds
+        self.recent: deque[Record] = deque()
+        self.open: list[tuple[float, list[Record]]] = []
+        self.contexts: dict[int, ScanContext] = {}
+
+    def take(self, record: Record, oldest: float) -> None:
+        """Keep ``record``; ``oldest``: the time of the earliest scan a query may still be given (the previous
+        scan, for a timed query between two), whose context reaches ``seconds`` before it."""
+        if self.seconds <= 0:
+            return
+        t = record.time
+        if self.open:
+            self.open = [(until, after) for until, after in self.open if t <= until]
+            for _, after in self.open:
+                after.append(record)
+        self.recent.append(record)
+        while self.recent and self.recent[0].time < min(t, oldest) - self.seconds:
+            self.recent.popleft()
+
+    def found(self, k: int, scan: Scan) -> None:
+        """Query ``k``'s scan is ``scan``, already taken (the newest record, or the previous scan)."""
+        if self.seconds <= 0:
+            return
+        recent = list(self.recent)
+        at = next((n for n in range(len(recent) - 1, -1, -1) if recent[n] is scan), None)
+        before, after = (recent, []) if at is None else (recent[:at], recent[at + 1:])
+        before = [r for r in before if r.time >= scan.time - self.seconds]
+        after = [r for r in after if r.time <= scan.time + self.seconds]
+        self.contexts[k] = ScanContext(before, after)
+        self.open.append((scan.time + self.seconds, after))
+
+
+def _scan_pass(recording, queries: Sequence[Query], scan_topic: str | None, max_time_offset: float,
+               context_seconds: float, selection: TopicSelection | None
+               ) -> tuple[dict[int, tuple[int, Scan]], dict[int, ScanContext]]:
+    if context_seconds > 0:
+        selection = selection or select_topics(recording, scan_topic)
+        topic = selection.scan
+        wanted = [topic] + ([selection.odometry] if selection.odometry else [])
+        stream: Iterator[Record] = selected_records(recording, selection, wanted)
+    else:
+        topic = select_scan_topic(recording, scan_topic)
+        stream = recording.records([topic])
+    gather = _Gatherer(context_seconds)
     by_index: dict[int, list[int]] = {}
     timed = sorted(((q.time, k) for k, q in enumerate(queries) if q.time is not None))
     for k, q in enumerate(queries):
@@ -149,16 +213,22 @@ def scans_for_queries(recording, queries: Sequence[Query], scan_topic: str | Non
     prev: tuple[int, Scan] | None = None
     count = 0
     last = None
-    for i, record in iter_scans(recording, topic):
+    for record in stream:
+        gather.take(record, record.time if prev is None else prev[1].time)
+        if not isinstance(record, Scan):  # only the scan topic's are read
+            continue
+        i = count
         count = i + 1
         for k in by_index.get(i, ()):
             found[k] = (i, record)
+            gather.found(k, record)
         while j < len(timed) and record.time >= timed[j][0]:
             t, k = timed[j]
             if prev is not None and abs(prev[1].time - t) <= abs(record.time - t):
                 found[k] = prev
             else:
                 found[k] = (i, record)
+            gather.found(k, found[k][1])
             j += 1
         prev = (i, record)
         last = prev
@@ -166,6 +236,7 @@ def scans_for_queries(recording, queries: Sequence[Query], scan_topic: str | Non
         raise CartoError(f"the recording has no scans on {topic}", getattr(recording, "path", None))
     while j < len(timed):
         found[timed[j][1]] = last
+        gather.found(timed[j][1], last[1])
         j += 1
     for k, q in enumerate(queries):
         where = f"line {q.line}: " if q.line else ""
@@ -177,15 +248,27 @@ def scans_for_queries(recording, queries: Sequence[Query], scan_topic: str | Non
             if dt > max_time_offset:
                 raise CartoError(f"{where}no scan within {max_time_offset:g} s of t={q.time:.3f} "
                                  f"(nearest is {dt:.3f} s away)", getattr(recording, "path", None))
-    return found
+    return found, gather.contexts
 
 
 def scan_at(recording, *, time: float | None = None, index: int | None = None, scan_topic: str | None = None,
             max_time_offset: float = 1.0) -> tuple[int, Scan]:
     """(index, scan) of the scan nearest ``time`` or at ``index`` (default: the first scan)."""
+    return scans_for_queries(recording, [_query_at(time, index)], scan_topic, max_time_offset)[0]
+
+
+def context_at(recording, *, time: float | None = None, index: int | None = None, scan_topic: str | None = None,
+               max_time_offset: float = 1.0, context_seconds: float, selection: TopicSelection | None = None
+               ) -> tuple[int, Scan, ScanContext]:
+    """``scan_at`` and the records around that scan (``contexts_for``)."""
+    found, contexts = contexts_for(recording, [_query_at(time, index)], scan_topic, max_time_offset,
+                                   context_seconds=context_seconds, selection=selection)
+    return found[0][0], found[0][1], contexts.get(0, ScanContext())
+
+
+def _query_at(time: float | None, index: int | None) -> Query:
     if time is not None and index is not None:
         raise CartoError("give a time or a scan index, not both")
     if index is not None and index < 0:
         raise CartoError(f"scan index must be >= 0, got {index}")
-    q = Query(time, index if index is not None or time is not None else 0, None)
-    return scans_for_queries(recording, [q], scan_topic, max_time_offset)[0]
+    return Query(time, index if index is not None or time is not None else 0, None)

@@ -49,6 +49,9 @@ answers :meth:`Relocalizer.relocalize` queries, Cartographer-style:
    search window (``branch_and_bound.peaks``) -- scores ``max_ambiguity`` of the answer or more: aliasing
    between similar rooms or corridors is reported, not guessed; else 'ok'. Every answer carries a covariance
    (``least_squares.covariance``), the ambiguity ratio and the inlier fraction (docs/localization.md).
+6. Given the recording around the query (``context``), an 'ok' answer no window around the prior confirmed is
+   'lost' when the robot's path there, followed by odometry, sees through walls of the map
+   (``following.check_context``): one scan of another building can fit a corridor, its path cannot.
 
 Poses are (x, y, yaw) of the tracking frame in the map frame. A submap's grid
 lives in its trajectory's local frame; a map pose P is at
@@ -79,13 +82,15 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Scan
 from carto_cli.grid.probability_grid import UNKNOWN_VALUE, VALUE_TO_PROBABILITY
+from carto_cli.io.topics import TopicSelection
 from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import stack_bytes
 from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.matching.scoring import fit_scores
 from carto_cli.matching.stack_cache import StackCache
 from carto_cli.options import Options
-from carto_cli.relocalization.queries import Query, scans_for_queries
+from carto_cli.relocalization.following import CONTEXT_SECONDS, ScanContext, check_context
+from carto_cli.relocalization.queries import Query, contexts_for, scans_for_queries
 from carto_cli.relocalization.result import BatchSummary, QueryResult, RelocalizationResult, Timings, summarize
 from carto_cli.sensor.range_filter import crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
@@ -135,6 +140,7 @@ class Fit:
     known_score: float  # their mean probability
     see_through: float  # share of the rays crossing a wall before their end
     inlier_fraction: float  # share of the points on a wall (within a cell)
+    laser_seen: bool = True  # the laser stands on a cell the map knows (``Relocalizer.seen``)
 
 
 @dataclass
@@ -540,7 +546,8 @@ class Relocalizer:
         # (bench-dense's map images, every right answer), a scan of another building 0.5-0.87.
         on_walls = inliers / known if known > 0 else 0.0
         ro, reason = self.ro, ""
-        if not self.seen(submap, laser):
+        laser_seen = self.seen(submap, laser)
+        if not laser_seen:
             at = transform.apply(self.grid_to_map[submap], laser[None])[0]
             reason = (f"the laser would stand at {at[0]:.2f},{at[1]:.2f}, where the map has never seen: the robot "
                       "cannot have been there while it was mapped")
@@ -553,7 +560,7 @@ class Relocalizer:
         elif on_walls < ro.min_inlier_fraction:
             reason = (f"only {100 * on_walls:.0f} % of the points on known cells fall on walls (less than "
                       f"relocalization.min_inlier_fraction = {ro.min_inlier_fraction:g})")
-        return Fit(not reason, reason, score, known, kscore, see, inliers)
+        return Fit(not reason, reason, score, known, kscore, see, inliers, laser_seen)
 
     def seen(self, submap: int, xy) -> bool:
         """Whether a cell of the map knows grid point ``xy`` of submap ``submap`` (that submap's, else any other's).
@@ -620,8 +627,13 @@ class Relocalizer:
 
     def relocalize(self, scan: Scan, prior=None, *, sigma_xy: float | None = None, sigma_yaw: float | None = None,
                    corridor: bool = False, laser_pose=None, max_jump: float | None = None,
-                   second_look: bool = True) -> RelocalizationResult:
+                   second_look: bool = True, context: ScanContext | None = None) -> RelocalizationResult:
         """Pose of ``scan`` in the map; ``prior`` (x, y, yaw) in the map frame or None for a global search.
+
+        ``context``: the recording's records around ``scan``. An answer judged 'ok' that no window around the prior
+        confirmed (a fallback's, a whole-map search's) is then 'lost' when more than ``context_max_through_walls``
+        of up to ``context_scans`` neighbours each way, followed from it by odometry, see through walls of the map
+        (``following.check_context``): a scan of another building can fit a corridor here, its path cannot.
 
         ``second_look``: a global answer in a map of a few grids (a map_server image) that fails its checks is
         searched for again with _SECOND_LOOK_BETS coarse bets (a tracker, with the next scan to try, turns it off).
@@ -664,8 +676,29 @@ class Relocalizer:
                     failed.timings, failed.total_ms = s.tm.finish()
                     failed.submaps_considered = s.considered
                     return failed
+                if context is not None and result.verdict == "ok" and result.path != "windowed":
+                    self._check_context(result, context, mount)
                 return result
         raise AssertionError("the last stage always answers")
+
+    def _check_context(self, result: RelocalizationResult, context: ScanContext, mount: np.ndarray) -> None:
+        """Judge ``result`` (ok) by the scans around it (``relocalize``'s ``context``); 'lost' on a veto."""
+        ro = self.ro
+        if ro.context_scans <= 0:
+            return
+        t = time.perf_counter()
+        check = check_context(self, context, result.pose, mount, ro.min_score, ro.context_scans,
+                              ro.context_max_through_walls)
+        result.context_checked, result.context_through_walls = check.checked, check.through_walls
+        if check.vetoes(ro.context_max_through_walls):
+            result.verdict, result.success = "lost", False
+            why = (f"{check.through_walls} of {check.checked} scans around it, followed by odometry, see through walls "
+                   f"of the map (more than relocalization.context_max_through_walls = "
+                   f"{ro.context_max_through_walls}): the robot's path does not fit here")
+            result.reason = f"{result.reason}; {why}" if result.reason else why
+        ms = (time.perf_counter() - t) * 1e3
+        result.timings["scan scoring"] = result.timings.get("scan scoring", 0.0) + ms
+        result.total_ms += ms
 
     def _read_prior(self, s: _Search, prior, sigma_xy: float | None, sigma_yaw: float | None) -> None:
         """Check the prior and its sigmas, judge it reliable or not, and choose the submaps near it."""
@@ -983,19 +1016,26 @@ def _window_levels(depth: int) -> tuple[tuple[float, int], ...]:
 def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query], *, scan_topic: str | None = None,
                     laser_pose=None, corridor: bool = False, max_time_offset: float = 1.0,
                     on_query=None, max_jump: float | None = None,
-                    jobs: int | None = 1) -> tuple[list[QueryResult], BatchSummary]:
+                    jobs: int | None = 1, selection: TopicSelection | None = None
+                    ) -> tuple[list[QueryResult], BatchSummary]:
     """Run every query against its scan (nearest to its time, or at its index), in file order, on ``jobs``
     threads (None: every core). Queries are independent and the stack cache is shared and thread-safe, so the
-    answers are the same for any number; each query's own timings then include waiting for a core."""
+    answers are the same for any number; each query's own timings then include waiting for a core. Each query
+    gets the records around its scan as its context (``relocalize``), the odometry from ``selection`` (default:
+    the recording's own)."""
     if not queries:
         raise CartoError("no queries")
-    scans = scans_for_queries(recording, queries, scan_topic, max_time_offset)
+    if relocalizer.ro.context_scans > 0:
+        scans, contexts = contexts_for(recording, queries, scan_topic, max_time_offset,
+                                       context_seconds=CONTEXT_SECONDS, selection=selection)
+    else:
+        scans, contexts = scans_for_queries(recording, queries, scan_topic, max_time_offset), {}
 
     def run(k: int) -> QueryResult:
         q = queries[k]
         i, scan = scans[k]
         r = relocalizer.relocalize(scan, q.prior, sigma_xy=q.sigma_xy, sigma_yaw=q.sigma_yaw, corridor=corridor,
-                                   laser_pose=laser_pose, max_jump=max_jump)
+                                   laser_pose=laser_pose, max_jump=max_jump, context=contexts.get(k))
         return QueryResult(q, i, scan.time, r)
 
     jobs = available_cores() if jobs is None else max(1, int(jobs))

@@ -32,7 +32,8 @@ PATHS = ("windowed", "windowed-wide", "fallback-filtered", "fallback-all", "glob
 TIMING_BUCKETS = ("submap preparation", "pose search", "scan scoring", "other")
 VERDICTS = ("ok", "ambiguous", "lost")
 # The batch CSV: the scan, then the same fields as one answer's JSON (RelocalizationResult.to_dict), flattened.
-CSV_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "verdict", "score", "ambiguity", "inlier_fraction", "cov_xx",
+CSV_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "verdict", "score", "ambiguity", "inlier_fraction",
+               "context_checked", "context_through_walls", "cov_xx",
                "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw", "path", "ms", "success", "submap", "reason")
 
 
@@ -98,6 +99,10 @@ class RelocalizationResult:
     ambiguity: float = 0.0
     rival: np.ndarray | None = None
     inlier_fraction: float = 0.0  # share of the refinement points on a wall of the map at ``pose``
+    # The scans around the query that checked the answer (``Relocalizer.relocalize``'s context): how many were
+    # judged where the map knows the place, and how many of those saw through walls of the map (0 / 0: not checked)
+    context_checked: int = 0
+    context_through_walls: int = 0
 
     def __post_init__(self):
         if not self.verdict:
@@ -124,6 +129,8 @@ class RelocalizationResult:
             "rival": None if self.rival is None else {"x": float(self.rival[0]), "y": float(self.rival[1]),
                                                       "yaw": float(self.rival[2])},
             "inlier_fraction": round(float(self.inlier_fraction), 4),
+            "context_checked": int(self.context_checked),
+            "context_through_walls": int(self.context_through_walls),
             "score": round(float(self.score), 6),
             "search_score": round(float(self.search_score), 6),
             "threshold": float(self.threshold),
@@ -156,7 +163,8 @@ class QueryResult:
         return {"t": f"{self.scan_time:.6f}", "scan_index": self.scan_index,
                 "x": f"{r.pose[0]:.4f}", "y": f"{r.pose[1]:.4f}", "yaw": f"{r.pose[2]:.5f}", "verdict": r.verdict,
                 "score": f"{r.score:.4f}", "ambiguity": f"{r.ambiguity:.4f}",
-                "inlier_fraction": f"{r.inlier_fraction:.4f}", **cov, "path": r.path, "ms": f"{r.total_ms:.2f}",
+                "inlier_fraction": f"{r.inlier_fraction:.4f}", "context_checked": r.context_checked,
+                "context_through_walls": r.context_through_walls, **cov, "path": r.path, "ms": f"{r.total_ms:.2f}",
                 "success": int(bool(r.success)), "submap": "" if r.submap is None else r.submap,
                 "reason": r.reason}
 

@@ -29,18 +29,13 @@ import numpy as np
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan
-from carto_cli.matching import correlative, least_squares
+from carto_cli.relocalization.following import follow
 from carto_cli.relocalization.relocalizer import Relocalizer
 
 __all__ = ["TRACK_COLUMNS", "TrackSummary", "TrackedScan", "Tracker", "summarize_track"]
 
 TRACK_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "verdict", "source", "score", "inlier_fraction", "sigma_x",
                  "sigma_y", "sigma_yaw", "ms", "reason")
-# Without odometry the prediction is the previous motion repeated, and least squares from it alone is held back
-# by its pull towards the prediction: along a corridor the track fell behind by 0.1 m a scan (3 m in 6 s, every
-# scan still scoring 0.75) on the loop building. A small correlative search first (as local SLAM's online one).
-CORRELATIVE_WINDOW_M = 0.2
-CORRELATIVE_WINDOW_RAD = math.radians(5.0)
 
 
 @dataclass
@@ -99,24 +94,6 @@ class Tracker:
         self.timings = {"preprocessing": 0.0, "refinement": 0.0, "judging": 0.0, "relocalization": 0.0}
         self.relocalizations = 0  # searches run by the last track() (its first fix included)
 
-    def _refine(self, scan_pts: np.ndarray, predicted: np.ndarray, search_pts: np.ndarray | None
-                ) -> tuple[np.ndarray, int]:
-        """(map pose, submap) of the scan refined from ``predicted`` against the submap nearest it; with
-        ``search_pts``, a correlative search around the prediction first (for a prediction without odometry)."""
-        r = self.reloc
-        i = r.nearest_submap(predicted[:2])
-        grid = r.grids[i]
-        start = transform.compose(r.map_to_grid[i], predicted)
-        if search_pts is not None and len(search_pts):
-            start = correlative.match(grid, search_pts, start, linear_search_window=CORRELATIVE_WINDOW_M,
-                                      angular_search_window=CORRELATIVE_WINDOW_RAD).pose
-        c = self._ceres
-        ls = least_squares.match(grid, scan_pts, start, target_translation=start[:2],
-                                 occupied_space_weight=c.occupied_space_weight, translation_weight=c.translation_weight,
-                                 rotation_weight=c.rotation_weight,
-                                 max_num_iterations=c.ceres_solver_options.max_num_iterations)
-        return transform.compose(r.grid_to_map[i], ls.pose), i
-
     def track(self, records: Iterable[Record], *, initial_pose=None, sigma_xy: float | None = None,
               sigma_yaw: float | None = None,
               on_scan: Callable[[TrackedScan], None] | None = None) -> Iterator[TrackedScan]:
@@ -173,24 +150,18 @@ class Tracker:
             if res.verdict == "ok":
                 return res
             return self._search(scan, index, None, None, None, f"{failures} scans lost; windowed search failed")
-        search, fine = self.reloc.preprocess(scan, self.mount)
-        t = self._add("preprocessing", t)
-        if len(fine) == 0:
-            return TrackedScan(index, scan.time, predicted, "lost", "none", reason="no returns in range")
         with_odometry = prev_odom is not None and odom is not None
-        found, submap = self._refine(fine, predicted, None if with_odometry else search)
-        t = self._add("refinement", t)
-        grid_pose = transform.compose(self.reloc.map_to_grid[submap], found)
-        fit = self.reloc.judge(submap, fine, grid_pose, self.min_score, known_ok=True, sensor=self.mount[:2])
-        good, reason = fit.ok, fit.reason
-        slide = math.hypot(*(found[:2] - predicted[:2]))
-        if good and slide > self.max_slide:
-            good, reason = False, f"refinement slid {slide:.2f} m from the prediction"
-        cov = self.reloc.covariance(submap, fine, grid_pose)
+        self._add("preprocessing", t)  # the prediction's share
+        f = follow(self.reloc, scan, predicted, self.mount, self.min_score, correlate=not with_odometry,
+                   max_slide=self.max_slide, timings=self.timings)
+        if f is None:
+            return TrackedScan(index, scan.time, predicted, "lost", "none", reason="no returns in range")
+        t = time.perf_counter()
+        cov = self.reloc.covariance(f.submap, f.points, f.grid_pose)
         sig = tuple(float(v) for v in np.sqrt(np.maximum(np.diag(cov), 0.0)))
         self._add("judging", t)
-        return TrackedScan(index, scan.time, found, "ok" if good else "lost", "track", fit.score, fit.inlier_fraction,
-                           (sig[0], sig[1], sig[2]), reason=reason)
+        return TrackedScan(index, scan.time, f.pose, "ok" if f.ok else "lost", "track", f.fit.score,
+                           f.fit.inlier_fraction, (sig[0], sig[1], sig[2]), reason=f.reason)
 
     def _search(self, scan: Scan, index: int, prior, sigma_xy, sigma_yaw, why: str) -> TrackedScan:
         t = time.perf_counter()

@@ -280,7 +280,7 @@ def map_quality(result, recording=None, max_scans: int | None = None) -> dict[st
 
 def _relocalization_score(case: Case, options: Options, max_scans: int | None, time_weight: float,
                           algorithm: str = "cartographer") -> tuple[float, dict]:
-    from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, summarize_outcomes
+    from carto_cli.evaluation.relocalization import Probe, run_probes, scans_with_context, summarize_outcomes
     from carto_cli.io.map_file import load_map, save_map
     from carto_cli.pipeline import build
     from carto_cli.relocalization import Relocalizer
@@ -308,8 +308,9 @@ def _relocalization_score(case: Case, options: Options, max_scans: int | None, t
     rng = np.random.default_rng(20240611)
 
     def probes():
-        """The held-out scans the reference covers, each from its reference perturbed (seeded, in scan order)."""
-        for index, scan in scans_by_index(rec, wanted):
+        """The held-out scans the reference covers, each from its reference perturbed (seeded, in scan order), with
+        the recording around it as `carto relocalize` reads it."""
+        for index, scan, context in scans_with_context(rec, wanted):
             qxy, qth, qok = interpolate_poses(reference, [scan.time])
             if not qok[0]:
                 continue
@@ -318,7 +319,7 @@ def _relocalization_score(case: Case, options: Options, max_scans: int | None, t
             c, s = math.cos(phi), math.sin(phi)
             truth = np.array([c * qxy[0, 0] - s * qxy[0, 1] + tx, s * qxy[0, 0] + c * qxy[0, 1] + ty, qth[0] + phi])
             noise = rng.normal(0.0, 1.0, 3) * [RELOC_PRIOR_NOISE[0], RELOC_PRIOR_NOISE[0], RELOC_PRIOR_NOISE[1]]
-            yield Probe(index, scan, truth + noise, truth, RELOC_SIGMAS[0], RELOC_SIGMAS[1])
+            yield Probe(index, scan, truth + noise, truth, RELOC_SIGMAS[0], RELOC_SIGMAS[1], context)
 
     # A query the relocalizer refuses counts as a failure without a latency.
     outcomes = run_probes(reloc, probes(), tolerance=RELOC_TOLERANCE, record_refusals=True)

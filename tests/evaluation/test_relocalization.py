@@ -71,7 +71,7 @@ class _Answers:
     def __init__(self, answers):
         self.answers = answers
 
-    def relocalize(self, scan, prior, sigma_xy=None, sigma_yaw=None):
+    def relocalize(self, scan, prior, sigma_xy=None, sigma_yaw=None, context=None):
         pose, success = self.answers[scan]
         return RelocalizationResult(np.asarray(pose, float), 0.7, "windowed", success, [0], {}, 1.0 + scan)
 

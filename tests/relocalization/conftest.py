@@ -19,5 +19,18 @@ def queries(mapped):
 
 
 @pytest.fixture(scope="session")
+def second_pass_records(mapped):
+    """(records of a second pass: scans and odometry in time order, {scan time: reference pose in the map})."""
+    from reloc_map import DURATION, SCAN_RATE, world
+
+    from carto_cli.sim import simulate
+
+    w, tr = world()
+    sim = simulate(w, tr, duration=DURATION, scan_rate=SCAN_RATE, seed=7)
+    ref = {round(t, 6): p for t, p in zip(mapped.trajectory.t, mapped.trajectory.poses)}
+    return list(sim.records(["/scan", "/odom"])), ref
+
+
+@pytest.fixture(scope="session")
 def relocalizer(mapped):
     return Relocalizer(mapped)

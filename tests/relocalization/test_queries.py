@@ -6,6 +6,8 @@ import pytest
 from carto_cli.core.errors import CartoError
 from carto_cli.relocalization import (
     Query,
+    context_at,
+    contexts_for,
     iter_scans,
     parse_pose,
     read_queries,
@@ -84,6 +86,31 @@ def test_scans_for_queries_picks_the_nearest_scan_in_one_pass(queries):
     assert found[0][1].time == pytest.approx(1000.2)
     with pytest.raises(CartoError, match="line 3: scan index 999 is beyond"):
         scans_for_queries(rec, [Query(None, 999, None, line=3)])
+
+
+def test_contexts_are_gathered_in_the_same_pass(queries):
+    """Each query's scan with the scans and odometry within the span before and after it, nothing else."""
+    from carto_cli.core.records import Odometry, Scan
+
+    sim, _ = queries
+    rec = sim.recording()
+    qs = [Query(None, 0, None), Query(1010.09, None, None), Query(1010.11, None, None), Query(None, 349, None)]
+    found, contexts = contexts_for(rec, qs, context_seconds=2.0)
+    assert [found[k][0] for k in range(4)] == [0, 50, 51, 349]
+    every = [(type(r), r.time) for r in sim.records(["/scan", "/odom"])]
+    for k in range(4):
+        scan = found[k][1]
+        ctx = contexts[k]
+        at = every.index((Scan, scan.time))
+        assert [(type(r), r.time) for r in ctx.before] == [e for e in every[:at] if e[1] >= scan.time - 2.0]
+        assert [(type(r), r.time) for r in ctx.after] == [e for e in every[at + 1:] if e[1] <= scan.time + 2.0]
+        assert all(isinstance(r, (Scan, Odometry)) for r in list(ctx.before) + list(ctx.after))
+    assert not any(isinstance(r, Scan) for r in list(contexts[0].before) + list(contexts[3].after))
+    assert sum(isinstance(r, Scan) for r in contexts[1].after) == 10  # 2 s of scans at 5 Hz
+    # The query between two scans that went to the earlier one has the later one after it
+    assert contexts[1].after[[isinstance(r, Scan) for r in contexts[1].after].index(True)] is found[2][1]
+    i, scan, ctx = context_at(rec, index=50, context_seconds=2.0)
+    assert i == 50 and [r.time for r in ctx.before] == [r.time for r in contexts[1].before]
 
 
 def test_iter_scans_counts_scans_on_the_selected_topic(queries):

@@ -75,7 +75,7 @@ def test_results_csv_is_written_atomically(tmp_path):
     out = write_results_csv(tmp_path / "out" / "results.csv", rows)
     lines = out.read_text().splitlines()
     assert lines[0].split(",") == list(CSV_COLUMNS) and len(lines) == 3
-    assert lines[1] == "1000.000000,0,1.0000,2.0000,0.50000,ok,0.7123,0.0000,0.0000,,,,,,,windowed,4.00,1,2,"
+    assert lines[1] == "1000.000000,0,1.0000,2.0000,0.50000,ok,0.7123,0.0000,0.0000,0,0,,,,,,,windowed,4.00,1,2,"
     assert lines[2].endswith(",fallback-all,4.00,0,,refined score 0.4 below 0.55")
     assert ",lost," in lines[2]
     assert not [f for f in out.parent.iterdir() if f.name.startswith(".")]  # no temporary left behind

@@ -2,22 +2,11 @@
 import math
 
 import numpy as np
-import pytest
-from reloc_map import DURATION, SCAN_RATE, pose_error, world
+from reloc_map import pose_error
 
 from carto_cli.core import transform
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.relocalization.tracking import Tracker, summarize_track
-from carto_cli.sim import simulate
-
-
-@pytest.fixture(scope="module")
-def second_pass_records(mapped):
-    """(records of a second pass: scans and odometry in time order, {scan time: reference pose in the map})."""
-    w, tr = world()
-    sim = simulate(w, tr, duration=DURATION, scan_rate=SCAN_RATE, seed=7)
-    ref = {round(t, 6): p for t, p in zip(mapped.trajectory.t, mapped.trajectory.poses)}
-    return list(sim.records(["/scan", "/odom"])), ref
 
 
 def _errors(out, ref, shift=0.0):
