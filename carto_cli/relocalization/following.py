@@ -170,7 +170,7 @@ def _pose(odom: Odometry) -> np.ndarray:
 
 def _moved(a: Odometry, b: Odometry) -> bool:
     """Whether odometry went at least one context step from ``a`` to ``b``."""
-    turn = abs(math.remainder(b.yaw - a.yaw, math.tau))
+    turn = abs(transform.wrap_angle_scalar(b.yaw - a.yaw))
     return math.hypot(b.x - a.x, b.y - a.y) >= CONTEXT_STEP_M or turn >= CONTEXT_STEP_RAD
 
 
