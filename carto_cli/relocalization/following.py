@@ -82,7 +82,7 @@ def follow(reloc: Relocalizer, scan: Scan, predicted: np.ndarray, mount: np.ndar
             timings[stage] += (now - t) * 1e3
         t = now
 
-    search, fine = reloc.preprocess(scan, mount)
+    search, fine = reloc.preprocess(scan, mount, search=correlate)
     lap("preprocessing")
     if len(fine) == 0:
         return None

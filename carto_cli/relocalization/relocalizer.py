@@ -296,20 +296,21 @@ class Relocalizer:
 
     # ------------------------------------------------------------------ scan preprocessing
 
-    def preprocess(self, scan: Scan, laser_pose=None) -> tuple[np.ndarray, np.ndarray]:
-        """(search points, refinement points), both (n, 2) in the tracking frame."""
+    def preprocess(self, scan: Scan, laser_pose=None, *, search: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """(search points, refinement points), both (n, 2) in the tracking frame; without ``search`` the search
+        points are not filtered (an empty array: a step that only refines)."""
         tb = self.options.trajectory_builder_2d
         mount = self.laser_pose if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
         data = crop_scan(scan, mount=mount, min_range=tb.min_range, max_range=tb.max_range,
                          missing_data_ray_length=tb.missing_data_ray_length)
         returns = voxel_filter(data.returns, tb.voxel_filter_size) if len(data.returns) else data.returns
         f = tb.loop_closure_adaptive_voxel_filter
-        search = adaptive_voxel_filter(returns, max_length=f.max_length, min_num_points=f.min_num_points,
-                                       max_range=f.max_range)
+        coarse = (adaptive_voxel_filter(returns, max_length=f.max_length, min_num_points=f.min_num_points,
+                                        max_range=f.max_range) if search else np.zeros((0, 2)))
         f = tb.adaptive_voxel_filter
         fine = adaptive_voxel_filter(returns, max_length=f.max_length, min_num_points=f.min_num_points,
                                      max_range=f.max_range)
-        return np.ascontiguousarray(search, dtype=np.float64), np.ascontiguousarray(fine, dtype=np.float64)
+        return np.ascontiguousarray(coarse, dtype=np.float64), np.ascontiguousarray(fine, dtype=np.float64)
 
     # ------------------------------------------------------------------ submap filtering
 
