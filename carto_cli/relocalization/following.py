@@ -15,11 +15,12 @@ maps of the benches' recordings (the six real Radish logs, three dense simulatio
 neighbours often fit badly (on walls 62-89 % where 90 % is asked, scores under min_score on faint walls), but of
 689 right answers' 10,454 neighbours up to 4 m away, four answers had one neighbour seeing through walls (at
 most 14.7 % of its rays, 13 % being the limit) and none had two; the scans of other buildings answered `ok` on
-bench-dense's images had 3-9 (docs/localization.md, *The scans around an answer*).
+bench-dense's images had 4-9 (docs/localization.md, *The scans around an answer*).
 """
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -71,8 +72,6 @@ def follow(reloc: Relocalizer, scan: Scan, predicted: np.ndarray, mount: np.ndar
     most ``max_slide`` m from the prediction. ``correlate``: a small correlative search first (a prediction
     without odometry). None when the scan has no returns in range. ``timings``: ms added per stage
     ('preprocessing', 'refinement', 'judging')."""
-    import time
-
     t = time.perf_counter()
 
     def lap(stage: str) -> None:

@@ -88,8 +88,6 @@ class Tracker:
         self.max_slide = float(max_slide)
         self.max_jump = max_jump
         self.mount = relocalizer.laser_pose if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
-        c = relocalizer.options.pose_graph.constraint_builder.ceres_scan_matcher
-        self._ceres = c
         self.min_score = relocalizer.ro.min_score
         self.timings = {"preprocessing": 0.0, "refinement": 0.0, "judging": 0.0, "relocalization": 0.0}
         self.relocalizations = 0  # searches run by the last track() (its first fix included)
