@@ -53,10 +53,9 @@ CONTEXT_SECONDS = 30.0
 
 @dataclass
 class Followed:
-    """A scan followed from ``predicted``: the refined pose, the submap it was refined in, and the judgement."""
+    """A scan followed from a prediction: the refined pose, the submap it was refined in, and the judgement."""
 
     pose: np.ndarray  # (x, y, yaw) map frame
-    predicted: np.ndarray
     submap: int
     grid_pose: np.ndarray  # ``pose`` in that submap's grid frame
     points: np.ndarray  # the refinement's points (tracking frame)
@@ -104,7 +103,7 @@ def follow(reloc: Relocalizer, scan: Scan, predicted: np.ndarray, mount: np.ndar
     if ok and slide > max_slide:
         ok, reason = False, f"refinement slid {slide:.2f} m from the prediction"
     lap("judging")
-    return Followed(found, np.asarray(predicted, dtype=np.float64), submap, grid_pose, fine, fit, ok, reason)
+    return Followed(found, submap, grid_pose, fine, fit, ok, reason)
 
 
 @dataclass
