@@ -296,7 +296,9 @@ def build(
     core = slam.finish()
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
                        warnings=list(recording.warnings) + content.warnings())
-    result.stats["peak_memory_mb"] = peak_memory_mb()
+    peak = peak_memory_mb()
+    # The pose graph's own process (mapping.slam) adds what it held beyond the pages it shared with this one.
+    result.stats["peak_memory_mb"] = None if peak is None else peak + result.stats.get("graph_process_memory_mb", 0.0)
     if judge and result.graph is not None:
         with slam.timer.stage("quality"):
             result.quality = assess(result, result.graph.odometry_samples(trajectory_id))

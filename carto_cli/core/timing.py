@@ -179,6 +179,18 @@ class StageTimer:
         self._concurrent.append((name, timer))
         return timer
 
+    def export_tree(self) -> _Node:
+        """The recorded stages as one picklable value (a concurrent timer run in another process)."""
+        if len(self._stack) != 1 or self._in_scan:
+            raise RuntimeError("export_tree: a stage or scan is still open")
+        return self._root
+
+    def import_tree(self, tree: _Node) -> None:
+        """Take the stages ``export_tree`` gave, in place of this timer's own."""
+        self._root = tree
+        self._stack = [tree]
+        self._scan_node = tree.children.get(SCAN_STAGE)
+
     def begin_scan(self) -> None:
         if self._in_scan:
             raise RuntimeError("begin_scan: a scan is already open")
@@ -311,6 +323,12 @@ class NullTimer:
 
     def concurrent(self, name: str) -> NullTimer:
         return self
+
+    def export_tree(self) -> None:
+        return None
+
+    def import_tree(self, tree) -> None:
+        pass
 
     def begin_scan(self) -> None:
         pass

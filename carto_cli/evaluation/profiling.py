@@ -13,7 +13,7 @@ Schema (``schema_version`` 1, see ``carto_cli/schemas/profile.schema.json``)::
       "wall_s": float, "ms_per_scan": float, "scans_per_s": float,
       "repeats": int,               # runs merged (merge_repeats); each stage also has cpu_ms[_per_scan], cpu_spread
       "compile_ms": float,          # numba compilation / cache loading, reported apart
-      "peak_memory_mb": float,      # max RSS of this process
+      "peak_memory_mb": float,      # max RSS of this process, plus what the graph's process added
       "calibration": null | {"kernel": name, "ms": float},
       "timing": <carto_cli.core.timing.report_json>
     }
@@ -144,7 +144,8 @@ def build_report(result, timer: StageTimer, options: Options, recording: str | P
         "ms_per_scan": ms_per_scan,
         "scans_per_s": (1e3 / ms_per_scan) if ms_per_scan else None,
         "compile_ms": compile_stage["total_ms"] if compile_stage else 0.0,
-        "peak_memory_mb": peak_memory_mb(),
+        # with what the pose graph's own process (mapping.slam) held beyond the pages it shared with this one
+        "peak_memory_mb": peak_memory_mb() + result.stats.get("graph_process_memory_mb", 0.0),
         "calibration": calibration,
         "timing": timing,
     }

@@ -125,6 +125,12 @@ class ProbabilityGrid:
         self._cells = value
         self._packed = self._unpacked = None
 
+    def __getstate__(self) -> dict:
+        # The unpacked cells of a packed grid are a cache: a copy sent to another process unpacks its own.
+        state = self.__dict__.copy()
+        state.pop("_unpacked", None)
+        return state
+
     def pack(self) -> None:
         """Keep the cells zlib-compressed from now on (a finished submap, mostly unknown cells: several times
         smaller); reads unpack them through a shared LRU. The grid must not be written after this."""

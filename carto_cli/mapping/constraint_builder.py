@@ -150,6 +150,17 @@ class ConstraintBuilder:
         self.jobs = available_cores() if jobs is None else max(1, int(jobs))
         self._pool: ThreadPoolExecutor | None = None
 
+    def export_data(self) -> dict:
+        """What the builder learnt (samplers, trajectory links, statistics), for ``import_data`` in another
+        process; not its threads or stacks."""
+        return {"samplers": self._samplers, "global_samplers": self._global_samplers, "stats": self.stats,
+                "connected": self.connected, "stacks": self.stacks.counters()}
+
+    def import_data(self, data: dict) -> None:
+        self._samplers, self._global_samplers = data["samplers"], data["global_samplers"]
+        self.stats, self.connected = data["stats"], data["connected"]
+        self.stacks.add_counters(data["stacks"])
+
     def close(self) -> None:
         """Stop the worker threads (a later search_many starts them again)."""
         if self._pool is not None:

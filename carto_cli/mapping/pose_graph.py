@@ -170,6 +170,30 @@ class PoseGraph:
         self.builder.connected = set(state.connected)
         self._nodes_since_optimization = int(state.nodes_since_optimization)
 
+    # ------------------------------------------------------------------ a graph run in another process
+
+    _NOT_EXPORTED = ("options", "pg", "timer", "builder")
+
+    def export_data(self) -> dict:
+        """Everything this graph holds but its options, timer, threads and stacks, as one picklable value: the
+        graph of a process of its own handing its work back (``import_data``). Submaps go by key, not grid."""
+        data = {name: value for name, value in vars(self).items() if name not in self._NOT_EXPORTED}
+        data["submaps"] = [(e.trajectory, e.submap.index, e.global_pose, e.nodes, e.searched) for e in self.submaps]
+        data["builder"] = self.builder.export_data()
+        return data
+
+    def import_data(self, data: dict, submaps: dict[int, Submap], trajectory: int) -> None:
+        """Become the graph ``export_data`` gave, whose submaps of ``trajectory`` are ``submaps`` (by index) and
+        whose other submaps are this graph's own."""
+        data = dict(data)
+        own = {(e.trajectory, e.submap.index): e.submap for e in self.submaps}
+        entries = [SubmapEntry(submaps[index] if t == trajectory and index in submaps else own[(t, index)], t, pose,
+                               nodes, searched) for t, index, pose, nodes, searched in data.pop("submaps")]
+        self.builder.import_data(data.pop("builder"))
+        for name, value in data.items():
+            setattr(self, name, value)
+        self.submaps = entries
+
     # ------------------------------------------------------------------ state
 
     @property
@@ -475,29 +499,56 @@ class PoseGraph:
         drop[idx] = True
         return self.constraints.remove(drop)
 
-    def _optimize(self, final: bool = False) -> OptimizationSummary | None:
-        self._nodes_since_optimization = 0
+    def _problem(self, final: bool) -> dict | None:
+        """The optimization's inputs at this moment, copied: a solve beside the next nodes reads nothing live."""
         if self.num_nodes == 0 or not self.submaps:
             return None
         op = self.pg.optimization_problem
+        traj = np.asarray(self.node_trajectory)
+        local = NodePairs.consecutive(self.local_poses, traj,
+                                      translation_weight=op.local_slam_pose_translation_weight,
+                                      rotation_weight=op.local_slam_pose_rotation_weight)
+        odom = self.node_odometry()
+        odometry = None
+        if np.isfinite(odom).any():
+            odometry = NodePairs.consecutive(odom, traj, translation_weight=op.odometry_translation_weight,
+                                             rotation_weight=op.odometry_rotation_weight)
+        iterations = self.pg.max_num_final_iterations if final else op.ceres_solver_options.max_num_iterations
+        return {"node_poses": self.global_poses.copy(), "submap_poses": self.submap_global_poses,
+                "constraints": self.constraints.copy(), "odometry": odometry, "local_slam": local,
+                "huber_scale": op.huber_scale, "max_num_iterations": iterations, "fixed_submaps": (0,)}
+
+    def _optimize(self, final: bool = False) -> OptimizationSummary | None:
+        self._nodes_since_optimization = 0
         with self.timer.stage("optimization"):
-            traj = np.asarray(self.node_trajectory)
-            local = NodePairs.consecutive(self.local_poses, traj,
-                                          translation_weight=op.local_slam_pose_translation_weight,
-                                          rotation_weight=op.local_slam_pose_rotation_weight)
-            odom = self.node_odometry()
-            odometry = None
-            if np.isfinite(odom).any():
-                odometry = NodePairs.consecutive(odom, traj, translation_weight=op.odometry_translation_weight,
-                                                 rotation_weight=op.odometry_rotation_weight)
-            iterations = self.pg.max_num_final_iterations if final else op.ceres_solver_options.max_num_iterations
-            result = optimize(
-                self.global_poses, self.submap_global_poses, self.constraints, odometry, local,
-                huber_scale=op.huber_scale, max_num_iterations=iterations, fixed_submaps=(0,),
-            )
-        self._global.array[:] = result.node_poses
-        for entry, pose in zip(self.submaps, result.submap_poses):
+            problem = self._problem(final)
+            if problem is None:
+                return None
+            result = optimize(**problem)
+        return self._apply(result, self.num_nodes, len(self.submaps))
+
+    def _apply(self, result, num_nodes: int, num_submaps: int) -> OptimizationSummary:
+        """Take an optimization's poses for the first ``num_nodes`` nodes and ``num_submaps`` submaps (those it
+        had); nodes and submaps added since move rigidly with their trajectory's last submap it had."""
+        before = {}
+        for index in range(num_submaps - 1, -1, -1):
+            trajectory = self.submaps[index].trajectory
+            if trajectory not in before:
+                before[trajectory] = (index, self.local_to_global(index))
+        self._global.array[:num_nodes] = result.node_poses
+        for entry, pose in zip(self.submaps[:num_submaps], result.submap_poses):
             entry.global_pose = pose
+        if self.num_nodes > num_nodes or len(self.submaps) > num_submaps:
+            moves = {t: transform.compose(self.local_to_global(index), transform.inverse(old))
+                     for t, (index, old) in before.items()}
+            for node in range(num_nodes, self.num_nodes):
+                move = moves.get(self.node_trajectory[node])
+                if move is not None:
+                    self._global.array[node] = transform.compose(move, self._global.array[node])
+            for entry in self.submaps[num_submaps:]:
+                move = moves.get(entry.trajectory)
+                if move is not None:
+                    entry.global_pose = transform.compose(move, entry.global_pose)
         self.stats.optimizations += 1
         self.stats.optimization_time_s += result.summary.time
         self.stats.last_summary = result.summary

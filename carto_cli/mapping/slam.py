@@ -11,7 +11,10 @@ inline and the map is the same for any number of jobs.
 """
 from __future__ import annotations
 
+import os
 import queue
+import signal
+import sys
 import threading
 import time as _time
 from collections.abc import Callable
@@ -19,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import give_back
 from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Imu, Odometry, Scan
@@ -106,6 +110,145 @@ class _Background:
         return seen
 
 
+def _forkable() -> bool:
+    """Whether a forked child can run the graph: fork copies only the calling thread, so a lock another thread
+    of ours holds at that moment would stay held in the child for ever."""
+    # Linux only: macOS has fork, but its system libraries are not safe to use in a forked child.
+    return sys.platform.startswith("linux") and threading.active_count() == 1
+
+
+class _GraphProcess:
+    """The pose graph in a process of its own, forked from this one: local SLAM and the graph no longer share
+    one interpreter lock (on two cores the graph's thread slowed local SLAM's Python by half, docs/scaling.md).
+
+    The child gets the same calls in the same order as the graph's thread would, so its graph is the same;
+    submaps go over once when they first appear (origin only) and once when finished (the packed grid), the
+    only state the graph reads of them. ``join`` returns the child's graph data, to be put back into the
+    caller's graph, whose submaps are the real ones.
+    """
+
+    def __init__(self, graph: PoseGraph, jobs: int, timer):
+        self.timer = timer
+        self._known: dict[int, bool] = {}  # submap index -> finished grid sent
+        self._odometry: list = []  # samples since the last node, sent with it
+        import multiprocessing  # only when the graph gets a process
+
+        ctx = multiprocessing.get_context("fork")
+        self._inbox = ctx.Queue(maxsize=BACKLOG)
+        self._reply, child_end = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(target=_serve_graph, args=(graph, jobs, timer, self._inbox, child_end),
+                                    name="carto-global", daemon=True)
+        self._process.start()
+        child_end.close()
+        self._done = False
+
+    def odometry(self, time: float, pose, trajectory: int) -> None:
+        self._odometry.append((time, pose, trajectory))
+
+    def node(self, time: float, local_pose, points, submaps: list[Submap], trajectory: int,
+             finished: list[bool]) -> None:
+        refs = []
+        for submap, done in zip(submaps, finished):
+            sent = self._known.get(submap.index)
+            grid = submap.grid if done and not sent else None
+            refs.append((submap.index, submap.local_pose if sent is None else None, grid))
+            self._known[submap.index] = bool(sent) or done
+        self._put((self._odometry, (time, local_pose, points, refs, trajectory, finished)))
+        self._odometry = []
+
+    def _put(self, item) -> None:
+        while True:
+            try:
+                self._inbox.put(item, timeout=1.0)
+                return
+            except queue.Full:
+                if not self._process.is_alive():
+                    raise self._died() from None
+
+    def join(self, abandon: bool = False) -> dict | None:
+        """Wait for the child's graph (None when abandoned: the child is stopped at once)."""
+        if self._done:
+            return None
+        self._done = True
+        try:
+            if abandon:
+                self._process.kill()
+                return None
+            self._put((self._odometry, None))
+            try:
+                kind, payload = self._reply.recv()
+            except EOFError:
+                raise self._died() from None
+            if kind == "error":
+                raise payload
+            self._inbox.close()
+            self._inbox.join_thread()  # everything was read: the feeder thread ends at once
+            return payload
+        finally:
+            self._inbox.close()
+            self._inbox.cancel_join_thread()  # (after an error or kill: the pipe may hold what nobody reads)
+            self._reply.close()
+            self._process.join()
+
+    def _died(self) -> CartoError:
+        self._process.join(5)
+        code = self._process.exitcode
+        why = " (killed: out of memory?)" if code == -9 else ""
+        return CartoError(f"the pose graph's process ended unexpectedly, exit code {code}{why}")
+
+
+def _memory_kb(field: str) -> int:
+    """A field of /proc/self/status in kB (0 where there is none)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply) -> None:
+    """The child's loop (see _GraphProcess): run the calls, send the graph's data back, exit."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C stops
+    # A forked child starts with the parent's pages, shared until written: what it adds is its peak beyond them.
+    inherited_kb = _memory_kb("VmRSS")
+    try:
+        graph.use_threads(jobs, timer=timer)
+        stand_ins: dict[int, Submap] = {}
+        while True:
+            odometry, node = inbox.get()
+            for time, pose, trajectory in odometry:
+                graph.add_odometry(time, pose, trajectory=trajectory)
+            if node is None:
+                break
+            time, local_pose, points, refs, trajectory, finished = node
+            submaps = []
+            for index, origin, grid in refs:
+                submap = stand_ins.get(index)
+                if submap is None:
+                    submap = stand_ins[index] = Submap.stand_in(index, origin)
+                if grid is not None:
+                    submap.grid, submap.finished = grid, True
+                submaps.append(submap)
+            with timer.stage("node"):
+                graph.add_node(time, local_pose, points, submaps, trajectory=trajectory, finished=finished)
+        with timer.stage("loop closure"):
+            graph.flush_searches()
+        graph.close()
+        added_mb = max(0, _memory_kb("VmHWM") - inherited_kb) / 1024
+        reply.send(("ok", {"graph": graph.export_data(), "timer": timer.export_tree(), "added_memory_mb": added_mb}))
+    except BaseException as e:  # handed to the parent
+        try:
+            reply.send(("error", e))
+        except Exception:  # not picklable
+            reply.send(("error", RuntimeError(f"{type(e).__name__}: {e}")))
+    finally:
+        reply.close()
+        os._exit(0)  # the parent's exit handlers and threads are not this process's
+
+
 class Slam:
     """Local SLAM feeding a pose graph, as Cartographer's MapBuilder wires them for one trajectory.
 
@@ -117,7 +260,7 @@ class Slam:
 
     def __init__(self, options: Options, *, laser_pose=(0.0, 0.0, 0.0), timer=None, loop_closure: bool = True,
                  graph: PoseGraph | None = None, trajectory_id: int = 0, started: float | None = None,
-                 jobs: int | None = 1):
+                 jobs: int | None = 1, process: bool = True):
         self.options = options
         self.timer = timer or NullTimer()
         self.loop_closure = loop_closure
@@ -134,9 +277,18 @@ class Slam:
         self.num_scans = 0
         self.jobs = available_cores() if jobs is None else max(1, int(jobs))
         self._background: _Background | None = None
+        self._process: _GraphProcess | None = None
+        self._submaps: dict[int, Submap] = {}  # local SLAM's submaps the graph's process got, by index
+        self.graph_process_memory_mb = 0.0  # the graph's process's peak beyond the pages it shared with this one
+        self.graph_runs = "inline"  # where the graph runs: inline (one job) | thread | process
         if self.jobs > 1 and loop_closure:
-            self._background = _Background(self.timer.concurrent("global"))
-            self.graph.use_threads(self.jobs, timer=self._background.timer)
+            if process and _forkable():
+                self._process = _GraphProcess(self.graph, self.jobs, self.timer.concurrent("global"))
+                self.graph_runs = "process"
+            else:
+                self._background = _Background(self.timer.concurrent("global"))
+                self.graph.use_threads(self.jobs, timer=self._background.timer)
+                self.graph_runs = "thread"
 
     @property
     def num_poses(self) -> int:
@@ -153,7 +305,13 @@ class Slam:
                 # The node's odometry is interpolated at its time from the samples around it
                 # when the graph is optimized (Cartographer's InterpolateOdometry).
                 finished = [s.finished for s in ins.submaps]
-                if self._background is not None:
+                if self._process is not None:
+                    with timer.stage("global queue"):
+                        for submap in ins.submaps:
+                            self._submaps.setdefault(submap.index, submap)
+                        self._process.node(result.time, result.local_pose, ins.loop_closure_points,
+                                           list(ins.submaps), self.trajectory_id, finished)
+                elif self._background is not None:
                     with timer.stage("global queue"):
                         self._background.submit("node", self.graph.add_node, result.time, result.local_pose,
                                                 ins.loop_closure_points, list(ins.submaps),
@@ -172,7 +330,9 @@ class Slam:
 
     def add_odometry(self, odometry: Odometry) -> None:
         pose = (odometry.x, odometry.y, odometry.yaw)
-        if self._background is not None:  # in order with the nodes: the graph reads the samples when optimizing
+        if self._process is not None:
+            self._process.odometry(odometry.time, pose, self.trajectory_id)
+        elif self._background is not None:  # in order with the nodes: the graph reads the samples when optimizing
             with self.timer.stage("global queue"):
                 self._background.submit(None, self.graph.add_odometry, odometry.time, pose,
                                         trajectory=self.trajectory_id)
@@ -187,7 +347,15 @@ class Slam:
         """Wait for the graph's thread and stop the search threads (raises the graph's error, if any);
         ``abandon`` (mapping failed or was interrupted): drop the nodes the graph has not started on."""
         background, self._background = self._background, None
+        process, self._process = self._process, None
         try:
+            if process is not None:
+                with self.timer.stage("global wait"):
+                    data = process.join(abandon)
+                if data is not None:
+                    self.graph.import_data(data["graph"], self._submaps, self.trajectory_id)
+                    process.timer.import_tree(data["timer"])
+                    self.graph_process_memory_mb = data["added_memory_mb"]
             if background is not None:
                 with self.timer.stage("global wait"):
                     background.join(abandon)
@@ -236,6 +404,7 @@ class Slam:
             "precomputation_bytes": graph.builder.stacks.peak_bytes,  # the most held at once
             "precomputations": graph.builder.stacks.misses,  # stacks built, rebuilt ones included
             "precomputation_evictions": graph.builder.stacks.evictions,
+            "graph_process_memory_mb": self.graph_process_memory_mb,
         }
         return SlamResult(
             times=np.array(self._times), poses=poses, local_poses=local_arr,

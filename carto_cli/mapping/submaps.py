@@ -38,6 +38,18 @@ class Submap:
         self.num_range_data = 0
         self.finished = False
 
+    @classmethod
+    def stand_in(cls, index: int, local_pose) -> Submap:
+        """A submap known by its index and pose alone until it is given its finished grid: the pose graph's
+        copy in a process of its own, which reads a submap's grid only once it is finished."""
+        submap = cls.__new__(cls)
+        submap.index = int(index)
+        submap.local_pose = np.array(local_pose, dtype=np.float64)
+        submap.grid = None  # type: ignore[assignment]  # read only once finished, when the grid comes
+        submap.num_range_data = 0
+        submap.finished = False
+        return submap
+
     def insert(self, range_data: RangeData, inserter: ProbabilityGridRangeDataInserter) -> None:
         """Insert range data expressed in the local SLAM frame."""
         if self.finished:

@@ -19,6 +19,9 @@ __all__ = ["StackCache"]
 TRIM_SHARE = 16
 
 
+_COUNTERS = ("hits", "misses", "evictions", "build_ms", "peak_bytes")
+
+
 class StackCache:
     """Precomputation stacks by submap id, least recently used dropped beyond ``budget_bytes``.
 
@@ -70,6 +73,18 @@ class StackCache:
         if trim:
             give_back()
         return stack
+
+    def counters(self) -> dict:
+        """The statistics (hits, misses, evictions, build_ms, peak_bytes) as one value."""
+        with self._lock:
+            return {name: getattr(self, name) for name in _COUNTERS}
+
+    def add_counters(self, counters: dict) -> None:
+        """Count another cache's work as this one's (the pose graph's process): sums, and the larger peak."""
+        with self._lock:
+            for name in _COUNTERS:
+                mine, theirs = getattr(self, name), counters[name]
+                setattr(self, name, max(mine, theirs) if name == "peak_bytes" else mine + theirs)
 
     def clear(self) -> None:
         """Drop every stack (statistics kept): when no search will follow, their memory is better given back."""

@@ -5,7 +5,9 @@ import time
 import numpy as np
 import pytest
 
+from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan
+from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.slam import Slam
 from carto_cli.options import load_options
 from carto_cli.pipeline import build
@@ -55,7 +57,8 @@ def test_finishing_without_a_pose_is_an_error():
 
 
 def test_an_error_on_the_graphs_thread_reaches_the_caller(simulation, monkeypatch):
-    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2, process=False)
+    assert slam.graph_runs == "thread"
 
     def broken(*args, **kwargs):
         raise RuntimeError("graph failed")
@@ -71,7 +74,7 @@ def test_an_error_on_the_graphs_thread_reaches_the_caller(simulation, monkeypatc
 
 
 def test_closing_after_a_failure_drops_the_nodes_the_graph_has_not_started(simulation, monkeypatch):
-    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2, process=False)
     started = []
     release = threading.Event()
 
@@ -94,3 +97,71 @@ def test_closing_after_a_failure_drops_the_nodes_the_graph_has_not_started(simul
     release.set()
     closer.join(10)
     assert started == [1] and slam.num_poses > 1  # the node being added finished; the queued ones were dropped
+
+
+def _feed(slam, records, limit=None):
+    scans = 0
+    for record in records:
+        if isinstance(record, Scan):
+            if limit is not None and scans == limit:
+                break
+            slam.add_scan(record)
+            scans += 1
+        elif isinstance(record, Odometry):
+            slam.add_odometry(record)
+    return slam
+
+
+def test_the_graph_in_a_process_of_its_own_builds_the_same_map():
+    world = loop_building()
+    sim = simulate(world, loop_trajectory(world, laps=2), scan_rate=5.0, seed=0)  # closes its loop
+    options = load_options(None, ["pose_graph.constraint_builder.fast_correlative_scan_matcher.multilevel=true"])
+    with sim.recording() as rec:
+        records = list(rec.records())
+    alone = _feed(Slam(options, laser_pose=sim.laser_pose, jobs=1), records)
+    beside = _feed(Slam(options, laser_pose=sim.laser_pose, jobs=2), records)
+    assert alone.graph_runs == "inline" and beside.graph_runs == "process"
+    one, two = alone.finish(), beside.finish()
+    assert one.stats["loop_closures"] > 0
+    for key in ("nodes", "submaps", "constraints", "loop_closures", "optimizations", "loop_closure_searches",
+                "precomputations"):
+        assert one.stats[key] == two.stats[key], key
+    np.testing.assert_array_equal(one.poses, two.poses)
+    np.testing.assert_array_equal(one.submap_poses, two.submap_poses)
+    np.testing.assert_array_equal(one.image.probability, two.image.probability)
+    for column in ("submap", "node", "relative", "is_loop_closure"):
+        np.testing.assert_array_equal(getattr(one.graph.constraints, column), getattr(two.graph.constraints, column))
+    # the caller's graph holds local SLAM's own submaps again (which took scans), not the process's stand-ins
+    assert all(submap.num_range_data > 0 for submap in two.submaps)
+
+
+def test_an_error_in_the_graphs_process_reaches_the_caller(simulation, monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("graph failed")
+
+    monkeypatch.setattr(PoseGraph, "add_node", broken)  # before the fork: the child has it too
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+    assert slam.graph_runs == "process"
+    with simulation.recording() as rec:
+        _feed(slam, rec.records(), limit=20)
+    with pytest.raises(RuntimeError, match="graph failed"):
+        slam.finish()
+    slam.close()  # nothing left running, nothing raised twice
+
+
+def test_a_graph_process_that_dies_is_a_clear_error(simulation):
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+    with simulation.recording() as rec:
+        _feed(slam, rec.records(), limit=20)
+    slam._process._process.kill()
+    with pytest.raises(CartoError, match="pose graph's process ended unexpectedly, exit code -9"):
+        slam.finish()
+
+
+def test_abandoning_stops_the_graphs_process_at_once(simulation):
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+    child = slam._process._process
+    with simulation.recording() as rec:
+        _feed(slam, rec.records(), limit=60)
+    slam.close(abandon=True)
+    assert not child.is_alive()
