@@ -108,7 +108,9 @@ def one(minutes: float, jobs: int | None, budget: float | None) -> dict:
         "wall_s": wall, "ms_per_scan": 1000 * wall / max(1, result.stats["scans"]),
         "ms_per_scan_last_15min": float(1000 * (last[-1] - last[0]) / max(1, len(last) - 1)),
         "ms_per_scan_by_minute": per_minute,
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "rss_before_mapping_mb": rss_before,
+        # or of this process and the pose graph's together while that one ran (mapping.slam), if higher
+        "peak_rss_mb": max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                           result.stats.get("graph_process_peak_memory_mb", 0.0)), "rss_before_mapping_mb": rss_before,
         "precomputation_mb": result.stats.get("precomputation_bytes", 0) / 2**20,
         "precomputation_evictions": int(result.stats.get("precomputation_evictions", 0)),
         "relation_error_m": float(err.translation.mean), "relation_error_deg": float(err.rotation.mean),

@@ -297,8 +297,9 @@ def build(
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
                        warnings=list(recording.warnings) + content.warnings())
     peak = peak_memory_mb()
-    # The pose graph's own process (mapping.slam) adds what it held beyond the pages it shared with this one.
-    result.stats["peak_memory_mb"] = None if peak is None else peak + result.stats.get("graph_process_memory_mb", 0.0)
+    # or of this process and the pose graph's together while that one ran (mapping.slam), if higher
+    together = result.stats.get("graph_process_peak_memory_mb", 0.0)
+    result.stats["peak_memory_mb"] = None if peak is None else max(peak, together)
     if judge and result.graph is not None:
         with slam.timer.stage("quality"):
             result.quality = assess(result, result.graph.odometry_samples(trajectory_id))

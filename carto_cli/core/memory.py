@@ -10,7 +10,7 @@ from __future__ import annotations
 import ctypes
 import functools
 
-__all__ = ["give_back"]
+__all__ = ["give_back", "peak_kb", "reset_peak", "status_kb"]
 
 
 @functools.lru_cache(maxsize=1)
@@ -29,3 +29,31 @@ def give_back() -> bool:
         return False
     trim(0)
     return True
+
+
+def status_kb(field: str) -> int:
+    """A memory field of /proc/self/status (VmRSS, VmHWM) in kB; 0 where there is none (not Linux)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def peak_kb() -> int:
+    """The process's peak resident memory since it started or since ``reset_peak`` (kB; 0 where unknown)."""
+    return status_kb("VmHWM")
+
+
+def reset_peak() -> bool:
+    """Start measuring the peak resident memory afresh (Linux's clear_refs; True when it could). What a process
+    and a child of its reach together is the sum of their peaks over the child's life, not over the whole run."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False

@@ -144,8 +144,8 @@ def build_report(result, timer: StageTimer, options: Options, recording: str | P
         "ms_per_scan": ms_per_scan,
         "scans_per_s": (1e3 / ms_per_scan) if ms_per_scan else None,
         "compile_ms": compile_stage["total_ms"] if compile_stage else 0.0,
-        # with what the pose graph's own process (mapping.slam) held beyond the pages it shared with this one
-        "peak_memory_mb": peak_memory_mb() + result.stats.get("graph_process_memory_mb", 0.0),
+        # or of this process and the pose graph's together while that one ran (mapping.slam), if higher
+        "peak_memory_mb": max(peak_memory_mb(), result.stats.get("graph_process_peak_memory_mb", 0.0)),
         "calibration": calibration,
         "timing": timing,
     }

@@ -140,6 +140,10 @@ class ProbabilityGrid:
         self._cells = None
 
     @property
+    def is_packed(self) -> bool:
+        return self._packed is not None
+
+    @property
     def packed_bytes(self) -> int:
         """Bytes the cells take at rest (packed or not)."""
         return len(self._packed[0]) if self._packed is not None else int(self.cells.nbytes)

@@ -235,7 +235,7 @@ def _trajectory_arrays(trajectory) -> tuple[np.ndarray, np.ndarray]:
 # How long the run took and how much memory it used are the machine's business, not the map's: left out so the
 # same input gives the same bytes whatever the number of threads (summary.json next to the map keeps them)
 _TIMING_STATS = ("wall_time_s", "scans_per_s", "optimization_time_s", "first_pass_wall_time_s", "peak_memory_mb",
-                "graph_process_memory_mb")
+                "graph_process_peak_memory_mb")
 
 
 def _json_safe_stats(stats: dict) -> dict:

@@ -18,6 +18,8 @@ never the graph.
 from __future__ import annotations
 
 import math
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,6 +112,9 @@ class PoseGraph:
         self._pending_closures: dict[int, list[list]] = {}
         self.unconfirmed_loop_closures = 0
         self._in_flight: list = []  # searches started, in order, whose closures are not yet added
+        # The periodic optimization running beside the next nodes: (its result to come, nodes, submaps it had).
+        self._running: tuple | None = None
+        self._solver: ThreadPoolExecutor | None = None  # its thread, with more than one job
 
     # ------------------------------------------------------------------ state in and out
 
@@ -117,7 +122,7 @@ class PoseGraph:
         """The graph's data (with the closures of every search started). Arrays are copies; submaps (grids) and
         node points are shared, so an unfinished submap of a graph still mapping goes on changing in the state
         too."""
-        self.flush_searches()
+        self.settle()
         return PoseGraphState(
             node_times=np.asarray(self.node_times, dtype=np.float64).reshape(self.num_nodes),
             node_trajectories=np.asarray(self.node_trajectory, dtype=np.int64).reshape(self.num_nodes),
@@ -172,11 +177,13 @@ class PoseGraph:
 
     # ------------------------------------------------------------------ a graph run in another process
 
-    _NOT_EXPORTED = ("options", "pg", "timer", "builder")
+    _NOT_EXPORTED = ("options", "pg", "timer", "builder", "_solver")
 
     def export_data(self) -> dict:
         """Everything this graph holds but its options, timer, threads and stacks, as one picklable value: the
         graph of a process of its own handing its work back (``import_data``). Submaps go by key, not grid."""
+        self.settle()
+        self.close()
         data = {name: value for name, value in vars(self).items() if name not in self._NOT_EXPORTED}
         data["submaps"] = [(e.trajectory, e.submap.index, e.global_pose, e.nodes, e.searched) for e in self.submaps]
         data["builder"] = self.builder.export_data()
@@ -270,13 +277,16 @@ class PoseGraph:
         return index
 
     def close(self) -> None:
-        """Stop the search threads, if any."""
+        """Stop the search and optimization threads, if any (an optimization running is finished first)."""
         self.builder.close()
+        if self._solver is not None:
+            self._solver.shutdown()
+            self._solver = None
 
     def use_threads(self, jobs: int, timer=None) -> None:
-        """Search on ``jobs`` threads from now on, and time the graph's work with ``timer`` (e.g. the timer of
-        the thread it now runs on)."""
-        self.builder.close()
+        """Search on ``jobs`` threads and optimize beside the next nodes on one more (jobs > 1) from now on,
+        and time the graph's work with ``timer`` (e.g. the timer of the thread it now runs on)."""
+        self.close()
         self.builder.jobs = max(1, int(jobs))
         if timer is not None:
             self.timer = self.builder.timer = timer
@@ -334,7 +344,7 @@ class PoseGraph:
         # constraints: optimizing it would only pull the trajectory towards the odometry,
         # so "local SLAM only" (--no-loop-closure) must not optimize at all.
         if self.loop_closure and n_every > 0 and self._nodes_since_optimization >= n_every:
-            self.optimize(final=False)
+            self._optimize_beside()
         return node
 
     def _trajectory_correction(self, trajectory: int) -> np.ndarray:
@@ -465,9 +475,51 @@ class PoseGraph:
 
     # ------------------------------------------------------------------ optimization
 
-    def optimize(self, final: bool = False) -> OptimizationSummary | None:
+    def settle(self) -> None:
+        """Take the closures of every search started, then the result of the optimization running beside the
+        nodes: the graph as if everything begun were done. In that order: a search in flight reads its node's
+        pose where the graph keeps it, which taking an optimization's result overwrites."""
         with self.timer.stage("loop closure"):
             self.flush_searches()
+        self._land()
+
+    def _optimize_beside(self) -> None:
+        """The periodic optimization, run while the next ``optimize_every_n_nodes`` nodes are added and searched
+        (as Cartographer's runs beside its constraint searches), its poses taken when the next one starts.
+
+        Waiting for each optimization before the next node left the search threads idle for about a third of the
+        graph's work (docs/scaling.md). The nodes added meanwhile, and their searches,
+        use the poses of the optimization before; a search's closure is a pose in its submap's frame, so only its
+        window's centre and the candidate distances see the older poses. The optimization gets a copy of the graph
+        as it is when it starts and its result is taken at a fixed point, one period later, on every job count
+        (one job: computed at once, taken at the same point), so the graph is the same for any number of jobs.
+        """
+        self.settle()
+        self._nodes_since_optimization = 0
+        problem = self._problem(final=False)
+        if problem is None:
+            return
+        if self._solver is None and self.builder.jobs > 1:
+            self._solver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="carto-optimize")
+        if self._solver is None:
+            task: object = _Solved(_timed_optimize(problem))
+        else:
+            task = self._solver.submit(_timed_optimize, problem)
+        self._running = (task, self.num_nodes, len(self.submaps))
+
+    def _land(self) -> None:
+        """Apply the optimization running beside the nodes, if any (waiting for it)."""
+        running, self._running = self._running, None
+        if running is None:
+            return
+        task, num_nodes, num_submaps = running
+        with self.timer.stage("optimization wait"):
+            result, ns = task.result()
+        self.timer.add("optimization", ns)
+        self._apply(result, num_nodes, num_submaps)
+
+    def optimize(self, final: bool = False) -> OptimizationSummary | None:
+        self.settle()
         summary = self._optimize(final)
         limit = self.pg.constraint_builder.max_loop_closure_residual
         if final and summary is not None and limit > 0 and self.remove_bad_loop_closures(limit):
@@ -579,6 +631,25 @@ class PoseGraph:
     @property
     def num_loop_closures(self) -> int:
         return int(self.constraints.num_loop_closures)
+
+
+class _Solved:
+    """An optimization run at once (one job), with a future's ``result``."""
+
+    __slots__ = ("_value",)
+
+    def __init__(self, value):
+        self._value = value
+
+    def result(self):
+        return self._value
+
+
+def _timed_optimize(problem: dict):
+    """``optimize(**problem)`` and how long it took (ns), on whichever thread runs it."""
+    start = time.perf_counter_ns()
+    result = optimize(**problem)
+    return result, time.perf_counter_ns() - start
 
 
 @register_warm_up(system="cartographer")

@@ -12,6 +12,7 @@ inline and the map is the same for any number of jobs.
 from __future__ import annotations
 
 import os
+import pickle
 import queue
 import signal
 import sys
@@ -23,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from carto_cli.core.errors import CartoError
-from carto_cli.core.memory import give_back
+from carto_cli.core.memory import give_back, peak_kb, reset_peak, status_kb
 from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
@@ -133,14 +134,18 @@ class _GraphProcess:
         self._odometry: list = []  # samples since the last node, sent with it
         import multiprocessing  # only when the graph gets a process
 
+        # The two processes' peaks over the child's life add up; this one's peak before and after is its own.
+        self.peak_before_kb = peak_kb()
         ctx = multiprocessing.get_context("fork")
         self._inbox = ctx.Queue(maxsize=BACKLOG)
         self._reply, child_end = ctx.Pipe(duplex=False)
         self._process = ctx.Process(target=_serve_graph, args=(graph, jobs, timer, self._inbox, child_end),
                                     name="carto-global", daemon=True)
         self._process.start()
+        reset_peak()
         child_end.close()
         self._done = False
+        self.peak_beside_mb = 0.0  # both processes' peaks over the child's life, added (set by join)
 
     def odometry(self, time: float, pose, trajectory: int) -> None:
         self._odometry.append((time, pose, trajectory))
@@ -175,15 +180,22 @@ class _GraphProcess:
                 self._process.kill()
                 return None
             self._put((self._odometry, None))
+            mapping_kb = peak_kb()  # this process's peak while the child mapped
             try:
                 kind, payload = self._reply.recv()
+                if kind == "error":
+                    raise payload
+                data = pickle.loads(self._reply.recv_bytes())
             except EOFError:
                 raise self._died() from None
-            if kind == "error":
-                raise payload
+            # An upper bound of what both held at once: each one's peak while the child mapped, then each one's
+            # memory while the graph came over (the child's at its largest then, with the pickled graph).
+            self.peak_beside_mb = max(mapping_kb / 1024 + payload["peak_added_mb"],
+                                      peak_kb() / 1024 + payload["export_added_mb"])
+            reset_peak()
             self._inbox.close()
             self._inbox.join_thread()  # everything was read: the feeder thread ends at once
-            return payload
+            return data
         finally:
             self._inbox.close()
             self._inbox.cancel_join_thread()  # (after an error or kill: the pipe may hold what nobody reads)
@@ -197,23 +209,11 @@ class _GraphProcess:
         return CartoError(f"the pose graph's process ended unexpectedly, exit code {code}{why}")
 
 
-def _memory_kb(field: str) -> int:
-    """A field of /proc/self/status in kB (0 where there is none)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        pass
-    return 0
-
-
 def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply) -> None:
     """The child's loop (see _GraphProcess): run the calls, send the graph's data back, exit."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C stops
     # A forked child starts with the parent's pages, shared until written: what it adds is its peak beyond them.
-    inherited_kb = _memory_kb("VmRSS")
+    inherited_kb = status_kb("VmRSS")
     try:
         graph.use_threads(jobs, timer=timer)
         stand_ins: dict[int, Submap] = {}
@@ -231,14 +231,21 @@ def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply) -> None:
                     submap = stand_ins[index] = Submap.stand_in(index, origin)
                 if grid is not None:
                     submap.grid, submap.finished = grid, True
+                    submap.retire()  # local SLAM's copy is packed once it is done matching against it
                 submaps.append(submap)
             with timer.stage("node"):
                 graph.add_node(time, local_pose, points, submaps, trajectory=trajectory, finished=finished)
-        with timer.stage("loop closure"):
-            graph.flush_searches()
+        graph.settle()
         graph.close()
-        added_mb = max(0, _memory_kb("VmHWM") - inherited_kb) / 1024
-        reply.send(("ok", {"graph": graph.export_data(), "timer": timer.export_tree(), "added_memory_mb": added_mb}))
+        peak_added_mb = max(0, peak_kb() - inherited_kb) / 1024
+        # No search follows: the stacks go back before the graph is pickled (as Slam.finish does inline).
+        graph.builder.stacks.clear()
+        give_back()
+        payload = pickle.dumps({"graph": graph.export_data(), "timer": timer.export_tree()},
+                               protocol=pickle.HIGHEST_PROTOCOL)
+        export_added_mb = max(0, status_kb("VmRSS") - inherited_kb) / 1024
+        reply.send(("ok", {"peak_added_mb": peak_added_mb, "export_added_mb": export_added_mb}))
+        reply.send_bytes(payload)
     except BaseException as e:  # handed to the parent
         try:
             reply.send(("error", e))
@@ -279,7 +286,9 @@ class Slam:
         self._background: _Background | None = None
         self._process: _GraphProcess | None = None
         self._submaps: dict[int, Submap] = {}  # local SLAM's submaps the graph's process got, by index
-        self.graph_process_memory_mb = 0.0  # the graph's process's peak beyond the pages it shared with this one
+        # The peak memory of this process and the graph's together while the graph's process ran (each one's peak
+        # over that time, added; the child's beyond the pages it shares with this one), or of this one before it.
+        self.graph_process_peak_memory_mb = 0.0
         self.graph_runs = "inline"  # where the graph runs: inline (one job) | thread | process
         if self.jobs > 1 and loop_closure:
             if process and _forkable():
@@ -355,7 +364,7 @@ class Slam:
                 if data is not None:
                     self.graph.import_data(data["graph"], self._submaps, self.trajectory_id)
                     process.timer.import_tree(data["timer"])
-                    self.graph_process_memory_mb = data["added_memory_mb"]
+                    self.graph_process_peak_memory_mb = max(process.peak_before_kb / 1024, process.peak_beside_mb)
             if background is not None:
                 with self.timer.stage("global wait"):
                     background.join(abandon)
@@ -404,7 +413,7 @@ class Slam:
             "precomputation_bytes": graph.builder.stacks.peak_bytes,  # the most held at once
             "precomputations": graph.builder.stacks.misses,  # stacks built, rebuilt ones included
             "precomputation_evictions": graph.builder.stacks.evictions,
-            "graph_process_memory_mb": self.graph_process_memory_mb,
+            "graph_process_peak_memory_mb": self.graph_process_peak_memory_mb,
         }
         return SlamResult(
             times=np.array(self._times), poses=poses, local_poses=local_arr,

@@ -58,11 +58,16 @@ class Submap:
         self.num_range_data += 1
 
     def finish(self) -> None:
-        # Cropping to the known cells is free memory: a finished grid never grows again, nor changes, so it is
-        # kept packed (a corridor's submap is mostly unknown cells: 5-10x smaller), unpacked when read.
+        # Cropping to the known cells is free memory: a finished grid never grows again, nor changes.
         self.grid = self.grid.cropped()
-        self.grid.pack()
         self.finished = True
+
+    def retire(self) -> None:
+        """Local SLAM is done with this finished submap: keep its grid packed (a corridor's submap is mostly
+        unknown cells: 5-10x smaller), unpacked when read. Not at ``finish``: the next scan is still matched
+        against it, and unpacking it for that one match kept a copy in the shared cache of unpacked cells."""
+        if not self.grid.is_packed:
+            self.grid.pack()
 
     def __repr__(self) -> str:
         state = "finished" if self.finished else "active"
@@ -113,7 +118,7 @@ class ActiveSubmaps:
         if len(self.submaps) >= 2:
             # The front one was finished on the previous insertion; only the pose graph keeps it now.
             assert self.submaps[0].finished
-            self.submaps.pop(0)
+            self.submaps.pop(0).retire()
         self.submaps.append(Submap(origin, resolution=self.resolution, index=self.num_submaps_created,
                                    initial_size=self.initial_size))
         self.num_submaps_created += 1

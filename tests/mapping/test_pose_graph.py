@@ -278,3 +278,42 @@ def test_the_graph_is_the_same_for_any_number_of_jobs_and_any_memory_budget(two_
     for other in (mapped, threaded):
         assert_states_equal(inline.graph.to_state(), other.graph.to_state())
         np.testing.assert_array_equal(inline.poses, other.poses)
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_periodic_optimization_is_taken_a_period_later_and_carries_the_nodes_added_meanwhile(jobs):
+    """Odometry 10 % longer than local SLAM's steps, so an optimization moves the nodes: the result of the one
+    started at node 8 is taken when the next starts (node 16), on one job as on two; nodes 8-15, added meanwhile,
+    move rigidly with the last submap it had, so local SLAM's steps between them stay as they were."""
+    from carto_cli.mapping.submaps import Submap
+
+    options = load_options(None, ["pose_graph.optimize_every_n_nodes=8"])
+    graph = PoseGraph(options, jobs=jobs)
+    graph.use_threads(jobs)
+    submaps = [Submap((0.4 * k, 0.0), index=k) for k in range(6)]
+    local = np.array([(0.1 * i, 0.002 * i * i, 0.01 * i) for i in range(16)])
+
+    def add(i):
+        graph.add_odometry(float(i), (0.11 * i, 0.0, 0.0))
+        graph.add_node(float(i), local[i], np.zeros((0, 2)), [submaps[i // 4], submaps[i // 4 + 1]])
+
+    for i in range(8):
+        add(i)
+    assert graph.stats.optimizations == 0  # started at node 8, not taken
+    for i in range(8, 15):
+        add(i)
+    before = graph.global_poses.copy()
+    correction_before = graph.local_to_global(2)  # submap 2: the trajectory's last one the optimization had
+    graph.settle()
+    assert graph.stats.optimizations == 1
+    after = graph.global_poses
+    assert np.abs(after[:8] - before[:8]).max() > 1e-3  # the optimization moved its nodes
+    move = transform.compose(graph.local_to_global(2), transform.inverse(correction_before))
+    np.testing.assert_allclose(after[8:], transform.compose(move, before[8:]), atol=1e-12)
+    for a, b in ((8, 9), (9, 14)):
+        np.testing.assert_allclose(transform.relative(after[a], after[b]), transform.relative(local[a], local[b]),
+                                   atol=1e-9)
+    add(15)  # the 16th node starts the second
+    graph.optimize(final=True)  # takes it, then the final one
+    graph.close()
+    assert graph.stats.optimizations == 3

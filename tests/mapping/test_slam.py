@@ -131,6 +131,7 @@ def test_the_graph_in_a_process_of_its_own_builds_the_same_map():
     np.testing.assert_array_equal(one.image.probability, two.image.probability)
     for column in ("submap", "node", "relative", "is_loop_closure"):
         np.testing.assert_array_equal(getattr(one.graph.constraints, column), getattr(two.graph.constraints, column))
+    assert two.stats["graph_process_peak_memory_mb"] > 0 and one.stats["graph_process_peak_memory_mb"] == 0
     # the caller's graph holds local SLAM's own submaps again (which took scans), not the process's stand-ins
     assert all(submap.num_range_data > 0 for submap in two.submaps)
 
