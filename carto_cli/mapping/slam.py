@@ -3,11 +3,12 @@
 Like kiss-icp's ``KissICP``: the caller owns reading (``carto_cli.pipeline`` feeds a recording,
 tests feed arrays); this object only turns time-ordered measurements into a map.
 
-With more than one job the pose graph runs on a thread of its own, as Cartographer's global SLAM runs
-beside local SLAM: local SLAM never reads the graph, so the caller's thread goes on matching scans while
-the graph searches and optimizes. The graph gets its nodes and odometry in the order local SLAM made them,
-with each submap's "finished" flag as it was when the node was made, so it does exactly what it would do
-inline and the map is the same for any number of jobs.
+With more than one job the pose graph runs beside local SLAM, as Cartographer's global SLAM does: in a
+process of its own on Linux (forked; the two then share no interpreter lock), else on a thread. Local SLAM
+never reads the graph, so the caller goes on matching scans while the graph searches and optimizes. The
+graph gets its nodes and odometry in the order local SLAM made them, with each submap's "finished" flag as it
+was when the node was made, so it does exactly what it would do inline and the map is the same for any number
+of jobs.
 """
 from __future__ import annotations
 
@@ -261,8 +262,8 @@ class Slam:
 
     With ``graph`` (e.g. restored from a map.carto) the measurements become trajectory
     ``trajectory_id`` of that graph, linked to the earlier ones by loop closures. ``jobs`` > 1 (None: every
-    core) runs the graph on a thread of its own and its searches on ``jobs`` threads; call ``finish`` or
-    ``close`` to stop them.
+    core) runs the graph beside local SLAM (``process``: in a forked process where that is safe, else on a
+    thread) and its searches on ``jobs`` threads; call ``finish`` or ``close`` to stop them.
     """
 
     def __init__(self, options: Options, *, laser_pose=(0.0, 0.0, 0.0), timer=None, loop_closure: bool = True,
