@@ -124,8 +124,8 @@ class _GraphProcess:
     one interpreter lock (on two cores the graph's thread slowed local SLAM's Python by half, docs/scaling.md).
 
     The child gets the same calls in the same order as the graph's thread would, so its graph is the same;
-    submaps go over once when they first appear (origin only) and once when finished (the packed grid), the
-    only state the graph reads of them. ``join`` returns the child's graph data, to be put back into the
+    submaps go over once when they first appear (origin only) and once when finished (the grid, which the
+    child keeps packed), the only state the graph reads of them. ``join`` returns the child's graph data, to be put back into the
     caller's graph, whose submaps are the real ones.
     """
 
@@ -203,7 +203,15 @@ class _GraphProcess:
             self._reply.close()
             self._process.join()
 
-    def _died(self) -> CartoError:
+    def _died(self) -> BaseException:
+        """Why the child is gone: the error it sent before it ended, else its exit code."""
+        if self._reply.poll():
+            try:
+                kind, payload = self._reply.recv()
+                if kind == "error":
+                    return payload
+            except (EOFError, OSError):
+                pass
         self._process.join(5)
         code = self._process.exitcode
         why = " (killed: out of memory?)" if code == -9 else ""

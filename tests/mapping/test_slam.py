@@ -8,6 +8,7 @@ import pytest
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping import slam as slam_module
 from carto_cli.mapping.slam import Slam
 from carto_cli.options import load_options
 from carto_cli.pipeline import build
@@ -148,6 +149,18 @@ def test_an_error_in_the_graphs_process_reaches_the_caller(simulation, monkeypat
     with pytest.raises(RuntimeError, match="graph failed"):
         slam.finish()
     slam.close()  # nothing left running, nothing raised twice
+
+
+def test_an_early_error_in_the_graphs_process_stops_mapping_with_that_error(simulation, monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("graph failed")
+
+    monkeypatch.setattr(PoseGraph, "add_node", broken)
+    monkeypatch.setattr(slam_module, "BACKLOG", 1)  # the queue fills at once: mapping notices the child is gone
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+    with simulation.recording() as rec, pytest.raises(RuntimeError, match="graph failed"):
+        _feed(slam, rec.records(), limit=100)
+    slam.close(abandon=True)
 
 
 def test_a_graph_process_that_dies_is_a_clear_error(simulation):
