@@ -7,8 +7,8 @@ import pytest
 
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan
-from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping import slam as slam_module
+from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.slam import Slam
 from carto_cli.options import load_options
 from carto_cli.pipeline import build
