@@ -125,8 +125,8 @@ class _GraphProcess:
 
     The child gets the same calls in the same order as the graph's thread would, so its graph is the same;
     submaps go over once when they first appear (origin only) and once when finished (the grid, which the
-    child keeps packed), the only state the graph reads of them. ``join`` returns the child's graph data, to be put back into the
-    caller's graph, whose submaps are the real ones.
+    child keeps packed), the only state the graph reads of them. ``join`` returns the child's graph data, to be
+    put back into the caller's graph, whose submaps are the real ones.
     """
 
     def __init__(self, graph: PoseGraph, jobs: int, timer):
