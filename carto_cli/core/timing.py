@@ -493,7 +493,7 @@ def report_tree_text(timer: StageTimer | NullTimer | Snapshot) -> str:
         if s.path == SCAN_STAGE:
             name = f"{SCAN_STAGE} ({snap.scans} scans)"
         elif s.concurrent:
-            name = f"{s.name} (concurrent: its own thread, not in the sum)"
+            name = f"{s.name} (concurrent: its own thread or process, not in the sum)"
         row(prefix + branch + name, s.total_ns, s.in_scan, str(s.count) if s.path else "",
             s.percentile_ms(50), s.percentile_ms(95))
         if not s.children:

@@ -265,7 +265,7 @@ def test_mapping_profiles_load_and_keep_loop_closure_cheap(profile):
 
 
 def test_the_graph_is_the_same_for_any_number_of_jobs_and_any_memory_budget(two_laps):
-    """Searches on worker threads and the graph on its own thread (jobs > 1), or all inline (jobs 1); a budget
+    """Searches on worker threads and the graph in its own process (jobs > 1), or all inline (jobs 1); a budget
     that keeps one precomputation stack at a time, so stacks are dropped and rebuilt: the same graph, bit for bit."""
     sim, _, mapped = two_laps
     options = load_options(None, [CB + "fast_correlative_scan_matcher.multilevel=true"])
