@@ -8,10 +8,22 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
+
+
+class Done(Generic[R]):
+    """A result computed at once (one job), with a future's ``result``: callers treat both the same."""
+
+    __slots__ = ("_value",)
+
+    def __init__(self, value: R):
+        self._value = value
+
+    def result(self) -> R:
+        return self._value
 
 
 def available_cores() -> int:

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from carto_cli.core import transform
-from carto_cli.core.parallel import available_cores
+from carto_cli.core.parallel import Done, available_cores
 from carto_cli.core.timing import NullTimer
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching import branch_and_bound, least_squares
@@ -105,18 +105,6 @@ class SearchOutcome:
     closure: LoopClosure | None = None
     outcome: str = "empty"  # empty | not found | drift | window edge | refinement | see-through | accepted
     ns: dict = field(default_factory=dict)  # stage name -> ns
-
-
-class _Done:
-    """A search run at once, with a future's ``result``."""
-
-    __slots__ = ("_outcome",)
-
-    def __init__(self, outcome: SearchOutcome):
-        self._outcome = outcome
-
-    def result(self) -> SearchOutcome:
-        return self._outcome
 
 
 @dataclass
@@ -222,7 +210,7 @@ class ConstraintBuilder:
         work = [(node, submap, global_search, self.stack(submap.index, submap.grid))
                 for node, submap, global_search in pairs]
         if self.jobs == 1:
-            return [_Done(self._match(*item)) for item in work]
+            return [Done(self._match(*item)) for item in work]
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=self.jobs, thread_name_prefix="carto-search")
         return [self._pool.submit(self._match, *item) for item in work]

@@ -26,6 +26,7 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.kernels import register_warm_up
+from carto_cli.core.parallel import Done
 from carto_cli.core.timing import NullTimer
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure, NodeData, SubmapData
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
@@ -502,7 +503,7 @@ class PoseGraph:
         if self._solver is None and self.builder.jobs > 1:
             self._solver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="carto-optimize")
         if self._solver is None:
-            task: object = _Solved(_timed_optimize(problem))
+            task: object = Done(_timed_optimize(problem))
         else:
             task = self._solver.submit(_timed_optimize, problem)
         self._running = (task, self.num_nodes, len(self.submaps))
@@ -631,18 +632,6 @@ class PoseGraph:
     @property
     def num_loop_closures(self) -> int:
         return int(self.constraints.num_loop_closures)
-
-
-class _Solved:
-    """An optimization run at once (one job), with a future's ``result``."""
-
-    __slots__ = ("_value",)
-
-    def __init__(self, value):
-        self._value = value
-
-    def result(self):
-        return self._value
 
 
 def _timed_optimize(problem: dict):
