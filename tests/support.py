@@ -1,5 +1,6 @@
 """Helpers shared by the tests (importable as `support`: pytest puts tests/ on sys.path)."""
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,6 @@ from carto_cli.core.records import Imu, Odometry, Scan, Transform
 
 def _find_shared() -> Path:
     """The project's shared data: $CARTO_SHARED_DATA, else ../shared/data next to the checkout, else /work/shared/data."""
-    import os
-
     candidates = [os.environ.get("CARTO_SHARED_DATA"), Path(__file__).resolve().parents[2] / "shared" / "data",
                   "/work/shared/data"]
     for c in candidates:
@@ -21,6 +20,16 @@ def _find_shared() -> Path:
 
 
 SHARED = _find_shared()
+
+# tests/test_static_checks.py runs the kernel tests once more as plain Python (NUMBA_DISABLE_JIT, for coverage),
+# where a kernel is about a hundred times slower: a randomized comparison takes fewer draws there, through the
+# same code paths, and all of them with the kernels compiled.
+JIT = os.environ.get("NUMBA_DISABLE_JIT", "0") in ("", "0")
+
+
+def draws(compiled: int, plain: int) -> int:
+    """How many random cases a comparison takes: ``compiled`` with numba on, ``plain`` without."""
+    return compiled if JIT else plain
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = REPO / "data" / "ccny_laser_scan_matcher_demo.bag"
 

@@ -2,6 +2,7 @@ import math
 
 import numpy as np
 import pytest
+from support import draws
 
 from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY, ProbabilityGrid, probability_to_value
 from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
@@ -73,7 +74,7 @@ def assert_same(a, b):
 def test_branch_and_bound_equals_exhaustive_search(depth, ties):
     rng = np.random.default_rng(depth * 10 + ties)
     found = 0
-    for _ in range(12):
+    for _ in range(draws(12, 4)):  # 4: found at least 3 times for every depth and seed here too
         stack, pts, initial, kw = random_problem(rng, depth, ties)
         result = bnb.match(stack, pts, initial, **kw)
         assert_same(result, bnb.exhaustive_match(stack, pts, initial, **kw))

@@ -3,6 +3,7 @@ import math
 import numpy as np
 import pytest
 from room_sim import build_room_grid, scan_points
+from support import draws
 
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching.correlative import coarse_grid, match, match_pruned, search_parameters
@@ -126,7 +127,7 @@ def test_the_pruned_search_answers_as_the_exhaustive_one_bit_for_bit(room):
     # Random grids (with ties: rows of one value), scans partly or wholly off the grid, windows of odd and even
     # numbers of blocks, both unknown probabilities: the same pose and score, so a caller may use either.
     rng = np.random.default_rng(0)
-    for trial in range(150):
+    for trial in range(draws(150, 40)):
         nx, ny = (int(v) for v in rng.integers(20, 120, 2))
         grid = ProbabilityGrid(0.05, (rng.uniform(-2, 2), rng.uniform(-2, 2)), (nx, ny))
         cells = rng.integers(0, 32768, (ny, nx)).astype(np.uint16)
