@@ -18,15 +18,15 @@ PACKAGE = ROOT / "carto_cli"
 
 # The kernel tests, run once more with numba off so that coverage (and Python's own integer and dtype
 # rules) see inside the kernels; tests/reference holds the oracles they compare against.
-# Two shards of about the same length (matching ~100 s, the rest ~115 s under coverage) run at once: on two
-# cores this one test was 40 % of the suite when it ran them one after the other.
-KERNEL_TESTS = [["tests/matching"],
-                ["tests/sensor", "tests/grid", "tests/mapping/test_optimization.py", "tests/mapping/test_quality.py",
-                 "tests/gmapping/test_maps.py", "tests/gmapping/test_matcher.py", "tests/gmapping/test_motion.py",
-                 "tests/gmapping/test_resampling.py"]]
+# Two shards of about the same length (~65 s each alone under coverage; randomized comparisons take fewer draws
+# here, tests/support.py) run at once: on two cores this one test was 40 % of the suite when it ran them one after
+# the other.
+KERNEL_TESTS = [["tests/matching", "tests/mapping/test_optimization.py", "tests/io/sources/test_decimals.py"],
+                ["tests/sensor", "tests/grid", "tests/mapping/test_quality.py", "tests/gmapping/test_maps.py",
+                 "tests/gmapping/test_matcher.py", "tests/gmapping/test_motion.py", "tests/gmapping/test_resampling.py"]]
 KERNEL_PACKAGES = ["carto_cli.sensor", "carto_cli.grid", "carto_cli.matching", "carto_cli.mapping.optimization",
                    "carto_cli.mapping.quality", "carto_cli.gmapping.maps", "carto_cli.gmapping.matcher",
-                   "carto_cli.gmapping.motion", "carto_cli.gmapping.resampling"]
+                   "carto_cli.gmapping.motion", "carto_cli.gmapping.resampling", "carto_cli.io.sources.decimals"]
 
 
 def _run(*cmd: str, env: dict | None = None, timeout: float = 900) -> subprocess.CompletedProcess:

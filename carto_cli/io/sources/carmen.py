@@ -78,6 +78,7 @@ from carto_cli.core.errors import CartoError, FormatError, TopicError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, yaw_quaternion
 from carto_cli.core.transform import wrap_angle_scalar
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
+from carto_cli.io.sources.decimals import decimals
 
 GZIP_MAGIC = b"\x1f\x8b"
 FLASER_MAX_RANGE = 80.0  # what CARMEN's reader assumes for FLASER / RLASER
@@ -247,7 +248,7 @@ def _floats(text: str) -> np.ndarray:
     # numpy >= 2 raises on a non-numeric token; older versions stop early with a
     # warning, which the callers' length checks catch.
     try:
-        return np.fromstring(text, sep=" ")
+        return decimals(text)
     except (ValueError, DeprecationWarning):
         raise _LineError from None
 
