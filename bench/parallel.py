@@ -11,12 +11,17 @@ the median wall time per J, and whether every output file is byte-identical acro
     python bench/parallel.py [--jobs 2] [--repeat 3] [--pairs 800] [--cases freiburg-079 dense-freiburg-079]
                              [--out docs/parallel.md]
 
+Beside each pair of runs, the machine's own ceiling: how much more a compute-only kernel gets done on N threads at
+once than on one (``machine ×``; N on an idle N-core machine, less when a shared host's other tenants take part of
+its cores), and each run's CPU time (user + sys, ``cpu s``): what N jobs spend beyond one.
+
 Figures depend on the machine and its load; run the two configurations together, as here.
 """
 from __future__ import annotations
 
 import argparse
 import filecmp
+import resource
 import statistics
 import subprocess
 import sys
@@ -38,12 +43,47 @@ CASES = {
 OUTPUTS = ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto")
 
 
-def carto_map(recording: Path, outdir: Path, jobs: int, extra=()) -> float:
+def carto_map(recording: Path, outdir: Path, jobs: int, extra=()) -> tuple[float, float]:
+    """Wall time and CPU time (user + sys) of one ``carto map`` in a fresh process."""
     cmd = [sys.executable, "-m", "carto_cli", "-q", "map", str(recording), "-o", str(outdir), "--force",
            "--jobs", str(jobs), *extra]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def _spin_kernel():
+    import numba
+
+    @numba.njit(nogil=True, cache=True)
+    def spin(n):
+        s = 0.0
+        for i in range(n):
+            s += (i * 1.0001) % 7.3
+        return s
+
+    return spin
+
+
+def machine_scaling(jobs: int, n: int = 60_000_000) -> float:
+    """Work done per second by ``jobs`` threads running a compute-only kernel at once, over one thread's."""
+    import threading
+
+    spin = _spin_kernel()
+    spin(10)
+    t0 = time.perf_counter()
+    spin(n)
+    one = time.perf_counter() - t0
+    threads = [threading.Thread(target=spin, args=(n,)) for _ in range(jobs)]
+    t0 = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return jobs * one / (time.perf_counter() - t0)
 
 
 def search_pairs(map_path: Path, limit: int):
@@ -104,28 +144,39 @@ def main(argv=None) -> int:
         for case in args.cases:
             rec = CASES[case]
             walls: dict[int, list[float]] = {1: [], args.jobs: []}
+            cpus: dict[int, list[float]] = {1: [], args.jobs: []}
+            ceiling = []
             for r in range(args.repeat):
+                ceiling.append(machine_scaling(args.jobs))
                 for j in (1, args.jobs) if r % 2 == 0 else (args.jobs, 1):
-                    walls[j].append(carto_map(rec, Path(tmp) / f"{case}-j{j}", j))
+                    wall, cpu = carto_map(rec, Path(tmp) / f"{case}-j{j}", j)
+                    walls[j].append(wall)
+                    cpus[j].append(cpu)
             same = all(filecmp.cmp(Path(tmp) / f"{case}-j1" / f, Path(tmp) / f"{case}-j{args.jobs}" / f,
                                    shallow=False) for f in OUTPUTS)
             w1, wn = statistics.median(walls[1]), statistics.median(walls[args.jobs])
-            map_rows.append(f"| {case} | {w1:.2f} | {wn:.2f} | {w1 / wn:.2f}× | {'yes' if same else '**no**'} |")
+            c1, cn = statistics.median(cpus[1]), statistics.median(cpus[args.jobs])
+            map_rows.append(f"| {case} | {w1:.2f} | {wn:.2f} | {w1 / wn:.2f}× | {c1:.1f} | {cn:.1f} | "
+                            f"{min(ceiling):.2f}-{max(ceiling):.2f}× | {'yes' if same else '**no**'} |")
             print(map_rows[-1], flush=True)
 
             options, pairs = search_pairs(Path(tmp) / f"{case}-j1" / "map.carto", args.pairs)
+            around = [machine_scaling(args.jobs)]
             t1, f1 = time_searches(options, pairs, 1, args.repeat)
             tn, fn = time_searches(options, pairs, args.jobs, args.repeat)
+            around.append(machine_scaling(args.jobs))
             found = sum(x is not None for x in f1)
             search_rows.append(f"| {case} | {len(pairs)} | {found} | {1000 * t1 / len(pairs):.2f} | "
-                               f"{1000 * tn / len(pairs):.2f} | {t1 / tn:.2f}× | {'yes' if f1 == fn else '**no**'} |")
+                               f"{1000 * tn / len(pairs):.2f} | {t1 / tn:.2f}× | {min(around):.2f}-{max(around):.2f}× | "
+                               f"{'yes' if f1 == fn else '**no**'} |")
             print(search_rows[-1], flush=True)
     lines += ["Loop-closure search alone (`ConstraintBuilder.search_many`, Cartographer's window, pairs sampled from "
               "every node within `max_constraint_distance` of a finished submap; best of the repeats):", "",
               f"| case | pairs | closures | ms per search, 1 job | ms per search, {args.jobs} jobs | speed-up | "
-              "same closures |", "|---|---|---|---|---|---|---|", *search_rows, "",
+              "machine × | same closures |", "|---|---|---|---|---|---|---|---|", *search_rows, "",
               f"Whole `carto map` (a fresh process each, median of {args.repeat}, alternating):", "",
-              f"| case | 1 job s | {args.jobs} jobs s | speed-up | outputs byte-identical |", "|---|---|---|---|---|",
+              f"| case | 1 job s | {args.jobs} jobs s | speed-up | 1 job cpu s | {args.jobs} jobs cpu s | machine × "
+              "| outputs byte-identical |", "|---|---|---|---|---|---|---|---|",
               *map_rows, ""]
     text = "\n".join(lines)
     print(text)
