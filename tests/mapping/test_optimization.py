@@ -10,7 +10,6 @@ from carto_cli.core.transform import compose, relative
 from carto_cli.mapping.constraints import Constraint, ConstraintKind, ConstraintSet
 from carto_cli.mapping.optimization import NodePairs, optimize, residuals
 from carto_cli.mapping.optimization.block_cholesky import BlockSystem
-from carto_cli.mapping.optimization.levenberg_marquardt import damped
 from carto_cli.mapping.optimization.problem import Edges, build_edges, cost_kernel, free_columns, model_kernel
 
 # Cartographer's default weights (pose_graph.lua).
@@ -132,7 +131,7 @@ def test_kernels_assemble_the_robust_normal_equations_and_solve_them():
     assert cost_kernel(x, *args) == pytest.approx(cost, rel=1e-12)
 
     radius = 10.0
-    step = system.solve(damped(system, h_blocks, radius), rhs)
+    step = system.solve(h_blocks, rhs, radius)
     reference = jtj + np.diag(np.clip(np.diag(jtj), 1e-6, 1e32) / radius)
     expected = spla.spsolve(sp.csc_matrix(reference), -g.ravel())
     unpermuted = np.empty_like(step)
@@ -149,8 +148,8 @@ def test_block_cholesky_reports_an_indefinite_system():
     column = free_columns(edges, len(x), np.array([0]))
     system = BlockSystem(edges, column, int(column.max() + 1))
     _, h_blocks, rhs = system.linearize(x, edges, math.inf)
-    assert system.solve(damped(system, -h_blocks, 1e4), rhs) is None
-    assert system.solve(damped(system, h_blocks, 1e4), rhs) is not None  # the workspace was left clean
+    assert system.solve(-h_blocks, rhs, 1e4) is None
+    assert system.solve(h_blocks, rhs, 1e4) is not None  # the workspace was left clean
 
 
 # --------------------------------------------------------------------------- optimisation
@@ -361,6 +360,24 @@ def test_the_ordering_is_a_permutation_with_no_fill_on_trees_and_near_mmd_on_pos
     # no links at all, and nothing to order
     assert sorted(block_ordering(np.arange(4), np.arange(4), 4)) == [0, 1, 2, 3]
     assert len(block_ordering(np.zeros(0, int), np.zeros(0, int), 0)) == 0
+
+
+def test_the_ordering_of_sorted_pairs_is_the_general_ones():
+    """BlockSystem's pairs are unique and sorted already: pair_ordering builds the same rows without the sort."""
+    from carto_cli.mapping.optimization.block_cholesky import block_ordering, pair_ordering
+
+    rng = np.random.default_rng(5)
+    patterns = [_pose_graph_pattern(rng, n, closures) for n, closures in ((60, 5), (150, 20), (300, 60))]
+    for _ in range(40):
+        n = int(rng.integers(1, 80))
+        a, b = rng.integers(0, n, (2, int(rng.integers(0, 300))))
+        patterns.append((np.concatenate([a, b]), np.concatenate([b, a])))  # with self-pairs and repeats
+    for rows, cols in patterns:
+        n = int(max(rows.max(initial=-1), cols.max(initial=-1))) + 1
+        keys = np.unique(np.minimum(rows, cols) * n + np.maximum(rows, cols))
+        lo, hi = keys // n, keys % n
+        np.testing.assert_array_equal(pair_ordering(lo, hi, n), block_ordering(rows, cols, n))
+    assert len(pair_ordering(np.zeros(0, int), np.zeros(0, int), 0)) == 0
 
 
 def test_connected_parts_match_scipys():

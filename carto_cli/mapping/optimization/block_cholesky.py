@@ -18,7 +18,11 @@ from numba import njit
 
 from carto_cli.mapping.optimization.problem import Edges, linearize_kernel
 
-__all__ = ["BlockSystem", "block_ordering"]
+# Ceres' bounds on the diagonal its Levenberg–Marquardt damping scales (solver.h); Cartographer keeps them.
+MIN_LM_DIAGONAL = 1e-6
+MAX_LM_DIAGONAL = 1e32
+
+__all__ = ["BlockSystem", "block_ordering", "pair_ordering"]
 
 
 # --------------------------------------------------------------------------- block sparse Cholesky
@@ -98,8 +102,10 @@ def _symbolic(cp, ci, parent, n):
 
 
 @njit(cache=True, nogil=True)
-def _numeric(cp, ci, cx, rp, ri, lp, li, lx, x):
-    """Block Cholesky of the matrix whose upper block triangle is (cp, ci, cx); False if not SPD.
+def _numeric(cp, ci, cx, rp, ri, lp, li, lx, x, radius, min_diagonal, max_diagonal):
+    """Block Cholesky of the matrix whose upper block triangle is (cp, ci, cx), each diagonal entry h raised by
+    clamp(h, min_diagonal, max_diagonal) / radius (the solver's damping, applied here rather than to a copy
+    of the matrix); False if not SPD.
 
     ``x`` is an (n, 3, 3) zero workspace, returned zeroed.
     """
@@ -117,6 +123,13 @@ def _numeric(cp, ci, cx, rp, ri, lp, li, lx, x):
             for b in range(3):
                 d[a, b] = x[k, a, b]
                 x[k, a, b] = 0.0
+            h = d[a, a]
+            c = h
+            if c < min_diagonal:
+                c = min_diagonal
+            if c > max_diagonal:
+                c = max_diagonal
+            d[a, a] = h + c / radius
         for t in range(rp[k], rp[k + 1]):
             i = ri[t]
             q = lp[i]
@@ -219,10 +232,49 @@ def block_ordering(ur: np.ndarray, uc: np.ndarray, nb: int) -> np.ndarray:
     rows, cols = key // nb, key % nb
     indptr = np.zeros(nb + 1, dtype=np.int64)
     np.cumsum(np.bincount(rows, minlength=nb), out=indptr[1:])
-    order = _minimum_degree(indptr, cols.astype(np.int64), nb)
-    iperm = np.empty(nb, dtype=np.int64)
-    iperm[order] = np.arange(nb)
+    return _positions(_minimum_degree(indptr, cols.astype(np.int64), nb))
+
+
+def pair_ordering(lo: np.ndarray, hi: np.ndarray, nb: int) -> np.ndarray:
+    """:func:`block_ordering` of the pattern of the pairs (lo, hi), given unique and sorted by (lo, hi) with
+    lo <= hi, as :class:`BlockSystem` has them: its rows are built in that order without sorting (the sort was
+    over half of the ordering's time on dense-freiburg-079's periodic optimizations), the same rows exactly."""
+    indptr, cols = _pair_pattern(np.ascontiguousarray(lo, dtype=np.int64),
+                                 np.ascontiguousarray(hi, dtype=np.int64), nb)
+    return _positions(_minimum_degree(indptr, cols, nb))
+
+
+def _positions(order: np.ndarray) -> np.ndarray:
+    iperm = np.empty(len(order), dtype=np.int64)
+    iperm[order] = np.arange(len(order))
     return iperm
+
+
+@njit(cache=True, nogil=True)
+def _pair_pattern(lo, hi, nb):
+    """Both triangles of the pattern of the pairs (lo, hi) (unique, sorted by (lo, hi)), the diagonal left out,
+    as rows of ascending columns: a row r gets its smaller neighbours from the pairs (l, r) in the order of l,
+    then its larger ones from the pairs (r, h) in the order of h."""
+    indptr = np.zeros(nb + 1, np.int64)
+    for t in range(len(lo)):
+        if lo[t] != hi[t]:
+            indptr[lo[t] + 1] += 1
+            indptr[hi[t] + 1] += 1
+    for v in range(nb):
+        indptr[v + 1] += indptr[v]
+    fill = np.empty(nb, np.int64)
+    for v in range(nb):
+        fill[v] = indptr[v]
+    cols = np.empty(indptr[nb], np.int64)
+    for t in range(len(lo)):
+        if lo[t] != hi[t]:
+            cols[fill[hi[t]]] = lo[t]
+            fill[hi[t]] += 1
+    for t in range(len(lo)):
+        if lo[t] != hi[t]:
+            cols[fill[lo[t]]] = hi[t]
+            fill[lo[t]] += 1
+    return indptr, cols
 
 
 @njit(cache=True, nogil=True)
@@ -353,7 +405,7 @@ def _minimum_degree(indptr, indices, n):
 class BlockSystem:
     """Layout and factorisation of (J^T J + D) δ = -J^T r over the free poses, in 3×3 blocks.
 
-    The damping D is the solver's (see ``levenberg_marquardt.damped``). Only the
+    The damping D is the solver's (see :meth:`solve`). Only the
     upper block triangle of the symmetrically permuted matrix is stored, column by
     column (diagonal block last), which is what the up-looking Cholesky reads. The
     residual kernel writes into it directly.
@@ -369,8 +421,7 @@ class BlockSystem:
         keys, inverse = np.unique(lo * nb + hi, return_inverse=True)
         ulo, uhi = keys // nb, keys % nb
 
-        iperm = block_ordering(np.concatenate([ulo, uhi, np.arange(nb)]),
-                                np.concatenate([uhi, ulo, np.arange(nb)]), nb)
+        iperm = pair_ordering(ulo, uhi, nb)
         self.perm = np.argsort(iperm)  # new -> old
         pi, pj = iperm[ulo], iperm[uhi]
         rows = np.concatenate([np.minimum(pi, pj), np.arange(nb)])
@@ -411,12 +462,15 @@ class BlockSystem:
                                 self.pos_ee, self.pos_off, self.transposed, cx, rhs)
         return cost, cx, rhs
 
-    def solve(self, matrix: np.ndarray, rhs: np.ndarray):
-        """δ (permuted) for ``matrix`` δ = rhs, or None when the factorisation fails (not positive definite).
+    def solve(self, h: np.ndarray, rhs: np.ndarray, radius: float = math.inf):
+        """δ (permuted) for (H + D) δ = rhs, or None when the factorisation fails (not positive definite).
 
-        ``matrix`` is in the layout of :meth:`linearize`'s H (upper block triangle, permuted).
+        ``h`` is in the layout of :meth:`linearize`'s H (upper block triangle, permuted); D is Ceres'
+        Levenberg–Marquardt regularisation for the trust region ``radius``: diag(clamp(diag H, 1e-6, 1e32))
+        / radius (none at the default, infinity).
         """
-        if not _numeric(self.cp, self.ci, matrix, self.rp, self.ri, self.lp, self.li, self.lx, self.work):
+        if not _numeric(self.cp, self.ci, h, self.rp, self.ri, self.lp, self.li, self.lx, self.work,
+                        float(radius), MIN_LM_DIAGONAL, MAX_LM_DIAGONAL):
             self.work[:] = 0.0
             return None
         step = rhs.copy()

@@ -34,7 +34,6 @@ __all__ = [
     "PARAMETER_TOLERANCE",
     "OptimizationResult",
     "OptimizationSummary",
-    "damped",
     "optimize",
 ]
 
@@ -46,8 +45,6 @@ _INITIAL_TRUST_REGION_RADIUS = 1e4
 _MAX_TRUST_REGION_RADIUS = 1e16
 _MIN_TRUST_REGION_RADIUS = 1e-32
 _MIN_RELATIVE_DECREASE = 1e-3
-_MIN_LM_DIAGONAL = 1e-6
-_MAX_LM_DIAGONAL = 1e32
 
 
 @dataclass(frozen=True)
@@ -76,15 +73,6 @@ class OptimizationResult:
     node_poses: np.ndarray    # (N, 3), theta in [-pi, pi)
     submap_poses: np.ndarray  # (M, 3)
     summary: OptimizationSummary
-
-
-def damped(system: BlockSystem, h: np.ndarray, radius: float) -> np.ndarray:
-    """H + clamp(diag H)/radius: Ceres' Levenberg–Marquardt regularisation, in ``system``'s block layout."""
-    out = h.copy()
-    i3 = np.arange(3)
-    diagonal = np.clip(h[system.cdiag][:, i3, i3], _MIN_LM_DIAGONAL, _MAX_LM_DIAGONAL)
-    out[system.cdiag[:, None], i3, i3] += diagonal / radius
-    return out
 
 
 def optimize(node_poses, submap_poses, constraints: ConstraintSet, odometry: NodePairs | None = None,
@@ -148,7 +136,7 @@ def optimize(node_poses, submap_poses, constraints: ConstraintSet, odometry: Nod
         while termination == "max_iterations" and iterations < max_num_iterations:
             iterations += 1
             ts = time.perf_counter()
-            step = system.solve(damped(system, h, radius), rhs)
+            step = system.solve(h, rhs, radius)
             solve_time += time.perf_counter() - ts
             accepted = False
             if step is not None and np.isfinite(step).all():
