@@ -1132,6 +1132,9 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
         out.append("\n## Loop closures\n")
         out.append(lct)
     out.append("\n## Time and memory\n")
+    out.append("Each case on every core (`--jobs` default). One job against two side by side, the machine's own "
+               "two-thread throughput beside them, and the 2-hour campus (time per scan and peak memory from 15 to "
+               "120 minutes): docs/scaling.md (`bench/parallel.py`, `bench/scale.py`).\n\n")
     out.append(performance_table(results))
     if some_gmapping:
         out.append("\nThe particle filter (particles, resamplings, processed scans, its stages in s, memory):\n")
