@@ -20,6 +20,8 @@ def _find_shared() -> Path:
 
 
 SHARED = _find_shared()
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE_BAG = REPO / "data" / "ccny_laser_scan_matcher_demo.bag"
 
 # tests/test_static_checks.py runs the kernel tests once more as plain Python (NUMBA_DISABLE_JIT, for coverage),
 # where a kernel is about a hundred times slower: a randomized comparison takes fewer draws there, through the
@@ -30,8 +32,6 @@ JIT = os.environ.get("NUMBA_DISABLE_JIT", "0") in ("", "0")
 def draws(compiled: int, plain: int) -> int:
     """How many random cases a comparison takes: ``compiled`` with numba on, ``plain`` without."""
     return compiled if JIT else plain
-REPO = Path(__file__).resolve().parents[1]
-SAMPLE_BAG = REPO / "data" / "ccny_laser_scan_matcher_demo.bag"
 
 
 def shared_path(*parts) -> Path:
