@@ -1,5 +1,16 @@
+import background
 import pytest
 from support import STATIC_TF, synthetic_records
+
+
+def pytest_collection_finish(session):
+    """Start the checks that run beside the other tests (tests/background.py) once the tests are chosen."""
+    for name in dict.fromkeys(m.args[0] for item in session.items for m in item.iter_markers("background")):
+        background.start(name)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    background.stop_all()
 
 
 @pytest.fixture(scope="session")

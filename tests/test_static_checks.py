@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import background
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -19,8 +20,7 @@ PACKAGE = ROOT / "carto_cli"
 # The kernel tests, run once more with numba off so that coverage (and Python's own integer and dtype
 # rules) see inside the kernels; tests/reference holds the oracles they compare against.
 # Two shards of about the same length (~65 s each alone under coverage; randomized comparisons take fewer draws
-# here, tests/support.py) run at once: on two cores this one test was 40 % of the suite when it ran them one after
-# the other.
+# here, tests/support.py), started with the session and run beside the other tests (tests/background.py).
 KERNEL_TESTS = [["tests/matching", "tests/mapping/test_optimization.py", "tests/io/sources/test_decimals.py"],
                 ["tests/sensor", "tests/grid", "tests/mapping/test_quality.py", "tests/gmapping/test_maps.py",
                  "tests/gmapping/test_matcher.py", "tests/gmapping/test_motion.py", "tests/gmapping/test_resampling.py"]]
@@ -42,8 +42,14 @@ def test_ruff_finds_nothing():
     _ok(_run(sys.executable, "-m", "ruff", "check", "carto_cli", "tests", "bench"))
 
 
+background.register("mypy", lambda: background.Check(lambda _: [[sys.executable, "-m", "mypy", "--no-error-summary"]],
+                                                     ROOT))
+
+
+@pytest.mark.background("mypy")
 def test_mypy_finds_nothing():
-    _ok(_run(sys.executable, "-m", "mypy", "--no-error-summary"))
+    ((code, output),) = background.take("mypy").results(timeout=900)
+    assert code == 0, f"exit {code}\n{output[-6000:]}"
 
 
 def test_import_contracts_hold():
@@ -51,23 +57,25 @@ def test_import_contracts_hold():
     _ok(_run(str(lint) if lint.exists() else "lint-imports", "--no-cache"))
 
 
-def test_kernel_tests_pass_with_numba_off(tmp_path):
-    data = tmp_path / ".coverage"
-    shards = [subprocess.Popen([sys.executable, "-m", "coverage", "run", "--parallel-mode", f"--data-file={data}",
-                                "--source=" + ",".join(KERNEL_PACKAGES), "-m", "pytest", "-q", "-x", "-p",
-                                "no:cacheprovider", "-m", "not slow_without_jit", *tests],
-                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                               env={**os.environ, "NUMBA_DISABLE_JIT": "1"})
-              for tests in KERNEL_TESTS]
-    try:
-        outputs = [shard.communicate(timeout=1800)[0] for shard in shards]
-    finally:
-        for shard in shards:
-            shard.kill()
-    for shard, tests, output in zip(shards, KERNEL_TESTS, outputs):
-        assert shard.returncode == 0, f"{' '.join(tests)}: exit {shard.returncode}\n{output[-6000:]}"
-    _ok(_run(sys.executable, "-m", "coverage", "combine", f"--data-file={data}"))
-    report = _run(sys.executable, "-m", "coverage", "report", f"--data-file={data}")
+def _kernel_shards() -> background.Check:
+    """The shards at once, their coverage data in the check's own directory."""
+    return background.Check(lambda scratch: [
+        [sys.executable, "-m", "coverage", "run", "--parallel-mode", f"--data-file={scratch / '.coverage'}",
+         "--source=" + ",".join(KERNEL_PACKAGES), "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
+         "-m", "not slow_without_jit", *tests] for tests in KERNEL_TESTS], ROOT, env={"NUMBA_DISABLE_JIT": "1"})
+
+
+background.register("kernels without numba", _kernel_shards)
+
+
+@pytest.mark.background("kernels without numba")
+def test_kernel_tests_pass_with_numba_off():
+    check = background.take("kernels without numba")
+    for (code, output), tests in zip(check.results(timeout=1800), KERNEL_TESTS):
+        assert code == 0, f"{' '.join(tests)}: exit {code}\n{output[-6000:]}"
+    data = f"--data-file={check.scratch / '.coverage'}"
+    _ok(_run(sys.executable, "-m", "coverage", "combine", data))
+    report = _run(sys.executable, "-m", "coverage", "report", data)
     _ok(report)
     print(report.stdout)
 
