@@ -1,11 +1,10 @@
 """Checks that run beside the other tests (importable as `background`: pytest puts tests/ on sys.path).
 
 mypy over the package and the kernel tests with numba off take a minute or more each and need nothing the other
-tests make, while the rest of the suite keeps one of two cores busy most of the time (11.3 CPU-minutes over 9.6
-minutes on a clean checkout). A test module registers such a check by name and marks its test
-``@pytest.mark.background(name)``; conftest.py starts every marked check as soon as the session has collected
-its tests, and the test waits for the result where it stands in the order. A check's test run alone starts it
-then. Whatever is still running when the session ends is stopped.
+tests make, while the rest of the suite keeps one of two cores busy most of the time. A test module registers
+such a check by name and marks its test ``@pytest.mark.background(name)``; conftest.py starts every marked check
+as soon as the session has collected its tests, and the test waits for the result where it stands in the order.
+Whatever is still running when the session ends is stopped.
 """
 from __future__ import annotations
 
