@@ -53,3 +53,11 @@ def test_every_laser_line_of_a_real_log():
     assert len(payloads) > 4000
     for text in payloads:
         _same(text)
+
+
+def test_plain_decimals_never_reach_numpy(monkeypatch):
+    """The point of the kernel: a log's numbers are read without numpy's parser."""
+    import carto_cli.io.sources.decimals as module
+
+    monkeypatch.setattr(module.np, "fromstring", lambda *a, **k: pytest.fail("numpy parsed a plain line"))
+    assert decimals(" 1.65 -0.001068\t360 +7. .5 0\n").tolist() == [1.65, -0.001068, 360.0, 7.0, 0.5, 0.0]
