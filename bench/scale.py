@@ -19,7 +19,6 @@ import argparse
 import json
 import math
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -65,6 +64,7 @@ def revisit_relations(gt: np.ndarray, *, step: int = 10, every: int = 5, min_dt:
 
 
 def one(minutes: float, jobs: int | None, budget: float | None) -> dict:
+    from carto_cli.core.memory import peak_rss_mb
     from carto_cli.evaluation.metrics import Relations, relation_error
     from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import Trajectory as Tum
@@ -108,9 +108,9 @@ def one(minutes: float, jobs: int | None, budget: float | None) -> dict:
         "wall_s": wall, "ms_per_scan": 1000 * wall / max(1, result.stats["scans"]),
         "ms_per_scan_last_15min": float(1000 * (last[-1] - last[0]) / max(1, len(last) - 1)),
         "ms_per_scan_by_minute": per_minute,
-        # or of this process and the pose graph's together while that one ran (mapping.slam), if higher
-        "peak_rss_mb": max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                           result.stats.get("graph_process_peak_memory_mb", 0.0)), "rss_before_mapping_mb": rss_before,
+        # since mapping, or as mapping reported it (both processes, with the pose graph's own)
+        "peak_rss_mb": max(peak_rss_mb() or 0.0, result.stats.get("peak_memory_mb") or 0.0),
+        "rss_before_mapping_mb": rss_before,
         "precomputation_mb": result.stats.get("precomputation_bytes", 0) / 2**20,
         "precomputation_evictions": int(result.stats.get("precomputation_evictions", 0)),
         "relation_error_m": float(err.translation.mean), "relation_error_deg": float(err.rotation.mean),

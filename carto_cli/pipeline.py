@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time as _time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -15,6 +14,7 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
+from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
 from carto_cli.gmapping import ALGORITHMS
 from carto_cli.io.content import ContentCheck
@@ -170,17 +170,6 @@ def opened(path: str | Path, read: ReadOptions | None = None, *, scan_topic: str
                                                  base_frame=base_frame))
 
 
-def peak_memory_mb() -> float | None:
-    """The process's peak resident memory so far (MB; None where the platform does not say)."""
-    try:
-        import resource
-    except ImportError:  # not on a POSIX system
-        return None
-    # ru_maxrss is in kilobytes on Linux and in bytes on macOS.
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / (2**20 if sys.platform == "darwin" else 2**10)
-
-
 def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit,
                        fixed_tf: Sequence[Transform] = ()) -> tuple[np.ndarray, str]:
     """--laser-pose wins; else static TF; else transforms of /tf that never moved (``fixed_tf``: a mount broadcast
@@ -296,7 +285,7 @@ def build(
     core = slam.finish()
     result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
                        warnings=list(recording.warnings) + content.warnings())
-    peak = peak_memory_mb()
+    peak = peak_rss_mb()
     # or of this process and the pose graph's together while that one ran (mapping.slam), if higher
     together = result.stats.get("graph_process_peak_memory_mb", 0.0)
     result.stats["peak_memory_mb"] = None if peak is None else max(peak, together)

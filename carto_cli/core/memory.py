@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import sys
 
-__all__ = ["give_back", "peak_kb", "reset_peak", "status_kb"]
+__all__ = ["give_back", "peak_kb", "peak_rss_mb", "reset_peak", "status_kb"]
 
 
 @functools.lru_cache(maxsize=1)
@@ -57,3 +58,14 @@ def reset_peak() -> bool:
         return True
     except OSError:
         return False
+
+
+def peak_rss_mb() -> float | None:
+    """The process's peak resident memory (MB; None where the platform does not say): ``peak_kb`` where there is
+    no /proc. On Linux both read the same high-water mark, so ``reset_peak`` starts this one afresh too."""
+    try:
+        import resource
+    except ImportError:  # not on a POSIX system
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (2**20 if sys.platform == "darwin" else 2**10)  # bytes on macOS, kilobytes on Linux

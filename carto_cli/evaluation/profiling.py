@@ -25,8 +25,6 @@ from __future__ import annotations
 import math
 import os
 import platform
-import resource
-import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -35,6 +33,7 @@ import numpy as np
 
 from carto_cli import __version__
 from carto_cli.core import kernels
+from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.timing import StageTimer, report_json
 from carto_cli.options import Options, changed_options
 
@@ -46,12 +45,6 @@ SCHEMA_PATH = Path(__file__).resolve().parents[1] / "schemas" / "profile.schema.
 COMPILE_STAGE = kernels.STAGE
 # What a gmapping run reports besides the counts: the filter's own size and behaviour.
 GMAPPING_STATS = ("processed_scans", "particles", "resamplings", "mean_neff", "map_memory_peak_bytes")
-
-
-def peak_memory_mb() -> float:
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    # Linux reports KiB, macOS bytes.
-    return rss / 1024.0 if sys.platform != "darwin" else rss / 2**20
 
 
 def cpu_model() -> str:
@@ -144,8 +137,8 @@ def build_report(result, timer: StageTimer, options: Options, recording: str | P
         "ms_per_scan": ms_per_scan,
         "scans_per_s": (1e3 / ms_per_scan) if ms_per_scan else None,
         "compile_ms": compile_stage["total_ms"] if compile_stage else 0.0,
-        # or of this process and the pose graph's together while that one ran (mapping.slam), if higher
-        "peak_memory_mb": max(peak_memory_mb(), result.stats.get("graph_process_peak_memory_mb", 0.0)),
+        # since mapping (outputs written), or as mapping reported it (both processes, with the graph's own)
+        "peak_memory_mb": max(peak_rss_mb() or 0.0, result.stats.get("peak_memory_mb") or 0.0),
         "calibration": calibration,
         "timing": timing,
     }

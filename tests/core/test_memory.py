@@ -1,4 +1,4 @@
-"""carto_cli.core.memory: free heap pages handed back to the system."""
+"""carto_cli.core.memory: free heap pages handed back to the system, and the peak resident memory."""
 import platform
 import subprocess
 import sys
@@ -43,3 +43,21 @@ def test_freed_blocks_leave_the_process():
     assert freed_alone < 30 and after < 30 and not trimmed  # freed, but still the process's
     freed, after, trimmed = _run("give_back")
     assert freed < 30 and trimmed and after > 90  # handed back
+
+
+PEAKS = """
+import numpy as np
+from carto_cli.core.memory import peak_kb, peak_rss_mb, reset_peak
+
+block = np.ones(200 << 20, np.uint8)
+del block
+print(peak_kb() / 1024, peak_rss_mb(), reset_peak(), peak_kb() / 1024, peak_rss_mb())
+"""
+
+
+@pytest.mark.skipif(platform.system() != "Linux", reason="/proc/self/status and clear_refs")
+def test_both_peaks_count_a_freed_block_until_reset_peak_starts_them_afresh():
+    out = subprocess.run([sys.executable, "-c", PEAKS], capture_output=True, text=True, check=True)
+    high, high_rss, reset, after, after_rss = out.stdout.split()
+    assert float(high) > 200 and float(high_rss) > 200  # the 200 MB block counted, freed or not
+    assert reset == "True" and float(after) < 100 and float(after_rss) < 100  # afresh: it no longer counts
