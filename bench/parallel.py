@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import filecmp
+import functools
 import resource
 import statistics
 import subprocess
@@ -55,6 +56,7 @@ def carto_map(recording: Path, outdir: Path, jobs: int, extra=()) -> tuple[float
     return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
+@functools.lru_cache(maxsize=1)
 def _spin_kernel():
     import numba
 
