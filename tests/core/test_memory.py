@@ -57,7 +57,11 @@ print(peak_kb() / 1024, peak_rss_mb(), reset_peak(), peak_kb() / 1024, peak_rss_
 
 @pytest.mark.skipif(platform.system() != "Linux", reason="/proc/self/status and clear_refs")
 def test_both_peaks_count_a_freed_block_until_reset_peak_starts_them_afresh():
-    out = subprocess.run([sys.executable, "-c", PEAKS], capture_output=True, text=True, check=True)
+    # Started by a process holding 300 MB, whose footprint Linux's ru_maxrss would count as this one's own.
+    starter = ("import subprocess, sys, numpy as np; held = np.ones(300 << 20, np.uint8); "
+               f"subprocess.run([sys.executable, '-c', {PEAKS!r}], check=True)")
+    out = subprocess.run([sys.executable, "-c", starter], capture_output=True, text=True, check=True)
     high, high_rss, reset, after, after_rss = out.stdout.split()
     assert float(high) > 200 and float(high_rss) > 200  # the 200 MB block counted, freed or not
+    assert float(high) < 290 and float(high_rss) < 290  # the starter's 300 MB did not
     assert reset == "True" and float(after) < 100 and float(after_rss) < 100  # afresh: it no longer counts
