@@ -18,6 +18,7 @@ from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
 from carto_cli.gmapping import ALGORITHMS
 from carto_cli.io.content import ContentCheck
+from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
@@ -77,17 +78,19 @@ class Configured:
 
 
 def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection,
-              algorithm: str | None = None, laser_pose=None, timer=None) -> Configured:
+              algorithm: str | None = None, laser_pose=None, timer=None,
+              stream: RecordStream | None = None) -> Configured:
     """The options and mapping system for ``recording``: ``spec`` itself (Cartographer unless ``algorithm``
     says otherwise), or for :class:`Auto` the survey's choice (``algorithm``, when given, wins). ``laser_pose``:
-    the user's mount (None: the recording's), for the survey's odometry check; ``timer``: its kernels' warm-up."""
+    the user's mount (None: the recording's), for the survey's odometry check; ``timer``: its kernels' warm-up;
+    ``stream``: the records mapping will read (the survey looks at their start)."""
     if isinstance(spec, Options):
         return Configured(spec, algorithm=algorithm or "cartographer")
     # The odometry check sizes the particle filter's motion model: a Cartographer run does not need it
     check = algorithm in (None, "gmapping")
     mount = survey_mount(recording, selection, laser_pose) if check else None
-    return configure_regime(survey(recording, selection, check_odometry=check, laser_pose=mount, timer=timer),
-                            spec, algorithm)
+    return configure_regime(survey(recording, selection, check_odometry=check, laser_pose=mount, timer=timer,
+                                   stream=stream), spec, algorithm)
 
 
 def survey_mount(recording: Recording, selection: TopicSelection, laser_pose=None) -> np.ndarray | None:
@@ -227,13 +230,15 @@ def build(
     judge: bool = True,
     algorithm: str = "cartographer",
     jobs: int | None = None,
+    stream: RecordStream | None = None,
 ) -> MapResult:
     """Map one recording. With ``graph`` (e.g. from a loaded map.carto) the recording becomes trajectory
     ``trajectory_id`` of that graph, linked to the earlier ones by loop closures, as Cartographer's
     offline node does with --load_state_filename. ``algorithm`` "gmapping" maps with the particle filter
     (``options.gmapping``) instead of Cartographer. ``jobs``: threads where work is independent (Cartographer's
     pose graph beside local SLAM and its loop-closure searches, GMapping's particles and final searches; None: every
-    core); the map is the same for any number."""
+    core); the map is the same for any number. ``stream``: the recording's records, read ahead (one pass of it
+    is taken; by default the recording is read here)."""
     wall0 = _time.perf_counter()
     if algorithm not in ALGORITHMS:
         raise CartoError(f"unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
@@ -263,7 +268,9 @@ def build(
 
     content = ContentCheck()
     try:
-        for record in _timed(content.filter(selected_records(recording, selection, topics)), slam.timer):
+        records = (stream.records(topics, slam.timer) if stream is not None
+                   else selected_records(recording, selection, topics))
+        for record in _timed(content.filter(records), slam.timer):
             if isinstance(record, Scan):
                 if max_scans is not None and slam.num_scans >= max_scans:
                     break

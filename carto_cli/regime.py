@@ -27,6 +27,7 @@ from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.io.content import ContentCheck
+from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import Recording
 from carto_cli.io.topics import TopicSelection, selected_records
 
@@ -161,17 +162,19 @@ def _scan_to_scan(scans: list[Scan]) -> np.ndarray:
 
 
 def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = SURVEY_SCANS,
-           check_odometry: bool = True, laser_pose=None, timer=None) -> Regime:
+           check_odometry: bool = True, laser_pose=None, timer=None, stream: RecordStream | None = None) -> Regime:
     """Read up to ``max_scans`` scans (and the odometry alongside) and measure the recording's regime. With
     ``check_odometry``, key scans with odometry are also matched to measure the odometry's error (the particle
     filter's motion model is sized from it; about a second); ``laser_pose``: the laser's mount on the robot, as
     mapping resolves it (``pipeline.resolve_laser_pose``; None: at the robot's origin); ``timer``: where the
-    check's kernels are warmed up (compiled on a fresh install: the ``jit warm-up`` stage)."""
+    check's kernels are warmed up (compiled on a fresh install: the ``jit warm-up`` stage); ``stream``: the
+    recording's records as mapping will read them (what the survey reads is then not decoded twice)."""
     topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
     scans: list[Scan] = []
     odometry: list[Odometry] = []
     # What mapping will not use (io.content) must not shape the settings either; mapping reports it.
-    for record in ContentCheck().filter(selected_records(recording, selection, topics)):
+    records = stream.prefix(topics) if stream is not None else selected_records(recording, selection, topics)
+    for record in ContentCheck().filter(records):
         if isinstance(record, Scan):
             if len(scans) >= max_scans:
                 break

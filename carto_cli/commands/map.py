@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
 from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
 from carto_cli.io.map_image import render_png, write_map, write_png
+from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
 from carto_cli.pipeline import Auto, Configured, MapResult, build_configured, configure, opened, read_options
@@ -129,13 +131,17 @@ def run_map(
     trajectory_id = 0
     recordings = [Path(recording_path).name]
     with opened(recording_path, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic,
-                imu_topic=imu_topic, odom_frame=odom_frame, base_frame=base_frame) as source:
+                imu_topic=imu_topic, odom_frame=odom_frame, base_frame=base_frame) as source, ExitStack() as stack:
         # --no-odometry: the survey must not count on odometry local SLAM will not get.
         surveyed = source.selection if use_odometry else dataclasses.replace(source.selection, odometry=None)
+        # Started first: with two jobs or more the records are decoded in a child while this process loads its
+        # kernels, surveys and maps (io.read_ahead).
+        stream = stack.enter_context(RecordStream(source.recording, surveyed, surveyed.topics, jobs=jobs))
         # Before the survey, which needs the matchers: on a cold cache every kernel the run will use is compiled
         # here at once, on every core (GMapping's only if it was asked for: auto rarely picks it).
         kernels.warm_up(timer, systems=(algorithm or "cartographer",))
-        configured = configure(options, source.recording, surveyed, algorithm, laser_pose, timer=timer)
+        configured = configure(options, source.recording, surveyed, algorithm, laser_pose, timer=timer,
+                               stream=stream)
         if on_configured is not None:
             on_configured(configured)
         if load_state is not None:
@@ -151,7 +157,7 @@ def run_map(
         result, configured = build_configured(
             source.recording, configured, options, selection=source.selection, laser_pose=laser_pose, timer=timer,
             on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure, graph=graph,
-            trajectory_id=trajectory_id, jobs=jobs)
+            trajectory_id=trajectory_id, jobs=jobs, stream=stream)
         if configured is not chosen and on_configured is not None:
             on_configured(configured)  # auto fell back to another system: say so
         result.regime, result.auto, result.options = configured.regime, configured.auto, configured.options

@@ -13,6 +13,7 @@ from carto_cli.core.timing import StageTimer
 from carto_cli.evaluation.gates import GateResult, compare_profiles
 from carto_cli.evaluation.profiling import build_report, calibrate, merge_repeats
 from carto_cli.io.atomic import write_text_atomic
+from carto_cli.io.read_ahead import RecordStream
 from carto_cli.options import Options
 from carto_cli.pipeline import Auto, build_configured, configure, opened, read_options
 
@@ -88,8 +89,10 @@ def run_profile(
     calibration = calibrate() if calibrate_first else None
     runs = []
     with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic, odom_frame=odom_frame,
-                base_frame=base_frame) as source:
-        configured = configure(options, source.recording, source.selection, algorithm)
+                base_frame=base_frame) as source, RecordStream(source.recording, source.selection,
+                                                               source.selection.topics, jobs=jobs) as stream:
+        # The records as `carto map` reads them (io.read_ahead); each repeat is a pass of its own.
+        configured = configure(options, source.recording, source.selection, algorithm, stream=stream)
         algorithm = configured.algorithm
         check_baseline(algorithm)
         total = source.scan_count
@@ -99,7 +102,8 @@ def run_profile(
         for _ in range(repeat):
             timer = StageTimer(cpu_clock=time.process_time_ns)
             result, configured = build_configured(source.recording, chosen, options, selection=source.selection,
-                                                  timer=timer, on_scan=on_scan, max_scans=max_scans, jobs=jobs)
+                                                  timer=timer, on_scan=on_scan, max_scans=max_scans, jobs=jobs,
+                                                  stream=stream)
             timer.stop()
             runs.append(build_report(result, timer, configured.options, recording, calibration))
     report = merge_repeats(runs)

@@ -6,6 +6,8 @@ in that order produces the same output with one worker or many.
 from __future__ import annotations
 
 import os
+import sys
+import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Generic, TypeVar
@@ -32,6 +34,13 @@ def available_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
         return max(1, os.cpu_count() or 1)
+
+
+def fork_safe() -> bool:
+    """Whether a forked child can do Python work: fork copies only the calling thread, so a lock another thread
+    of ours holds at that moment would stay held in the child for ever."""
+    # Linux only: macOS has fork, but its system libraries are not safe to use in a forked child.
+    return sys.platform.startswith("linux") and threading.active_count() == 1
 
 
 def map_ordered(fn: Callable[[T], R], items: Iterable[T], jobs: int | None = None) -> list[R]:

@@ -112,6 +112,14 @@ class Recording(ABC):
         """Scan / Odometry / Imu records of the given topics (all supported ones when None), in time order; a
         dynamic TF topic (/tf) asked for by name gives a Transform record per transform it carries."""
 
+    def independent(self) -> Recording | None:
+        """The same recording read through handles of its own, for a forked child to read while this process goes
+        on using this one (a file offset shared across fork would move under both); None when there is nothing
+        to gain by reading ahead in another process (records already in memory)."""
+        from carto_cli.io.sources.open import open_recording  # the sources import this module
+
+        return open_recording(self.path, self.options)
+
     def preferred_topic(self, kind: str) -> str | None:
         """The topic a format designates for ``kind`` when it has several (CARMEN's scan-time odometry)."""
         return None

@@ -16,7 +16,6 @@ import os
 import pickle
 import queue
 import signal
-import sys
 import threading
 import time as _time
 from collections.abc import Callable
@@ -26,7 +25,7 @@ import numpy as np
 
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import give_back, peak_kb, reset_peak, status_kb
-from carto_cli.core.parallel import available_cores
+from carto_cli.core.parallel import available_cores, fork_safe
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
 from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
@@ -110,13 +109,6 @@ class _Background:
         seen = error is self._last_raised
         self._last_raised = error
         return seen
-
-
-def _forkable() -> bool:
-    """Whether a forked child can run the graph: fork copies only the calling thread, so a lock another thread
-    of ours holds at that moment would stay held in the child for ever."""
-    # Linux only: macOS has fork, but its system libraries are not safe to use in a forked child.
-    return sys.platform.startswith("linux") and threading.active_count() == 1
 
 
 class _GraphProcess:
@@ -300,7 +292,7 @@ class Slam:
         self.graph_process_peak_memory_mb = 0.0
         self.graph_runs = "inline"  # where the graph runs: inline (one job) | thread | process
         if self.jobs > 1 and loop_closure:
-            if process and _forkable():
+            if process and fork_safe():
                 self._process = _GraphProcess(self.graph, self.jobs, self.timer.concurrent("global"))
                 self.graph_runs = "process"
             else:
