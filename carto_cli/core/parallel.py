@@ -43,6 +43,22 @@ def fork_safe() -> bool:
     return sys.platform.startswith("linux") and threading.active_count() == 1
 
 
+def die_with_parent(parent: int) -> None:
+    """In a forked child: be killed when ``parent`` (the process that forked this one) dies, even by SIGKILL,
+    which runs no clean-up there; a child blocked on a pipe it shares with its dead parent would wait for ever.
+    Linux only (prctl's PR_SET_PDEATHSIG); elsewhere nothing is forked."""
+    import ctypes
+    import signal
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent died before the request was made
+        os._exit(1)
+
+
 def map_ordered(fn: Callable[[T], R], items: Iterable[T], jobs: int | None = None) -> list[R]:
     """``[fn(x) for x in items]``, on ``jobs`` threads (None: every available core)."""
     items = list(items)

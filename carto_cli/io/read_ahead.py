@@ -23,7 +23,7 @@ from collections.abc import Generator, Iterable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
 from carto_cli.core.errors import CartoError
-from carto_cli.core.parallel import available_cores, fork_safe
+from carto_cli.core.parallel import available_cores, die_with_parent, fork_safe
 from carto_cli.core.records import Record
 from carto_cli.core.timing import NullTimer
 from carto_cli.io.recording import Recording
@@ -63,11 +63,11 @@ class RecordStream:
             self._pass = self._begin()
 
     def _begin(self) -> Iterator[Record]:
-        source = self.recording.independent() if self._ahead and fork_safe() else None
-        if source is None:
-            records = selected_records(self.recording, self.selection, self.topics)
+        records: Iterator[Record]
+        if self._ahead and not self.recording.in_memory and fork_safe():
+            records = _read_in_child(self.recording, self.selection, self.topics)
         else:
-            records = _read_in_child(source, self.selection, self.topics, self.recording)
+            records = selected_records(self.recording, self.selection, self.topics)
         self._started.append(records)
         return records
 
@@ -134,16 +134,17 @@ class RecordStream:
         self.close()
 
 
-def _read_in_child(source: Recording, selection: TopicSelection, topics: list[str],
-                   recording: Recording) -> _ChildRecords:
+def _read_in_child(recording: Recording, selection: TopicSelection, topics: list[str]) -> _ChildRecords:
     """Fork the child now; the records it sends, as they come. Its warnings about the file (what the reader
     worked around) are added to ``recording``'s at the end, where reading here would have added them."""
     import multiprocessing  # only when reading ahead
 
+    recording.before_fork()
     ctx = multiprocessing.get_context("fork")
     receive, send = ctx.Pipe(duplex=False)
     _widen(send)
-    process = ctx.Process(target=_serve, args=(source, selection, topics, send), name="carto-read", daemon=True)
+    process = ctx.Process(target=_serve, args=(recording, selection, topics, send, receive, os.getpid()),
+                          name="carto-read", daemon=True)
     process.start()
     send.close()
     return _ChildRecords(process, receive, recording)
@@ -207,8 +208,11 @@ class _ChildRecords:
         self._process.join()
 
 
-def _serve(source: Recording, selection: TopicSelection, topics: list[str], send: Connection) -> None:
+def _serve(recording: Recording, selection: TopicSelection, topics: list[str], send: Connection,
+           parents_end: Connection, parent: int) -> None:
     """The child: decode, send batches of records, then the file's new warnings and the time it took."""
+    die_with_parent(parent)
+    parents_end.close()  # else a write to a full pipe would wait for this process itself to read it
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C stops
     clock = time.perf_counter_ns
     batch: list[Record] = []
@@ -217,7 +221,9 @@ def _serve(source: Recording, selection: TopicSelection, topics: list[str], send
         send.send_bytes(pickle.dumps(("records", batch), protocol=pickle.HIGHEST_PROTOCOL))
         batch.clear()
 
+    source = recording
     try:
+        source = recording.independent()
         already = len(source.warnings)
         spent = count = 0
         start = clock()

@@ -112,10 +112,17 @@ class Recording(ABC):
         """Scan / Odometry / Imu records of the given topics (all supported ones when None), in time order; a
         dynamic TF topic (/tf) asked for by name gives a Transform record per transform it carries."""
 
-    def independent(self) -> Recording | None:
-        """The same recording read through handles of its own, for a forked child to read while this process goes
-        on using this one (a file offset shared across fork would move under both); None when there is nothing
-        to gain by reading ahead in another process (records already in memory)."""
+    #: Records a program holds already (nothing to decode): reading them ahead in another process would only copy
+    #: them there and back.
+    in_memory = False
+
+    def before_fork(self) -> None:  # noqa: B027 - most readers have nothing to prepare
+        """Load here what a forked child reading this recording would otherwise load on its own (a kernel: numba's
+        start-up costs a process half a second)."""
+
+    def independent(self) -> Recording:
+        """In a forked child: the same recording read through handles of its own, while the parent goes on
+        using this one (a file offset shared across fork would move under both)."""
         from carto_cli.io.sources.open import open_recording  # the sources import this module
 
         return open_recording(self.path, self.options)

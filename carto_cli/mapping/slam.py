@@ -25,7 +25,7 @@ import numpy as np
 
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import give_back, peak_kb, reset_peak, status_kb
-from carto_cli.core.parallel import available_cores, fork_safe
+from carto_cli.core.parallel import available_cores, die_with_parent, fork_safe
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
 from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
@@ -132,7 +132,8 @@ class _GraphProcess:
         ctx = multiprocessing.get_context("fork")
         self._inbox = ctx.Queue(maxsize=BACKLOG)
         self._reply, child_end = ctx.Pipe(duplex=False)
-        self._process = ctx.Process(target=_serve_graph, args=(graph, jobs, timer, self._inbox, child_end),
+        self._process = ctx.Process(target=_serve_graph, args=(graph, jobs, timer, self._inbox, child_end,
+                                                               os.getpid()),
                                     name="carto-global", daemon=True)
         self._process.start()
         reset_peak()
@@ -210,8 +211,9 @@ class _GraphProcess:
         return CartoError(f"the pose graph's process ended unexpectedly, exit code {code}{why}")
 
 
-def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply) -> None:
+def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply, parent: int) -> None:
     """The child's loop (see _GraphProcess): run the calls, send the graph's data back, exit."""
+    die_with_parent(parent)  # its inbox's pipe is this process's too: a killed parent would leave it waiting
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C stops
     # A forked child starts with the parent's pages, shared until written: what it adds is its peak beyond them.
     inherited_kb = status_kb("VmRSS")

@@ -309,11 +309,36 @@ def test_default_output_names_keep_the_whole_name(tmp_path, name, want):
     assert default_outdir(tmp_path / name) == tmp_path / want
 
 
+def left_running(out, wait_s: float = 10.0) -> list[int]:
+    """Processes still running whose command line names ``out`` (forked children share their parent's), after
+    up to ``wait_s`` for them to go."""
+    import os
+    import time
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        pids = []
+        for entry in os.listdir("/proc"):
+            try:
+                with open(f"/proc/{entry}/cmdline", "rb") as f:
+                    line = f.read()
+                with open(f"/proc/{entry}/stat") as f:
+                    zombie = f.read().rsplit(")", 1)[1].split()[0] == "Z"
+            except OSError:  # not a process, or gone
+                continue
+            if str(out).encode() in line.split(b"\0") and not zombie:
+                pids.append(int(entry))
+        if not pids or time.monotonic() > deadline:
+            return pids
+        time.sleep(0.1)
+
+
 def test_sigkill_at_any_moment_leaves_no_partial_output(tmp_path):
     """`carto map` killed with SIGKILL at ten moments from start-up to the writing of the outputs: the output
     directory holds either nothing or a whole set identical to an uninterrupted run's, and where the kill left
     anything (a staging directory, a whole set), the next run (with --force) finishes and leaves no temporary
-    directory behind. (Where it left no directory, the next run is a first run; the reference is one.)"""
+    directory behind. (Where it left no directory, the next run is a first run; the reference is one.) No process
+    of the killed run stays behind (its forked children once waited for ever on a pipe)."""
     import random
     import signal
     import subprocess
@@ -338,6 +363,7 @@ def test_sigkill_at_any_moment_leaves_no_partial_output(tmp_path):
         time.sleep(rng.uniform(0.05, 1.1) * full)  # from start-up to after the end
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=60)
+        assert left_running(out) == [], k  # the forked reader and pose graph die with it
         visible = sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) if out.exists() else []
         assert visible in ([], sorted(names)), (k, visible)
         for n in want if visible else ():
@@ -373,3 +399,24 @@ def test_a_full_disk_is_one_line_and_keeps_the_earlier_map(tmp_path, sim_bag, mo
     assert [line for line in r.stderr.splitlines() if "error" in line] == [
         f"carto: error: {out}: cannot write the outputs: No space left on device; the earlier outputs are kept"]
     assert _snapshot(out) == before
+
+
+def test_two_jobs_decode_the_recording_in_a_process_of_their_own(sim_bag, tmp_path):
+    """With two jobs the records come from a reading process (its time shows as the concurrent stage ``read
+    ahead``) and the map is the one a single job makes."""
+    from carto_cli.commands.map import run_map
+    from carto_cli.core.timing import StageTimer
+    from carto_cli.io.read_ahead import STAGE
+    from carto_cli.options import load_options
+
+    bag, sim = sim_bag
+    options = load_options(None, FAST[1:])
+    runs = {}
+    for jobs in (1, 2):
+        timer = StageTimer()
+        _, outputs = run_map(bag, tmp_path / str(jobs), options, timer=timer, state=False, jobs=jobs)
+        runs[jobs] = (timer.snapshot().find(f"{STAGE}/read recording"), outputs.trajectory.read_bytes(),
+                      outputs.pgm.read_bytes())
+    assert runs[1][0] is None and runs[2][0] is not None
+    assert runs[2][0].count >= sim.counts()["/scan"]  # every record the pass read, decoded over there
+    assert runs[1][1:] == runs[2][1:]

@@ -155,8 +155,10 @@ def test_stopping_early_stops_the_child(tmp_path):
 class WarnsWhileReading(MemoryRecording):
     """A reader that works around something in the middle of the file (as a damaged bag's reader might)."""
 
+    in_memory = False  # read in a child all the same
+
     def independent(self) -> WarnsWhileReading:
-        return self  # in memory, but read in the child all the same
+        return self
 
     def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
         for i, record in enumerate(super().records(topics)):

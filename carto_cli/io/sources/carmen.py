@@ -514,12 +514,11 @@ class CarmenRecording(Recording):
         s = self._survey()
         return {topic: src for topic in TOPIC_SOURCES if (src := s.source(topic)) is not None}
 
+    def before_fork(self) -> None:
+        decimals("0")  # the numbers' kernel: a child inherits it instead of paying numba's start-up again
+
     def independent(self) -> CarmenRecording:
-        # Every pass opens the file anew: nothing is shared (and the survey of the file is kept). The numbers'
-        # kernel is loaded first, so that the child inherits it: its own first kernel would cost it numba's
-        # start-up, half a second of a core this process is using too.
-        decimals("0")
-        return self
+        return self  # every pass opens the file anew: nothing is shared (and the survey of the file is kept)
 
     def preferred_topic(self, kind: str) -> str | None:
         # The pose in each laser line was logged with that scan, so it needs no interpolation; in

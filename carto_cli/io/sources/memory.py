@@ -22,6 +22,7 @@ class MemoryRecording(Recording):
     """
 
     format = "memory"
+    in_memory = True
 
     def __init__(self, records: Iterable[Record], static_transforms: Sequence[Transform] = (), *,
                  name: str = "memory", options: ReadOptions | None = None):
@@ -48,8 +49,6 @@ class MemoryRecording(Recording):
     def static_transforms(self) -> list[Transform]:
         return list(self._static)
 
-    def independent(self) -> None:
-        return None  # decoded already: another process would only copy the records back
 
     def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
         available = {t for t, _ in self._records}
