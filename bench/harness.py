@@ -398,6 +398,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     from carto_cli.core.timing import StageTimer, report_json, report_tree_text
     from carto_cli.evaluation.metrics import Relations, ate, read_relations, relation_error
     from carto_cli.io.map_image import render_png, write_png
+    from carto_cli.io.read_ahead import RecordStream
     from carto_cli.io.sources.open import open_recording
     from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
@@ -424,10 +425,10 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
         recording = open_recording(case.path, read_options(spec))
     info["setup_s"] = time.perf_counter() - t0
 
-    with recording as rec:
-        selection = select_topics(rec)
+    with recording as rec, RecordStream(rec, (selection := select_topics(rec)), selection.topics) as stream:
+        # Read as `carto map` reads (io.read_ahead): decoded beside mapping, the survey's look replayed.
         t_survey = time.perf_counter()
-        configured = configure(spec, rec, selection, algorithm)
+        configured = configure(spec, rec, selection, algorithm, stream=stream)
         info["survey_s"] = time.perf_counter() - t_survey
         if configured.auto is not None:
             info["auto"] = {"regime": configured.regime.to_dict(), "describe": configured.regime.describe(),
@@ -436,7 +437,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
         total = next((t.count for t in rec.topics() if t.name == selection.scan), None)
         timer = StageTimer()
         result, configured = build_configured(rec, configured, spec, selection=selection, timer=timer,
-                                              on_scan=_progress(case, total), max_scans=max_scans)
+                                              on_scan=_progress(case, total), max_scans=max_scans, stream=stream)
         algorithm = configured.algorithm
         if configured.auto is not None:
             info["auto"]["note"] = configured.auto.note
