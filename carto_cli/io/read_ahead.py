@@ -5,7 +5,8 @@ the mapping process (dense-freiburg-079: 4.5 s of 29), and the interpreter lock 
 beside local SLAM. With two jobs or more on Linux a forked child decodes the records and sends them over a
 pipe in batches while the caller maps (as ``rosbag play`` does in a node of its own); the pipe's buffer bounds
 what waits there, so memory does not grow with the recording. The child starts when the stream is made, so
-it decodes while the caller loads its kernels. One job, or a recording already in memory: read here.
+it decodes while the caller loads its kernels. One job, or a recording that is not a file reader's (records
+already in memory, a simulation): read here.
 
 The survey looks at the first records before mapping starts; :meth:`RecordStream.prefix` keeps what it
 took, and the mapping pass (:meth:`RecordStream.records`) replays that before reading on, so the start of
@@ -64,7 +65,7 @@ class RecordStream:
 
     def _begin(self) -> Iterator[Record]:
         records: Iterator[Record]
-        if self._ahead and not self.recording.in_memory and fork_safe():
+        if self._ahead and self.recording.read_ahead and fork_safe():
             records = _read_in_child(self.recording, self.selection, self.topics)
         else:
             records = selected_records(self.recording, self.selection, self.topics)

@@ -112,9 +112,10 @@ class Recording(ABC):
         """Scan / Odometry / Imu records of the given topics (all supported ones when None), in time order; a
         dynamic TF topic (/tf) asked for by name gives a Transform record per transform it carries."""
 
-    #: Records a program holds already (nothing to decode): reading them ahead in another process would only copy
-    #: them there and back.
-    in_memory = False
+    #: Whether a forked child may decode this recording (through :meth:`independent`) while this process maps:
+    #: the file readers say so; records a program holds already (nothing to decode) are read where they are, and
+    #: so is any reader that does not say it can be opened twice.
+    read_ahead = False
 
     def before_fork(self) -> None:  # noqa: B027 - most readers have nothing to prepare
         """Load here what a forked child reading this recording would otherwise load on its own (a kernel: numba's

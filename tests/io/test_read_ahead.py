@@ -103,15 +103,22 @@ def test_the_survey_s_prefix_is_replayed_not_read_twice(tmp_path, jobs):
     assert scans_only == plain(log, [selection.scan])
 
 
-def test_each_topic_keeps_its_place_among_the_others(tmp_path):
-    """A pass filters the stream of every topic: the same order as reading the topics asked for alone."""
-    bag = tmp_path / "rec.bag"
-    write_recording(memory_records(), bag, "ros1")
+@pytest.mark.parametrize("fmt, name", [("ros1", "rec.bag"), ("ros2-sqlite3", "rec_db3"), ("ros2-mcap", "rec_mcap"),
+                                       ("mcap", "rec.mcap")])
+def test_each_topic_keeps_its_place_among_the_others(tmp_path, fmt, name):
+    """Every file format is read by a child, through a reader of its own; a pass filters the stream of every
+    topic: the same order as reading the topics asked for alone."""
+    bag = tmp_path / name
+    write_recording(memory_records(), bag, fmt)
     with open_recording(bag) as rec:
         selection = select_topics(rec, imu_topic="/imu")
         assert selection.imu == "/imu"
         with RecordStream(rec, selection, selection.topics, jobs=2) as stream:
-            without_imu = keys(stream.records([selection.scan, "/odom"]))
+            records = stream.records([selection.scan, "/odom"])
+            first = [key(next(records))]
+            assert len(children()) == 1
+            without_imu = first + keys(records)
+            assert rec.static_transforms() == rec.static_transforms()  # this process's reader is its own still
     assert without_imu == plain(bag, ["/scan", "/odom"])
     assert {k[1] for k in without_imu} == {"/scan", "/odom"}
 
@@ -155,7 +162,7 @@ def test_stopping_early_stops_the_child(tmp_path):
 class WarnsWhileReading(MemoryRecording):
     """A reader that works around something in the middle of the file (as a damaged bag's reader might)."""
 
-    in_memory = False  # read in a child all the same
+    read_ahead = True  # in memory, but read in a child all the same
 
     def independent(self) -> WarnsWhileReading:
         return self

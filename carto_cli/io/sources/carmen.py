@@ -469,6 +469,7 @@ class CarmenRecording(Recording):
     """A CARMEN log; see the module docstring for topics, angles and time order."""
 
     format = "carmen"
+    read_ahead = True
 
     def __init__(self, path: Path, options: ReadOptions | None = None):
         super().__init__(path, options)

@@ -20,6 +20,7 @@ class McapRecording(Recording):
     """An MCAP file decoded from its own schemas, in log-time order."""
 
     format = "mcap"
+    read_ahead = True
 
     def __init__(self, path: Path, options: ReadOptions | None = None):
         super().__init__(path, options)

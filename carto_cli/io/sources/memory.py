@@ -22,7 +22,6 @@ class MemoryRecording(Recording):
     """
 
     format = "memory"
-    in_memory = True
 
     def __init__(self, records: Iterable[Record], static_transforms: Sequence[Transform] = (), *,
                  name: str = "memory", options: ReadOptions | None = None):

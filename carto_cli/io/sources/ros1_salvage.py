@@ -203,6 +203,7 @@ class SalvagedBag(Recording):
     """A ROS1 bag read without its index (see the module's docstring); ``warnings`` says what was recovered."""
 
     format = "ros1"
+    read_ahead = True
 
     def __init__(self, path: Path, options: ReadOptions | None = None, *, why: str | None = None):
         """``why``: what the indexed reader (rosbags) said of the file, when it refused it."""

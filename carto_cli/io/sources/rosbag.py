@@ -58,6 +58,8 @@ def _modernise_definitions_on_open(sub_reader) -> None:
 class RosbagRecording(Recording):
     """A ROS1 bag or a ROS2 bag directory opened with ``rosbags.highlevel.AnyReader``."""
 
+    read_ahead = True
+
     def __init__(self, path: Path, options: ReadOptions | None = None):
         super().__init__(path, options)
         self._reader = None
