@@ -76,7 +76,7 @@ class RecordStream:
         """The records of ``topics`` from the start of the recording, for as long as the caller iterates; what
         is read on the way is kept for :meth:`records` to replay."""
         self.start()
-        wanted = set(topics)
+        wanted = self._covered(topics)
         kept, source = self._kept, self._pass
         assert source is not None
 
@@ -95,7 +95,7 @@ class RecordStream:
         """One whole pass over the records of ``topics``: the first one replays what :meth:`prefix` read and
         reads on; a later one reads the recording again (a second mapping of it). ``timer``: where a child's
         decoding shows, as the concurrent stage ``read ahead``."""
-        wanted = set(topics)
+        wanted = self._covered(topics)
         if self._pass is None:
             self._pass = self._begin()
         source, kept = self._pass, self._kept
@@ -118,6 +118,12 @@ class RecordStream:
                     close()  # mapping stopped early (--max-scans, an error): so does the reading
 
         return read()
+
+    def _covered(self, topics: Iterable[str]) -> set[str]:
+        wanted = set(topics)
+        if not wanted <= set(self.topics):  # a pass of this stream would silently lack them
+            raise ValueError(f"topics {sorted(wanted - set(self.topics))} are not read by this stream")
+        return wanted
 
     def close(self) -> None:
         """Stop every pass's child that is still running (its records are no longer wanted)."""
@@ -245,7 +251,8 @@ def _serve(recording: Recording, selection: TopicSelection, topics: list[str], s
     except BaseException as e:  # handed to the parent, raised after the records read before it
         try:
             message = pickle.dumps(("error", e))
-        except Exception:  # not picklable
+            pickle.loads(message)  # an exception with its own constructor may pickle and not unpickle
+        except Exception:
             message = pickle.dumps(("error", CartoError(f"{type(e).__name__}: {e}", source.path)))
         try:
             if batch:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from carto_cli.core.errors import FormatError
+from carto_cli.core.errors import CartoError, FormatError
 from carto_cli.core.records import Imu, Odometry, Record, Scan
 from carto_cli.core.timing import StageTimer
 from carto_cli.io.read_ahead import BATCH, STAGE, RecordStream
@@ -193,3 +193,45 @@ def test_a_recording_in_memory_is_read_here():
         assert children() == []
         assert len(list(stream.records(selection.topics, timer))) == 30
     assert timer.snapshot().find(STAGE) is None
+
+
+class Unpicklable(Exception):
+    """Pickles, but does not unpickle: its constructor wants two arguments and pickle passes one."""
+
+    def __init__(self, what: str, where: int):
+        super().__init__(f"{what} at {where}")
+
+
+class FailsWhileReading(MemoryRecording):
+    read_ahead = True  # read in a child
+
+    def independent(self) -> FailsWhileReading:
+        return self
+
+    def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
+        for i, record in enumerate(super().records(topics)):
+            if i == 5:
+                raise Unpicklable("a reader's own error", i)
+            yield record
+
+
+def test_an_error_that_cannot_cross_is_named_not_lost():
+    rec = FailsWhileReading(memory_records(20))
+    selection = select_topics(rec)
+    with RecordStream(rec, selection, selection.topics, jobs=2) as stream:
+        got = []
+        with pytest.raises(CartoError, match="Unpicklable: a reader's own error at 5"):
+            for record in stream.records(selection.topics):
+                got.append(record)
+    assert len(got) == 5
+
+
+def test_a_pass_may_not_ask_for_topics_the_stream_does_not_read(tmp_path):
+    log = carmen_log(tmp_path / "log.clf")
+    with open_recording(log) as rec:
+        selection = select_topics(rec)
+        with RecordStream(rec, selection, [selection.scan], jobs=1) as stream:
+            with pytest.raises(ValueError, match="not read by this stream"):
+                stream.records([selection.scan, selection.odometry])
+            with pytest.raises(ValueError, match="not read by this stream"):
+                stream.prefix([selection.odometry])

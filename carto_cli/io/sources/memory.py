@@ -48,7 +48,6 @@ class MemoryRecording(Recording):
     def static_transforms(self) -> list[Transform]:
         return list(self._static)
 
-
     def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
         available = {t for t, _ in self._records}
         wanted = available if topics is None else set(topics)
