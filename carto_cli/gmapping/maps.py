@@ -26,6 +26,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from carto_cli.core.kernels import register_warm_up
+
 TILE_BITS = 5
 TILE = 1 << TILE_BITS  # cells per tile side: 17 KB per tile, ~1.6 m at the default delta
 TILE_MASK = TILE - 1  # cell >> TILE_BITS and cell & TILE_MASK: floor division and modulo, negatives too
@@ -120,15 +122,19 @@ class TiledMaps:
         self.ensure_covers(world_x[0], world_y[0], world_x[1], world_y[1])
         ox, oy = self.tile_origin
         span = self.resolution * TILE
-        _mark_tiles(self.marks, poses, float(origin[0]), float(origin[1]), ends, span, ox, oy)
+        lx, ly = float(origin[0]), float(origin[1])
+        _mark_tiles(self.marks, poses, lx, ly, ends, span, ox, oy)
         needed = _count_needed(self.table, self.marks, self.refs)
         if needed > self._nfree:
             self._grow_pool(needed - self._nfree)
         self._nfree, sources, targets = _claim_tiles(self.table, self.marks, self.refs, self._free, self._nfree,
                                                      needed)
-        _fill_tiles(sources, targets, self.hits, self.visits, self.mean, self.state)
-        _update_cells(self.table, self.marks, self.hits, self.visits, self.mean, self.state, poses, float(origin[0]),
-                      float(origin[1]), ends, np.ascontiguousarray(hit, dtype=np.bool_), self.resolution, ox, oy)
+        # The kernels get the pool's cells flat: reshaping or slicing them there compiled numba's shape checks and
+        # their messages (13 s of a fresh install's compiling for the tile copy alone)
+        flat = _flat(self.hits), _flat(self.visits), _flat(self.mean), _flat(self.state)
+        _fill_tiles(sources, targets, *flat)
+        _update_cells(self.table, self.marks, *flat, poses, lx, ly, ends, np.ascontiguousarray(hit, dtype=np.bool_),
+                      self.resolution, ox, oy)
         self.peak_tiles = max(self.peak_tiles, self.tiles_in_use)
 
     def _grow_pool(self, at_least: int) -> None:
@@ -165,6 +171,25 @@ class TiledMaps:
         """Mean binary entropy (bits) of ``particle``'s known cells: 0 when every cell is certain, 1 when every
         known cell is as often hit as crossed."""
         return float(_entropy(self.table[particle], self.hits, self.visits))
+
+
+@register_warm_up(system="gmapping")
+def warm_up() -> None:
+    """The map update's kernels, and reading a map, on a toy scan into two particles' maps."""
+    maps = TiledMaps(2, 0.05, capacity=4)
+    angles = np.linspace(-1.5, 1.5, 32)
+    ends = np.stack([2.0 * np.cos(angles), 2.0 * np.sin(angles)], axis=1)
+    maps.insert(np.zeros((2, 3)), np.zeros(2), ends, np.ones(32, bool))
+    maps.occupancy(0)
+    maps.entropy(0)
+
+
+def _flat(a: np.ndarray) -> np.ndarray:
+    """``a`` as one axis, the same memory: the kernels write through it (reshape would copy an array that is not
+    contiguous; setting the shape raises instead)."""
+    v = a.view()
+    v.shape = (a.size,)
+    return v
 
 
 def _grown(a: np.ndarray, capacity: int) -> np.ndarray:
@@ -308,20 +333,27 @@ def _claim_tiles(table, marks, refs, free, nfree, needed):
 
 @njit(cache=True, parallel=True)
 def _fill_tiles(sources, targets, hits, visits, mean, state):
-    """Tile targets[i] becomes a copy of sources[i] (an empty tile where the source is -1). No target is
-    anyone's source: a target was free, a source is still held."""
+    """Tile targets[i] becomes a copy of sources[i] (an empty tile where the source is -1), the pool's arrays flat.
+    No target is anyone's source: a target was free, a source is still held."""
+    cells = TILE * TILE
     for i in prange(targets.shape[0]):
         t, fresh = sources[i], targets[i]
+        to = fresh * cells
         if t < 0:
-            hits[fresh] = 0
-            visits[fresh] = 0
-            mean[fresh] = 0.0
-            state[fresh] = UNKNOWN
+            for c in range(cells):
+                hits[to + c] = 0
+                visits[to + c] = 0
+                mean[2 * (to + c)] = 0.0
+                mean[2 * (to + c) + 1] = 0.0
+                state[to + c] = UNKNOWN
         else:
-            hits[fresh] = hits[t]
-            visits[fresh] = visits[t]
-            mean[fresh] = mean[t]
-            state[fresh] = state[t]
+            fr = t * cells
+            for c in range(cells):
+                hits[to + c] = hits[fr + c]
+                visits[to + c] = visits[fr + c]
+                mean[2 * (to + c)] = mean[2 * (fr + c)]
+                mean[2 * (to + c) + 1] = mean[2 * (fr + c) + 1]
+                state[to + c] = state[fr + c]
 
 
 @njit(cache=True, inline="always")
@@ -355,16 +387,13 @@ def _own_tile(table, marks, p, h, w, tx, ty):
 
 
 @njit(cache=True, parallel=True)
-def _update_cells(table, marks, hits, visits, mean, state, poses, lx, ly, ends, hit, res, ox, oy):
-    """Every particle's rays into its own tiles. The cells are those ``traverse`` gives (the last one always the
-    ray's end cell), walked here without a buffer, the tile looked up only when the walk leaves one: the map
-    update is a fifth to a third of the filter's time (edmonton's 51 m beams cross ~1,000 cells each)."""
+def _update_cells(table, marks, fh, fv, fm, fs, poses, lx, ly, ends, hit, res, ox, oy):
+    """Every particle's rays into its own tiles (the pool's arrays flat). The cells are those
+    ``traverse`` gives (the last one always the ray's end cell), walked here without a buffer, the tile looked up
+    only when the walk leaves one: the map update is a fifth to a third of the filter's time (edmonton's 51 m beams
+    cross ~1,000 cells each)."""
     n_particles = poses.shape[0]
     h, w = table.shape[1], table.shape[2]
-    fh = hits.reshape(-1)
-    fv = visits.reshape(-1)
-    fm = mean.reshape(-1)
-    fs = state.reshape(-1)
     for p in prange(n_particles):
         sx, sy, world = _rays_in_world(poses[p], lx, ly, ends)
         for i in range(ends.shape[0]):
@@ -398,7 +427,9 @@ def _update_cells(table, marks, hits, visits, mean, state, poses, lx, ly, ends, 
             last = _own_tile(table, marks, p, h, w, (ex >> TILE_BITS) - ox, (ey >> TILE_BITS) - oy)
             if last >= 0:
                 _touch(fh, fv, fm, fs, last + ((ey & TILE_MASK) << TILE_BITS) + (ex & TILE_MASK), hit[i], x1, y1)
-        marks[p, :, :] = 0
+        for ty in range(h):
+            for tx in range(w):
+                marks[p, ty, tx] = 0
 
 
 @njit(cache=True)
