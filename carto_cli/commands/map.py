@@ -62,8 +62,9 @@ def write_outputs(result: MapResult, outdir: Path, options: Options | None = Non
 
 
 def default_outdir(recording_path: Path) -> Path:
-    """``NAME_map`` next to the recording, NAME its whole name without the recording's suffixes
-    (robot.2024.05.01.bag -> robot.2024.05.01_map, scans.clf.gz -> scans_map)."""
+    """``NAME_map`` in the current directory, NAME the recording's whole name without its suffixes
+    (robot.2024.05.01.bag -> robot.2024.05.01_map, scans.clf.gz -> scans_map). The current directory, as
+    rosbag's and ros2 bag's tools write theirs: recordings often sit on a read-only share or a robot's disk."""
     recording_path = Path(recording_path)
     name = recording_path.name.rstrip("/")
     while True:
@@ -71,7 +72,7 @@ def default_outdir(recording_path: Path) -> Path:
         if cut is None:
             break
         name = name[:-len(cut)]
-    return recording_path.parent / f"{name}_map"
+    return Path(f"{name}_map")
 
 
 def check_outdir(outdir: Path, *, force: bool = False) -> None:

@@ -254,7 +254,7 @@ class TrackRun:
 
 
 def default_track_dir(recording: Path) -> Path:
-    """``NAME_track`` next to the recording (NAME as for ``carto map``'s ``NAME_map``)."""
+    """``NAME_track`` in the current directory (NAME as for ``carto map``'s ``NAME_map``)."""
     from carto_cli.commands.map import default_outdir
 
     out = default_outdir(recording)

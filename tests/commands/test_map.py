@@ -1,6 +1,7 @@
 """`carto map` end to end through the CLI: outputs, their formats, --load-state, --no-state, --algorithm,
 bad input."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -98,7 +99,7 @@ def test_bad_input_leaves_no_outputs(tmp_path, sim_bag):
     assert not out.exists()
 
 
-def test_run_map_as_a_library_call(sim_bag, tmp_path):
+def test_run_map_as_a_library_call(sim_bag, tmp_path, monkeypatch):
     from carto_cli.commands.map import compile_note, default_outdir, run_map, summary_line
     from carto_cli.core.timing import StageTimer
     from carto_cli.options import load_options
@@ -106,11 +107,13 @@ def test_run_map_as_a_library_call(sim_bag, tmp_path):
     bag, sim = sim_bag
     copy = tmp_path / "drive.2024.bag"
     copy.write_bytes(bag.read_bytes())
-    assert default_outdir(copy) == tmp_path / "drive.2024_map"
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    assert default_outdir(copy) == Path("drive.2024_map")
     timer, totals = StageTimer(), []
     options = load_options(None, FAST[1:])
     result, outputs = run_map(copy, None, options, timer=timer, on_total=totals.append, state=False)
-    assert outputs.yaml == tmp_path / "drive.2024_map" / "map.yaml" and outputs.state is None
+    assert outputs.yaml.resolve() == tmp_path / "here" / "drive.2024_map" / "map.yaml" and outputs.state is None
     assert totals == [sim.counts()["/scan"]]
     assert timer.snapshot().scans == result.stats["scans"]
     before = timer.snapshot().wall_ns
@@ -306,7 +309,19 @@ def test_a_failed_first_write_leaves_no_directory(tmp_path):
 def test_default_output_names_keep_the_whole_name(tmp_path, name, want):
     from carto_cli.commands.map import default_outdir
 
-    assert default_outdir(tmp_path / name) == tmp_path / want
+    assert default_outdir(tmp_path / name) == Path(want)
+
+
+def test_default_output_folders_are_made_in_the_current_directory(tmp_path, monkeypatch):
+    """Issue 42, item 11: `carto map REC` / `relocalize --track` with no -o wrote next to the recording (often a
+    read-only share or a robot's disk); like rosbag's tools, carto writes where it is run."""
+    from carto_cli.commands.map import default_outdir
+    from carto_cli.commands.relocalize import default_track_dir
+
+    monkeypatch.chdir(tmp_path)
+    recording = Path("/data/robots/run.bag")
+    assert default_outdir(recording).resolve() == tmp_path / "run_map"
+    assert default_track_dir(recording).resolve() == tmp_path / "run_track"
 
 
 def left_running(out, wait_s: float = 10.0) -> list[int]:
