@@ -78,3 +78,26 @@ STATIC_TF = [Transform(parent="base_link", child="laser", translation=(0.2, 0.0,
                        rotation=(0.0, 0.0, math.sin(0.05), math.cos(0.05)))]
 
 
+def sim_carmen_log(path: Path, duration: float = 8.0, gz: bool = False) -> Path:
+    """A CARMEN log of the simulated loop that maps in a second: ODOM at 10 Hz, FLASER (181 beams, the robot's
+    odometry pose at the scan) at 5 Hz, one line per message in time order."""
+    import gzip
+
+    from carto_cli.sim import loop_building, loop_trajectory, simulate
+
+    world = loop_building()
+    sim = simulate(world, loop_trajectory(world), duration=duration, beams=181, fov=math.pi, scan_rate=5.0,
+                   odom_rate=10.0, imu_rate=0.0, dropout=0.0)
+    odom = sim.odometry
+    lines = [(t, f"ODOM {x:.6f} {y:.6f} {yaw:.6f} {vx:.3f} {wz:.3f} 0 {t:.6f} host {t:.6f}")
+             for t, x, y, yaw, vx, wz in odom]
+    for t, ranges in zip(sim.scan_times, sim.scan_ranges()):
+        pose = " ".join(f"{np.interp(t, odom[:, 0], odom[:, i]):.6f}" for i in (1, 2, 3))
+        beams = " ".join(f"{r:.3f}" if np.isfinite(r) else "80.000" for r in ranges)
+        lines.append((t, f"FLASER {len(ranges)} {beams} {pose} {pose} {t:.6f} host {t:.6f}"))
+    text = "".join(line + "\n" for _, line in sorted(lines, key=lambda p: p[0]))
+    if gz:
+        path.write_bytes(gzip.compress(text.encode()))
+    else:
+        path.write_text(text)
+    return path

@@ -61,6 +61,7 @@ class RecordingInfo:
     has_imu: bool
     warnings: list[str]
     auto: dict | None = None  # what `carto map` with no profile would detect and choose
+    auto_unavailable: str | None = None  # why ``auto`` is None: what `carto map` with no flags would stop with
     odometry_source: str | None = None  # where `carto map` takes odometry from: a topic, or TF (odom -> base)
     tf_transforms: list[dict] | None = None  # dynamic TF: the odometry edge and the /tf transforms that never moved
 
@@ -201,11 +202,12 @@ def run_info(path: str | Path, read: ReadOptions | None = None, *,
              on_record: Callable[[], None] | None = None) -> RecordingInfo:
     """Open the recording at ``path`` and summarise it; ``on_total`` hears how many messages will be read."""
     with open_recording(path, read) as rec:
-        auto, selection = _auto(rec)
+        auto, selection, why_not = _auto(rec)
         if on_total is not None:
             on_total(sum(t.count for t in rec.topics() if t.kind in ("scan", "odometry", "imu")))
         info = inspect_recording(rec, on_record=on_record)
         info.auto = auto
+        info.auto_unavailable = why_not
         if selection is not None:
             info.odometry_source = selection.describe_odometry()
             tf = selection.tf_odometry
@@ -217,8 +219,8 @@ def run_info(path: str | Path, read: ReadOptions | None = None, *,
 
 
 def _auto(recording: Recording):
-    """(the regime `carto map` would detect and the settings it would choose, the topics it would read); Nones
-    without scans."""
+    """(the regime `carto map` would detect and the settings it would choose, the topics it would read, None);
+    (None, None, why) when `carto map` with no flags would stop."""
     from carto_cli.core.errors import CartoError
     from carto_cli.io.topics import select_topics
     from carto_cli.pipeline import survey_mount
@@ -227,11 +229,11 @@ def _auto(recording: Recording):
     try:
         selection = select_topics(recording)
         regime = survey(recording, selection, laser_pose=survey_mount(recording, selection))
-    except CartoError:
-        return None, None
+    except CartoError as e:
+        return None, None, e.message
     choice = choose(regime)
     return ({"detected": regime.describe(), "regime": regime.to_dict(), "profile": choice.profile,
-             "settings": choice.settings, "reasons": choice.reasons}, selection)
+             "settings": choice.settings, "reasons": choice.reasons}, selection, None)
 
 
 def _fmt_time(t: float | None) -> str:
@@ -289,6 +291,9 @@ def format_info(info: RecordingInfo) -> str:
         lines.append(f"auto       {info.auto['detected']}")
         lines.append(f"           -> profile {info.auto['profile']}" + "".join(
             f"\n              {setting}" for setting in info.auto["settings"]))
+    elif info.auto_unavailable is not None:
+        lines.append("")
+        lines.append(f"auto       none: {info.auto_unavailable}")
     if info.warnings:
         lines.append("")
         lines.append("warnings")

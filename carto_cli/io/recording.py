@@ -20,6 +20,11 @@ ODOMETRY_TYPES = ("nav_msgs/msg/Odometry",)
 IMU_TYPES = ("sensor_msgs/msg/Imu",)
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 
+# carto's name for the odometry a scan carries with it (a CARMEN laser line's robot pose, at the scan's time):
+# the CARMEN reader gives it, the writers keep it, and the topic chooser takes it when there are several
+# odometry topics, so that a recording carto wrote reads as its source did, in every format.
+SCAN_TIME_ODOMETRY = "/odom_laser"
+
 
 def normalise_type(msgtype: str) -> str:
     """'sensor_msgs/LaserScan' -> 'sensor_msgs/msg/LaserScan' (ROS1 and ROS2 spell it differently)."""
@@ -129,7 +134,8 @@ class Recording(ABC):
         return open_recording(self.path, self.options)
 
     def preferred_topic(self, kind: str) -> str | None:
-        """The topic a format designates for ``kind`` when it has several (CARMEN's scan-time odometry)."""
+        """The topic a format designates for ``kind`` when it has several (the chooser's own convention,
+        ``SCAN_TIME_ODOMETRY``, comes after it)."""
         return None
 
     def close(self) -> None:  # noqa: B027 - a source that holds nothing open keeps this no-op

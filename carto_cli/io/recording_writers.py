@@ -195,8 +195,10 @@ def _write(records, path, fmt, static_transforms, topics, on_record) -> int:
     try:
         build = _Builder(sink.typestore)
         channels = _Channels(sink)
-        for name, source_type in (topics or {}).items():
-            out_type = _OUTPUT_TYPE.get(normalise_type(source_type))
+        declared = [(name, _OUTPUT_TYPE.get(normalise_type(kind))) for name, kind in (topics or {}).items()]
+        # rosbags reads a ROS1 bag's messages of one stamp in the order of their connections, not as written: the
+        # scans' connections last keep an odometry pose stamped with its scan (CARMEN's) ahead of it, as written.
+        for name, out_type in sorted(declared, key=lambda d: d[1] in (LASER_SCAN, POINT_CLOUD2)):
             if out_type is not None:
                 channels.get(name, out_type)
         n = 0

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from carto_cli.core.errors import TopicError
 from carto_cli.core.records import Record
-from carto_cli.io.recording import Recording, TopicInfo, first_scan_frame
+from carto_cli.io.recording import SCAN_TIME_ODOMETRY, Recording, TopicInfo, first_scan_frame
 from carto_cli.io.tf_odometry import TfOdometry, find_tf_odometry, tf_as_odometry
 
 
@@ -52,9 +52,9 @@ def choose_topic(recording: Recording, topics: list[TopicInfo], kind: str, wante
                              recording.path)
         return None
     if len(candidates) > 1:
-        preferred = recording.preferred_topic(kind)
-        if preferred is not None and any(t.name == preferred for t in candidates):
-            return preferred
+        for preferred in (recording.preferred_topic(kind), SCAN_TIME_ODOMETRY if kind == "odometry" else None):
+            if preferred is not None and any(t.name == preferred for t in candidates):
+                return preferred
         names = ", ".join(f"{t.name} ({t.count} msgs)" for t in candidates)
         raise TopicError(f"several {kind} topics, choose one with {_FLAGS[kind]}: {names}", recording.path)
     return candidates[0].name

@@ -87,3 +87,42 @@ def test_the_writer_says_which_topics_it_left_out(tmp_path, written_recordings):
     write_recording(iter([*tf, *records]), source, "ros1", static_transforms=STATIC_TF)
     done = run_convert(source, tmp_path / "out.mcap")  # MCAP: carto's writer
     assert not done.lossless and done.left_out == ("/tf",)
+
+
+@pytest.fixture(scope="module")
+def carmen(tmp_path_factory):
+    from support import sim_carmen_log
+
+    return sim_carmen_log(tmp_path_factory.mktemp("carmen") / "loop.clf")
+
+
+def test_carmen_converted_to_bag_maps_with_no_flags(tmp_path, carmen):
+    from typer.testing import CliRunner
+
+    from carto_cli.cli import app
+
+    bag = run_convert(carmen, tmp_path / "loop.bag").out
+    with open_recording(bag) as rec:
+        assert {"/odom", "/odom_laser"} <= {t.name for t in rec.topics()}  # both kept: nothing is lost
+    r = CliRunner().invoke(app, ["map", str(bag), "-o", str(tmp_path / "map")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "map" / "map.carto").is_file()
+
+
+@pytest.mark.parametrize("fmt, name", [("ros1", "loop.bag"), ("ros2-sqlite3", "db3"), ("ros2-mcap", "ros2mcap"),
+                                       ("mcap", "loop.mcap")])
+def test_carmen_converted_to_every_format_is_read_as_the_log_is(tmp_path, carmen, fmt, name):
+    from carto_cli.commands.info import run_info
+    from carto_cli.io.topics import select_topics
+
+    def order(rec, topics):
+        return [(r.topic, round(r.time, 6)) for r in rec.records(topics)]
+
+    out = run_convert(carmen, tmp_path / name, fmt=fmt).out
+    with open_recording(carmen) as log, open_recording(out) as converted:
+        selection = select_topics(log)
+        assert select_topics(converted) == selection
+        # Each scan's odometry, stamped as the scan, still comes first (what the extrapolator is fed).
+        assert order(converted, selection.topics) == order(log, selection.topics)
+    info = run_info(out)
+    assert info.auto is not None and info.odometry_source == "/odom_laser"

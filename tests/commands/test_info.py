@@ -75,3 +75,24 @@ def test_run_info_opens_the_file_and_announces_what_it_will_read(written_recordi
 def test_run_info_on_a_missing_file(tmp_path):
     with pytest.raises(CartoError, match="no such file"):
         run_info(tmp_path / "missing.bag")
+
+
+def test_info_says_why_auto_cannot_choose(tmp_path):
+    from dataclasses import replace
+
+    from support import STATIC_TF, synthetic_records
+
+    from carto_cli.io.recording_writers import write_recording
+
+    records = synthetic_records(n_scans=5)
+    records += [replace(r, topic="/odometry/filtered") for r in records if isinstance(r, Odometry)]
+    records.sort(key=lambda r: r.time)
+    path = tmp_path / "two_odometries.mcap"
+    write_recording(iter(records), path, "mcap", static_transforms=STATIC_TF,
+                    topics={"/scan": "sensor_msgs/msg/LaserScan", "/odom": "nav_msgs/msg/Odometry",
+                            "/imu": "sensor_msgs/msg/Imu", "/odometry/filtered": "nav_msgs/msg/Odometry"})
+    info = run_info(path)
+    assert info.auto is None
+    assert info.auto_unavailable == ("several odometry topics, choose one with --odom-topic: /odom (25 msgs), "
+                                     "/odometry/filtered (25 msgs)")
+    assert f"auto       none: {info.auto_unavailable}" in format_info(info).splitlines()

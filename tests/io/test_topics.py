@@ -65,3 +65,13 @@ def test_format_preference_breaks_a_tie():
                       ("/odom_laser", "nav_msgs/msg/Odometry", 10)])
     assert select_topics(rec).odometry == "/odom_laser"
     assert select_topics(rec, odom_topic="/odom").odometry == "/odom"
+
+
+def test_the_scan_time_odometry_carto_writes_breaks_a_tie_in_any_recording():
+    # A bag converted from a CARMEN log designates nothing, but carries the log's /odom_laser.
+    scan = ("/scan", "sensor_msgs/msg/LaserScan", 10)
+    rec = FakeRecording([scan, ("/odom", "nav_msgs/msg/Odometry", 50), ("/odom_laser", "nav_msgs/msg/Odometry", 10)])
+    assert select_topics(rec).odometry == "/odom_laser"
+    other = FakeRecording([scan, ("/odom", "nav_msgs/msg/Odometry", 50), ("/odom2", "nav_msgs/msg/Odometry", 10)])
+    with pytest.raises(TopicError, match="several odometry topics, choose one with --odom-topic"):
+        select_topics(other)

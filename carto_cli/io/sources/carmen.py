@@ -57,9 +57,16 @@ scan, stamped 0). ``topics()`` counts what ``records()`` delivers.
 
 Strictness: every line read is checked field by field (counts derived from
 the beam / remission counts, numeric fields, finite timestamp) and a failure
-is a ``FormatError`` naming the file and line. A file cut anywhere loses at
-least one field and is caught that way, unless the cut falls inside the final
-``logger_timestamp``, which carto does not use.
+is a ``FormatError`` naming the file and line: bad content is an error wherever
+it is. A file cut short is not bad content: as a bag or an MCAP file cut short,
+it is read up to the cut with one warning in ``Recording.warnings`` (the
+messages recovered). The cut is where the file ends: a last line without its
+end of line that does not parse (a cut anywhere loses at least one field,
+unless it falls inside the final ``logger_timestamp``, which carto does not
+use, and the line then parses), or a gzip stream that ends before its end
+marker (its partial last line is lost, the lines before it are whole). The
+survey finds the cut, and every pass stops before it, so every command reads
+the same messages whatever topics it asks for.
 """
 from __future__ import annotations
 
@@ -77,7 +84,7 @@ import numpy as np
 from carto_cli.core.errors import CartoError, FormatError, TopicError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, yaw_quaternion
 from carto_cli.core.transform import wrap_angle_scalar
-from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
+from carto_cli.io.recording import SCAN_TIME_ODOMETRY, ReadOptions, Recording, TopicInfo
 from carto_cli.io.sources.decimals import decimals
 
 GZIP_MAGIC = b"\x1f\x8b"
@@ -88,7 +95,9 @@ MOUNT_TOLERANCE = 0.01  # m and rad; the Radish logs print poses with 6 digits
 
 SCAN_MSGTYPE = "sensor_msgs/msg/LaserScan"
 ODOM_MSGTYPE = "nav_msgs/msg/Odometry"
-ODOM_LASER_TOPIC = "/odom_laser"
+# The pose in each laser line was logged with that scan, so it needs no interpolation, and in corrected logs ODOM
+# lines are often zeros while the laser lines carry the real pose: the topic chooser prefers it (io.topics).
+ODOM_LASER_TOPIC = SCAN_TIME_ODOMETRY
 
 # Candidate sources of each topic, best first.
 TOPIC_SOURCES: dict[str, tuple[str, ...]] = {
@@ -122,23 +131,37 @@ def _is_gzip(path: Path) -> bool:
         return f.read(2) == GZIP_MAGIC
 
 
-def _lines(path: Path) -> Iterator[tuple[int, str]]:
-    """(line number, text) of every line, decompressing on the fly.
+class _Lines:
+    """(line number, text) of every line, decompressing on the fly; ``truncated`` once they are over if a gzip
+    stream ended before its end marker (the lines before the cut are whole: only the partial one is lost).
 
     latin-1 decodes any byte, so a stray host name never stops the reader;
     only the numeric fields matter and they are ASCII.
     """
-    gz = _is_gzip(path)
-    f = gzip.open(path, "rt", encoding="latin-1") if gz else open(path, encoding="latin-1")
-    lineno = 0
-    try:
-        with f:
-            for lineno, line in enumerate(f, 1):
-                yield lineno, line
-    except (EOFError, zlib.error, gzip.BadGzipFile) as e:
-        raise FormatError(f"compressed data truncated or corrupt after line {lineno} ({e})", path) from None
-    except OSError as e:
-        raise FormatError(f"cannot read after line {lineno} ({e})", path) from None
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.truncated = False
+        self.count = 0
+
+    def __iter__(self) -> Iterator[tuple[int, str]]:
+        path = self.path
+        gz = _is_gzip(path)
+        f = gzip.open(path, "rt", encoding="latin-1") if gz else open(path, encoding="latin-1")
+        lineno = 0
+        try:
+            with f:
+                for lineno, line in enumerate(f, 1):
+                    yield lineno, line
+        except EOFError:
+            # A copy or a logger cut short, as a plain file ending mid-line: the survey warns, nothing is wrong
+            # with what came before.
+            self.truncated = True
+        except (zlib.error, gzip.BadGzipFile) as e:
+            raise FormatError(f"compressed data corrupt after line {lineno} ({e})", path) from None
+        except OSError as e:
+            raise FormatError(f"cannot read after line {lineno} ({e})", path) from None
+        self.count = lineno
 
 
 def _first_token(line: str) -> str:
@@ -146,12 +169,17 @@ def _first_token(line: str) -> str:
     return parts[0] if parts else ""
 
 
-def _check_unterminated(kind: str, line: str, lineno: int, path: Path) -> None:
-    """A last line without end of line whose name is a cut-off message name was truncated."""
-    if line.endswith("\n") or kind in SUPPORTED:
-        return
-    if kind and any(name.startswith(kind) for name in SUPPORTED):
-        raise FormatError(f"line {lineno}: truncated line ('{kind}' ...)", path)
+def _cut_mid_message(kind: str, line: str) -> bool:
+    """Whether the file's last line, which has no end of line, is a message the file ends inside: one carto reads
+    that does not parse, or a cut-off name of one. (A cut inside the final logger timestamp loses nothing carto
+    reads and parses.)"""
+    if kind in SUPPORTED:
+        try:
+            _parse(kind, line)
+        except _LineError:
+            return True
+        return False
+    return bool(kind) and any(name.startswith(kind) for name in SUPPORTED)
 
 
 def _line_time(kind: str, line: str, lineno: int, path: Path) -> float:
@@ -400,6 +428,8 @@ class _Survey:
     dropped: Counter = field(default_factory=Counter)
     probes: dict = field(default_factory=dict)  # message type -> [(laser_pose, robot_pose)]
     recognised: bool = False
+    cut_line: int | None = None  # the last line, left out: the file ends inside it
+    truncated_after: int | None = None  # the last whole line of a gzip stream that ends early
 
     def source(self, topic: str) -> str | None:
         return next((k for k in TOPIC_SOURCES[topic] if self.counts[k] > 0), None)
@@ -422,10 +452,13 @@ def _probe_poses(kind: str, line: str):
 def _survey(path: Path) -> _Survey:
     s = _Survey()
     order = _TimeOrder(REORDER_WINDOW)
-    for lineno, line in _lines(path):
+    lines = _Lines(path)
+    for lineno, line in lines:
         kind = _first_token(line)
+        if not line.endswith("\n") and _cut_mid_message(kind, line):
+            s.cut_line = lineno
+            continue
         if kind not in SUPPORTED:
-            _check_unterminated(kind, line, lineno, path)
             if kind in KNOWN_OTHER or kind.startswith("#"):
                 s.recognised = True
             continue
@@ -442,6 +475,8 @@ def _survey(path: Path) -> _Survey:
     for k, _ in order.flush():
         s.counts[k] += 1
     s.dropped = order.dropped
+    if lines.truncated:
+        s.truncated_after = lines.count
     return s
 
 
@@ -476,6 +511,9 @@ class CarmenRecording(Recording):
         if not self.path.is_file():
             raise CartoError("no such file", self.path)
         self._survey_cache: _Survey | None = None
+        # Surveyed at once (every command lists the topics first anyway) so that a log cut short is known, and
+        # warned about, before anything is read, as a bag cut short is.
+        self._survey()
 
     @staticmethod
     def sniff(path: Path, max_bytes: int = 65536) -> bool:
@@ -501,6 +539,17 @@ class CarmenRecording(Recording):
     def _survey(self) -> _Survey:
         if self._survey_cache is None:
             s = _survey(self.path)
+            if s.cut_line is not None or s.truncated_after is not None:
+                n = sum(s.counts.values())
+                if s.truncated_after is not None:
+                    where = "the compressed stream ends early" + (f", after line {s.truncated_after}"
+                                                                   if s.truncated_after else "")
+                else:
+                    where = f"line {s.cut_line} ends mid-message"
+                if not n:
+                    raise FormatError(f"cut short ({where}) before its first whole message", self.path)
+                self.warnings.append(f"{self.path.name}: cut short ({where}): read up to the cut, {n} "
+                                     f"message{'s' if n != 1 else ''} recovered")
             if not s.recognised:
                 raise FormatError("not a CARMEN log: no known message type in the file", self.path)
             self._survey_cache = s
@@ -520,13 +569,6 @@ class CarmenRecording(Recording):
 
     def independent(self) -> CarmenRecording:
         return self  # every pass opens the file anew: nothing is shared (and the survey of the file is kept)
-
-    def preferred_topic(self, kind: str) -> str | None:
-        # The pose in each laser line was logged with that scan, so it needs no interpolation; in
-        # corrected logs ODOM lines are often zeros while the laser lines carry the real pose.
-        if kind == "odometry":
-            return ODOM_LASER_TOPIC
-        return None
 
     def topics(self) -> list[TopicInfo]:
         s = self._survey()
@@ -570,10 +612,12 @@ class CarmenRecording(Recording):
     def _records(self, topic_of: dict[str, str], wanted: set[str]) -> Iterator[Record]:
         order = _TimeOrder(REORDER_WINDOW)
         want_pose = ODOM_LASER_TOPIC in wanted
-        for lineno, line in _lines(self.path):
+        cut = self._survey().cut_line
+        for lineno, line in _Lines(self.path):
+            if lineno == cut:
+                break
             kind = _first_token(line)
             if kind not in SUPPORTED:
-                _check_unterminated(kind, line, lineno, self.path)
                 continue
             topic = topic_of.get(kind)
             if topic is not None and (topic in wanted or (want_pose and kind in POSED)):

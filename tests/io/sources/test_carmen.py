@@ -4,6 +4,7 @@ from __future__ import annotations
 import gzip
 import itertools
 import math
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -264,7 +265,7 @@ def test_malformed_lines(tmp_path, line, message):
     assert err.value.path == str(p) and str(p) in str(err.value)
 
 
-def test_a_cut_anywhere_in_the_last_line_is_detected(tmp_path):
+def test_a_cut_anywhere_in_the_last_line_is_detected_and_left_out(tmp_path):
     kinds = [
         odom(0.5, 1, 2, 3),
         flaser(1.5, ranges(180)),
@@ -277,24 +278,79 @@ def test_a_cut_anywhere_in_the_last_line_is_detected(tmp_path):
         cuts = sorted(set(range(1, end, 7)) | set(range(max(1, end - 40), end)))
         for cut in cuts:
             p = write(tmp_path / "cut.log", [odom(0.1), last[:cut]], newline_at_end=False)
-            with pytest.raises(FormatError, match="line 2"):
-                list(CarmenRecording(p).records())
+            with CarmenRecording(p) as rec:
+                assert rec.warnings == ["cut.log: cut short (line 2 ends mid-message): read up to the cut, 1 "
+                                        "message recovered"], last[:cut]
+                assert [r.time for r in rec.records()] == [0.1]
     whole = write(tmp_path / "whole.log", kinds, newline_at_end=False)
     assert len(records(whole)) == 3  # ODOM, plus ROBOTLASER1 (pose + scan) which outranks FLASER and RAWLASER1
+    assert CarmenRecording(whole).warnings == []  # a last line without its end of line, but whole
+
+
+def record_keys(path, topics=None) -> list[tuple]:
+    with CarmenRecording(path) as rec:
+        return [(type(r).__name__, r.topic, r.time, r.ranges.tobytes() if isinstance(r, Scan) else (r.x, r.y, r.yaw))
+                for r in rec.records(topics)]
+
+
+def drive(n: int) -> list[str]:
+    return [line for k in range(n) for line in (odom(0.1 * k, 0.01 * k), flaser(0.1 * k + 0.05, ranges(181)))]
+
+
+@pytest.mark.parametrize("how", ["plain", "gzip", "gzip stream"])
+def test_cut_short_carmen_log_is_read_up_to_the_cut_with_one_warning(tmp_path, how):
+    lines = drive(300) + [odom(30.0, 3.0, 0.5, 0.25)]
+    text = "\n".join(lines) + "\n"
+    if how == "gzip stream":
+        packed = gzip.compress(text.encode())
+        cut = tmp_path / "cut.clf.gz"
+        cut.write_bytes(packed[: len(packed) * 2 // 3])
+        # What the cut stream still holds, up to its last whole line.
+        head = zlib.decompressobj(wbits=31).decompress(cut.read_bytes()).decode()
+        kept = head[: head.rindex("\n") + 1].splitlines()
+        why = f"the compressed stream ends early, after line {len(kept)}"
+    else:
+        # The case: an ODOM cut to three fields, which a pass not reading /odom took for whole.
+        kept = lines[:-1]
+        cut = write(tmp_path / "cut.clf", kept + [" ".join(lines[-1].split()[:4])], gz=how == "gzip",
+                    newline_at_end=False)
+        why = f"line {len(lines)} ends mid-message"
+    whole = write(tmp_path / "whole.clf", kept)
+    with CarmenRecording(cut) as rec:
+        # Known as soon as the log is open: relocalize tells the recording's warnings before reading a scan.
+        assert rec.warnings == [f"{cut.name}: cut short ({why}): read up to the cut, {len(kept)} messages "
+                                "recovered"]
+        with CarmenRecording(whole) as reference:
+            assert rec.topics() == reference.topics()
+    for topics in (None, ["/scan", "/odom_laser"], ["/odom"]):  # what info, map and a pass over /odom read
+        assert record_keys(cut, topics) == record_keys(whole, topics)
+
+
+def test_a_corrupt_line_is_no_cut(tmp_path):
+    # Bad content with its end of line is an error wherever it is; only the file's end can cut a line.
+    lines = drive(5)
+    for i, broken in ((3, lines[3][:30]), (9, lines[9][:30])):
+        p = write(tmp_path / "bad.clf", lines[:i] + [broken] + lines[i + 1:])
+        with pytest.raises(FormatError, match=f"line {i + 1}: "):
+            records(p)
 
 
 def test_truncated_and_corrupt_gzip(tmp_path):
     lines = [odom(i * 0.1, i, 0, 0) for i in range(3000)] + [flaser(301.0, ranges(360))]
     whole = write(tmp_path / "whole.clf.gz", lines, gz=True).read_bytes()
-    cut = tmp_path / "cut.clf.gz"
-    cut.write_bytes(whole[: len(whole) * 2 // 3])
-    with pytest.raises(FormatError, match="truncated or corrupt"):
-        CarmenRecording(cut).topics()
-    with pytest.raises(FormatError, match="truncated or corrupt"):
-        list(CarmenRecording(cut).records())
+    for size in (len(whole) * 2 // 3, len(whole) - 4):  # in the data; in the trailer (CRC and length)
+        cut = tmp_path / "cut.clf.gz"
+        cut.write_bytes(whole[:size])
+        with CarmenRecording(cut) as rec:
+            (warning,) = rec.warnings
+            assert "cut short (the compressed stream ends early" in warning
+            assert sum(1 for _ in rec.records()) > 0
+    with pytest.raises(FormatError, match="cut short .* before its first whole message"):
+        cut.write_bytes(whole[:30])
+        CarmenRecording(cut)
     bad = tmp_path / "bad.clf.gz"
     bad.write_bytes(whole[:100] + bytes(b ^ 0x55 for b in whole[100:200]) + whole[200:])
-    with pytest.raises(FormatError):
+    with pytest.raises(FormatError, match="compressed data corrupt"):
         list(CarmenRecording(bad).records())
 
 
