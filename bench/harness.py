@@ -317,6 +317,7 @@ def _odometry_trajectory(recording, topic):
 # that moving a stage (e.g. the pose graph's work into or out of the per-scan stage) keeps the split right.
 JIT_STAGE, SCAN_STAGE, GLOBAL_STAGE = "jit warm-up", "scan", "global"
 CONSTRAINT_STAGE, OPTIMIZATION_STAGE = "loop closure", "optimization"
+SEARCH_THREADS_STAGE = "search threads"  # the searches' thread time with more than one job (a concurrent branch)
 LOCAL_DETAIL = ("preprocess", "extrapolate", "match", "motion filter", "insert")
 CONSTRAINT_DETAIL = ("candidate selection", "precomputation", "branch and bound", "refinement")
 GMAPPING_DETAIL = ("motion model", "scan matching", "weighting", "resampling", "map update")  # under "scan"
@@ -367,7 +368,7 @@ def stage_detail(snap) -> dict:
             out[f"constraint/{node.name}"] += node.total_ns / 1e9
             return
         for c in node.children:
-            visit(c, node.path, under_constraint or node.name == CONSTRAINT_STAGE)
+            visit(c, node.path, under_constraint or node.name in (CONSTRAINT_STAGE, SEARCH_THREADS_STAGE))
 
     visit(snap.root, "", False)
     return out

@@ -2,10 +2,13 @@
 from __future__ import annotations
 
 import functools
+import inspect
 import json
+import re
 from pathlib import Path
 
 import typer
+from typer.core import TyperCommand, TyperGroup
 
 from carto_cli import __version__
 from carto_cli.core.errors import CartoError
@@ -15,7 +18,94 @@ EXIT_STATUS = ("Exit status, every command: 0 success; 1 internal error; 2 bad i
                "a relocalization judged 'lost'); 4 a relocalization judged 'ambiguous'; 130 interrupted (Ctrl-C or "
                "SIGTERM).")
 
-app = typer.Typer(
+_MARKUP_TAG = re.compile(r"(\\*)(\[[a-z#/@][^[]*?])")  # what rich.markup.escape escapes, without importing rich
+
+
+def _plain(text: str | None) -> str | None:
+    if not text:
+        return text
+    paragraphs = inspect.cleandoc(text).split("\n\n")
+    return "\n\n".join(p if p.startswith("\b") else _MARKUP_TAG.sub(r"\1\1\\\2", " ".join(p.split()))
+                       for p in paragraphs)
+
+
+def _tidy_help(command) -> None:
+    """What carto's --help needs from typer's rich help, whichever typer renders it.
+
+    - A paragraph reads as one: typer's rich markup mode keeps a docstring's line breaks (in the paragraphs after
+      the first, and in the first too where a group lists its commands), so source wrapped at 120 columns came
+      out as sentences broken mid-line.
+    - Help is plain text: "[sigma_xy sigma_yaw]" is not a rich style tag to swallow.
+    - A flag takes no value and shows none (typer >= 0.2x prints <bool> beside it, its own --help included); an
+      argument's name and description say what it is (typer >= 0.2x adds <path>, <str>).
+    - A required argument reads RECORDING, as in any usage line, not typer's {RECORDING} (_Command, _Group).
+    """
+    command.help = _plain(command.help)
+    for param in command.params:
+        if getattr(param, "help", None):
+            param.help = _plain(param.help)
+        if getattr(param, "is_flag", False) and param.metavar is None:
+            param.metavar = ""
+        if getattr(param, "param_type_name", None) == "argument" and hasattr(param, "display_type_rich"):
+            param.display_type_rich = lambda ctx: None
+
+
+def _usage_pieces(pieces: list[str]) -> list[str]:
+    return [re.sub(r"^\{(.+)\}(\.\.\.)?$", r"\1\2", piece) for piece in pieces]
+
+
+class _Command(TyperCommand):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        _tidy_help(self)
+
+    def get_help_option(self, ctx):
+        option = super().get_help_option(ctx)
+        if option is not None:
+            option.metavar = ""
+        return option
+
+    def collect_usage_pieces(self, ctx):
+        return _usage_pieces(super().collect_usage_pieces(ctx))
+
+
+class _Group(TyperGroup):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        _tidy_help(self)
+
+    def get_help_option(self, ctx):
+        option = super().get_help_option(ctx)
+        if option is not None:
+            option.metavar = ""
+        return option
+
+
+class _Typer(typer.Typer):
+    """typer.Typer whose groups and commands tidy their help (_tidy_help), read as rich markup by any typer."""
+
+    def __init__(self, **kwargs):
+        kwargs.setdefault("cls", _Group)
+        kwargs.setdefault("rich_markup_mode", "rich")
+        super().__init__(**kwargs)
+
+    def command(self, *args, **kwargs):
+        kwargs.setdefault("cls", _Command)
+        return super().command(*args, **kwargs)
+
+
+PANEL_INPUT = "Input"  # what is read from the recording: topics, frames, the laser's mount, the cloud slice
+PANEL_MAPPING = "Mapping"
+PANEL_OUTPUT = "Output"
+PANEL_GATES = "CI gates"
+PANEL_PRIOR = "Prior"
+PANEL_SCANS = "Scans"
+PANEL_IMAGE = "Image"
+PANEL_STUDY = "Study"
+PANEL_OBJECTIVE = "Objective"
+PANEL_PERFORMANCE = "Performance"
+
+app = _Typer(
     add_completion=False,
     no_args_is_help=True,
     help="2D LiDAR SLAM from recorded data: maps, relocalization, tuning and profiling.",
@@ -51,8 +141,23 @@ def handle_errors(fn):
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        from carto_cli.core import interrupts
+
+        interrupts.clear()
         try:
-            return fn(*args, **kwargs)
+            try:
+                return fn(*args, **kwargs)
+            except typer.Exit:
+                raise
+            except Exception as e:
+                # Ctrl-C or SIGTERM surfaces as whatever it broke: numba's SystemError around the
+                # KeyboardInterrupt, a reader's "corrupt file", a child process gone. After one, every error is
+                # its echo.
+                if interrupts.is_interrupt(e):
+                    raise KeyboardInterrupt from e
+                raise
+            finally:
+                interrupts.hold()  # the command is over: a second Ctrl-C must not cut the report below short
         except typer.Exit:
             raise
         except CartoError as e:
@@ -85,7 +190,8 @@ def _version(value: bool):
 @app.callback()
 def _root(
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks for errors."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress: neither the bar on a terminal nor the "
+                               "lines in a log (stderr not a terminal)."),
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
 ):
     state.debug = debug
@@ -93,13 +199,25 @@ def _root(
 
 
 # One default everywhere: the options' trajectory_builder_2d.min_z / max_z (io.recording.ReadOptions keeps them)
-MIN_Z = typer.Option(-0.8, "--min-z", help="PointCloud2: lowest z kept when slicing to 2D (m).")
-MAX_Z = typer.Option(2.0, "--max-z", help="PointCloud2: highest z kept when slicing to 2D (m).")
+MIN_Z = typer.Option(-0.8, "--min-z", metavar="M", rich_help_panel=PANEL_INPUT,
+                     help="PointCloud2: lowest z of the 2D slice (m).")
+MAX_Z = typer.Option(2.0, "--max-z", metavar="M", rich_help_panel=PANEL_INPUT,
+                     help="PointCloud2: highest z of the 2D slice (m).")
 # Commands that map take the slice as options (trajectory_builder_2d.min_z / max_z): unset keeps the profile's
-MAP_MIN_Z = typer.Option(None, "--min-z", help="PointCloud2: lowest z kept when slicing to 2D (m; default: "
-                         "the profile's trajectory_builder_2d.min_z, -0.8).")
-MAP_MAX_Z = typer.Option(None, "--max-z", help="PointCloud2: highest z kept when slicing to 2D (m; default: "
-                         "the profile's trajectory_builder_2d.max_z, 2.0).")
+MAP_MIN_Z = typer.Option(None, "--min-z", metavar="M", rich_help_panel=PANEL_INPUT,
+                         help="PointCloud2: lowest z of the 2D slice (m; default: trajectory_builder_2d.min_z, "
+                              "-0.8).")
+MAP_MAX_Z = typer.Option(None, "--max-z", metavar="M", rich_help_panel=PANEL_INPUT,
+                         help="PointCloud2: highest z of the 2D slice (m; default: trajectory_builder_2d.max_z, "
+                              "2.0).")
+RECORDING = typer.Argument(..., metavar="RECORDING",
+                           help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz].")
+SCAN_TOPIC = typer.Option(None, "--scan-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
+                          help="Which scan topic, if there are several.")
+ODOM_TOPIC = typer.Option(None, "--odom-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
+                          help="Which odometry topic, if there are several.")
+IMU_TOPIC = typer.Option(None, "--imu-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
+                         help="Which IMU topic, if there are several.")
 
 
 def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | None,
@@ -121,7 +239,7 @@ def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | Non
 @app.command()
 @handle_errors
 def info(
-    recording: Path = typer.Argument(..., help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]."),
+    recording: Path = RECORDING,
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
@@ -132,7 +250,7 @@ def info(
     from carto_cli.core.progress import progress
 
     read = z_slice(min_z, max_z)
-    with progress(f"reading {recording.name}", None, state.quiet) as bar:
+    with progress(f"reading {recording.name}", None, state.quiet, unit="messages") as bar:
         result = run_info(recording, read, on_total=bar.set_total, on_record=bar.advance)
     if as_json:
         typer.echo(json.dumps(result.to_dict(), indent=2, allow_nan=False, default=_json_default))
@@ -147,14 +265,18 @@ def _json_default(value):
 @app.command()
 @handle_errors
 def convert(
-    source: Path = typer.Argument(..., help="Any recording carto reads."),
-    out: Path = typer.Argument(..., help="Output: .bag (ROS1), .mcap (standalone MCAP) or a directory (ROS2 bag)."),
+    source: Path = typer.Argument(..., metavar="SOURCE", help="Any recording carto reads."),
+    out: Path = typer.Argument(..., metavar="OUT",
+                               help="Output: .bag (ROS1), .mcap (standalone MCAP) or a directory (ROS2 bag)."),
     fmt: str | None = typer.Option(
-        None, "--format", help="ros1, ros2-sqlite3, ros2-mcap or mcap (default: from OUT's suffix)."
+        None, "--format", metavar="FORMAT", help="ros1, ros2-sqlite3, ros2-mcap or mcap (default: from OUT's suffix)."
     ),
-    scan_topic: str | None = typer.Option(None, "--scan-topic", help="Only this scan topic."),
-    odom_topic: str | None = typer.Option(None, "--odom-topic", help="Only this odometry topic."),
-    imu_topic: str | None = typer.Option(None, "--imu-topic", help="Only this IMU topic."),
+    scan_topic: str | None = typer.Option(None, "--scan-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
+                                          help="Only this scan topic."),
+    odom_topic: str | None = typer.Option(None, "--odom-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
+                                          help="Only this odometry topic."),
+    imu_topic: str | None = typer.Option(None, "--imu-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
+                                         help="Only this IMU topic."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace OUT if it exists."),
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
@@ -165,7 +287,7 @@ def convert(
     from carto_cli.core.progress import progress
 
     read = z_slice(min_z, max_z)
-    with progress(f"converting {source.name}", None, state.quiet) as bar:
+    with progress(f"converting {source.name}", None, state.quiet, unit="messages") as bar:
         done = run_convert(source, out, fmt=fmt, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
                            overwrite=force, read=read, on_total=bar.set_total, on_record=bar.advance)
     for warning in done.warnings:
@@ -179,34 +301,46 @@ def convert(
 
 
 ODOM_FRAME = typer.Option(
-    None, "--odom-frame", help="Odometry from dynamic TF (/tf): the odometry frame (default: odom*, used when the "
-    "recording has no Odometry topic).")
+    None, "--odom-frame", metavar="FRAME", rich_help_panel=PANEL_INPUT,
+    help="Odometry from /tf when there is no Odometry topic: the odometry frame (default: odom*).")
 BASE_FRAME = typer.Option(
-    None, "--base-frame", help="Odometry from dynamic TF: the robot's base frame (default: where the laser's static "
-    "TF ends, else base_footprint / base_link).")
-PROFILE = typer.Option(None, "--profile", "-p",
+    None, "--base-frame", metavar="FRAME", rich_help_panel=PANEL_INPUT,
+    help="Odometry from /tf: the robot's frame (default: where the laser's static TF ends, else base_footprint / "
+         "base_link).")
+PROFILE = typer.Option(None, "--profile", "-p", metavar="NAME",
                        help="Profile name (profiles/NAME.yaml) or path, layered over the default.")
 MAP_PROFILE = typer.Option(
-    None, "--profile", "-p",
-    help="auto (the default: settings chosen from the recording, see the 'auto:' line), 'default' "
-         "(Cartographer's stock values), a profile name (profiles/NAME.yaml) or a path.")
-SET = typer.Option(None, "--set", "-s",
-                   help="Override an option: dotted.key=value (repeatable; angles in radians, or '20deg').")
+    None, "--profile", "-p", metavar="NAME",
+    help="auto (the default: chosen from the recording, see the 'auto:' line), default (Cartographer's stock "
+         "values), a profile's name (profiles/NAME.yaml) or path.")
+SET = typer.Option(None, "--set", "-s", metavar="KEY=VALUE",
+                   help="Override an option (its dotted name: `carto options`; angles in radians, or '20deg'). "
+                        "Repeatable.")
+MEMORY_BUDGET = typer.Option(
+    None, "--memory-budget", metavar="SIZE", rich_help_panel=PANEL_PERFORMANCE,
+    help="Memory for the loop-closure search's precomputation grids, e.g. 512MB or 1GB (default: "
+         "precomputation_memory, 256MB); the least recently searched are rebuilt when needed. The map is the same "
+         "for any budget.")
+
+
+def _at_least_one(value: int | None) -> int | None:
+    # Checked here rather than with min=1, which typer shows as "[x>=1]" beside the metavar.
+    if value is not None and value < 1:
+        raise typer.BadParameter(f"must be at least 1, got {value}")
+    return value
+
+
+JOBS = typer.Option(
+    None, "--jobs", "-j", metavar="N", callback=_at_least_one, rich_help_panel=PANEL_PERFORMANCE,
+    help="Threads (Cartographer: the pose graph beside local SLAM, loop-closure searches; GMapping: particles, "
+         "final searches); default: every core. The map is the same for any number.")
 # The names are carto_cli.gmapping.ALGORITHMS, checked by the command (importing it here would load numba
 # for `carto --help`).
-MEMORY_BUDGET = typer.Option(None, "--memory-budget", help="Memory for the loop-closure search's precomputation "
-                             "grids (e.g. 512MB, 1GB; default 256MB: "
-                             "pose_graph.constraint_builder.precomputation_memory); the least recently searched "
-                             "are rebuilt when needed. The map is the same for any budget; peak memory is "
-                             "reported.")
-JOBS = typer.Option(None, "--jobs", "-j", min=1, help="Threads for independent work (Cartographer: the pose graph "
-                    "beside local SLAM and its loop-closure searches; GMapping: the particles and final searches); "
-                    "default: every core. The map is the same for any number.")
 ALGORITHM = typer.Option(
-    None, "--algorithm",
-    help="Mapping system: cartographer or gmapping (a Rao-Blackwellized particle filter). Default: what auto "
-         "chooses from the recording (gmapping for key scans with odometry), cartographer with a named profile. "
-         "GMapping's options are the gmapping.* keys (`carto options gmapping`), e.g. --set gmapping.particles=30.")
+    None, "--algorithm", metavar="NAME", rich_help_panel=PANEL_MAPPING,
+    help="cartographer or gmapping (a Rao-Blackwellized particle filter; its options: `carto options gmapping`, "
+         "e.g. --set gmapping.particles=30). Default: auto's choice, gmapping for key scans with odometry; "
+         "cartographer with a named profile.")
 
 
 def _options(profile: str | None, overrides: list[str] | None):
@@ -242,46 +376,51 @@ def _say_configured(configured) -> None:
 @app.command("map")
 @handle_errors
 def map_(
-    recording: Path = typer.Argument(..., help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]."),
-    outdir: Path | None = typer.Option(None, "--output", "-o", help="Output directory (default: RECORDING_map)."),
+    recording: Path = RECORDING,
+    outdir: Path | None = typer.Option(None, "--output", "-o", metavar="DIR",
+                                       help="Output directory (default: NAME_map in the current directory, NAME the "
+                                            "recording's name)."),
     profile: str | None = MAP_PROFILE,
     overrides: list[str] | None = SET,
-    scan_topic: str | None = typer.Option(None, "--scan-topic"),
-    odom_topic: str | None = typer.Option(None, "--odom-topic"),
-    imu_topic: str | None = typer.Option(None, "--imu-topic"),
-    no_odometry: bool = typer.Option(False, "--no-odometry", help="Ignore odometry even when the recording has it."),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
+    algorithm: str | None = ALGORITHM,
+    no_loop_closure: bool = typer.Option(
+        False, "--no-loop-closure", rich_help_panel=PANEL_MAPPING,
+        help="Local SLAM only: no loop closure, no optimization (for tuning local SLAM)."
+    ),
+    load_state: Path | None = typer.Option(
+        None, "--load-state", metavar="FILE", rich_help_panel=PANEL_MAPPING,
+        help="Continue mapping into this map.carto: the recording becomes a new trajectory."
+    ),
+    scan_topic: str | None = SCAN_TOPIC,
+    odom_topic: str | None = ODOM_TOPIC,
+    imu_topic: str | None = IMU_TOPIC,
+    no_odometry: bool = typer.Option(False, "--no-odometry", rich_help_panel=PANEL_INPUT,
+                                     help="Ignore the recording's odometry."),
     odom_frame: str | None = ODOM_FRAME,
     base_frame: str | None = BASE_FRAME,
     laser_pose: str | None = typer.Option(
-        None, "--laser-pose",
-        help="x,y,yaw of the laser on the robot (m, m, rad; 'deg' suffix for degrees). "
-             "Default: static TF, else identity."
+        None, "--laser-pose", metavar="X,Y,YAW", rich_help_panel=PANEL_INPUT,
+        help="The laser's pose on the robot (m, m, rad, or 'deg' suffixed); default: static TF, else identity."
     ),
-    timings: bool = typer.Option(False, "--timings", help="Print the per-stage timing tree."),
-    no_loop_closure: bool = typer.Option(
-        False, "--no-loop-closure", help="Local SLAM only: no loop closure, no optimization (for tuning local SLAM)."
-    ),
-    no_state: bool = typer.Option(False, "--no-state", help="Do not write map.carto (the file relocalize loads)."),
-    load_state: Path | None = typer.Option(
-        None, "--load-state", help="Continue mapping into this map.carto: the recording becomes a new trajectory."
-    ),
-    strict: bool = typer.Option(False, "--strict", help="Exit 3 on a 'suspect' map too (for CI), not only 'failed'."),
-    algorithm: str | None = ALGORITHM,
-    force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
     min_z: float | None = MAP_MIN_Z,
     max_z: float | None = MAP_MAX_Z,
+    no_state: bool = typer.Option(False, "--no-state", rich_help_panel=PANEL_OUTPUT,
+                                  help="Do not write map.carto (the file relocalize loads)."),
+    timings: bool = typer.Option(False, "--timings", rich_help_panel=PANEL_OUTPUT,
+                                 help="Print the per-stage timing tree."),
+    strict: bool = typer.Option(False, "--strict", rich_help_panel=PANEL_OUTPUT,
+                                help="Exit 3 on a 'suspect' map too, not only a 'failed' one (for CI)."),
     jobs: int | None = JOBS,
     memory_budget: str | None = MEMORY_BUDGET,
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
 
     The outputs are written as one set (all replaced together or none); an earlier map in the output
-    directory is kept unless --force.
-
-    carto judges its own map and prints 'map quality: ok | suspect | failed' with the reasons (also in
-    summary.json). Exit status: 0 success; 3 the map is 'failed' (or 'suspect' with --strict), its outputs
-    still written for a look; 2 bad input; 1 internal error; 130 interrupted."""
-    from carto_cli.commands.map import compile_note, run_map, summary_line
+    directory is kept unless --force. carto judges its own map: 'map quality: ok | suspect | failed' with the
+    reasons (also in summary.json); a 'failed' map (or a 'suspect' one with --strict) exits 3, its outputs
+    still written for a look."""
+    from carto_cli.commands.map import run_map, summary_line
     from carto_cli.core import parse
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
@@ -302,7 +441,7 @@ def map_(
         typer.echo(f"carto: warning: {warning}", err=True)
     if timings:
         typer.echo(report_tree_text(timer))
-    typer.echo(f"{summary_line(result)}{compile_note(timer)} -> {outputs.yaml.parent}")
+    typer.echo(f"{summary_line(result, timer)} -> {outputs.yaml.parent}")
     if result.quality is not None:
         typer.echo(result.quality.line(), err=result.quality.verdict != "ok")
         if result.quality.verdict == "failed" or (strict and result.quality.verdict == "suspect"):
@@ -323,18 +462,22 @@ def _finish_gates(gates, junit: Path | None, suite: str, label: str) -> None:
 @app.command("eval")
 @handle_errors
 def eval_(
-    trajectory: Path = typer.Argument(..., help="Trajectory to score: TUM (t x y z qx qy qz qw) or 't x y theta'."),
-    relations: Path | None = typer.Option(None, "--relations",
+    trajectory: Path = typer.Argument(..., metavar="TRAJECTORY",
+                                      help="Trajectory to score: TUM (t x y z qx qy qz qw) or 't x y theta'."),
+    relations: Path | None = typer.Option(None, "--relations", metavar="FILE",
                                           help="Relations file: t1 t2 dx dy dz droll dpitch dyaw."),
-    ground_truth: Path | None = typer.Option(None, "--ground-truth",
+    ground_truth: Path | None = typer.Option(None, "--ground-truth", metavar="FILE",
                                              help="Reference trajectory (TUM or 't x y theta')."),
-    rpe_delta: float = typer.Option(1.0, "--rpe-delta", help="RPE step in seconds (with --ground-truth)."),
+    rpe_delta: float = typer.Option(1.0, "--rpe-delta", metavar="S", help="RPE step in seconds (with --ground-truth)."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
     max_trans_error: float | None = typer.Option(
-        None, "--max-trans-error", help="Gate: exit 3 if the mean relation error (else ATE RMSE) exceeds M metres."),
+        None, "--max-trans-error", metavar="M", rich_help_panel=PANEL_GATES,
+        help="Exit 3 if the mean relation error (else ATE RMSE) exceeds M metres."),
     max_rot_error: float | None = typer.Option(
-        None, "--max-rot-error", help="Gate: exit 3 if the mean rotational error exceeds DEG degrees."),
-    junit: Path | None = typer.Option(None, "--junit", help="Write the gates' outcome as JUnit XML."),
+        None, "--max-rot-error", metavar="DEG", rich_help_panel=PANEL_GATES,
+        help="Exit 3 if the mean rotational error exceeds DEG degrees."),
+    junit: Path | None = typer.Option(None, "--junit", metavar="FILE", rich_help_panel=PANEL_GATES,
+                                      help="Write the gates' outcome as JUnit XML."),
 ):
     """Score a trajectory: relation error (Kuemmerle et al.) and/or ATE + RPE against a ground truth."""
     from carto_cli.commands.eval import run_eval
@@ -354,29 +497,36 @@ def eval_(
 @app.command("profile")
 @handle_errors
 def profile_(
-    recording: Path = typer.Argument(..., help="Recording to run the whole pipeline on."),
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="Recording to run the whole pipeline on."),
     profile: str | None = MAP_PROFILE,
     overrides: list[str] | None = SET,
-    scan_topic: str | None = typer.Option(None, "--scan-topic"),
-    odom_topic: str | None = typer.Option(None, "--odom-topic"),
+    as_json: bool = typer.Option(False, "--json", help="Print the report as JSON (schema carto.profile v1)."),
+    output: Path | None = typer.Option(None, "--output", metavar="FILE",
+                                       help="Also write the JSON report to this file."),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace the --output file if it exists."),
+    algorithm: str | None = ALGORITHM,
+    max_scans: int | None = typer.Option(None, "--max-scans", metavar="N", rich_help_panel=PANEL_MAPPING,
+                                         help="Profile only the first N scans."),
+    repeat: int = typer.Option(1, "--repeat", metavar="N", rich_help_panel=PANEL_MAPPING,
+                               help="Map the recording N times; each stage keeps its lowest CPU time and the "
+                                    "spread, which widens the gates' allowance (3 for CI baselines)."),
+    relocalize_map: Path | None = typer.Option(
+        None, "--relocalize", metavar="MAP", rich_help_panel=PANEL_MAPPING,
+        help="Also profile relocalizing every 10th scan of RECORDING in this map.carto."),
+    baseline: Path | None = typer.Option(None, "--baseline", metavar="FILE", rich_help_panel=PANEL_GATES,
+                                         help="A previous --output to compare against."),
+    max_regression: float = typer.Option(0.20, "--max-regression", metavar="FRACTION", rich_help_panel=PANEL_GATES,
+                                         help="Allowed slow-down per stage (0.20 = 20%)."),
+    calibrate: bool = typer.Option(False, "--calibrate", rich_help_panel=PANEL_GATES,
+                                   help="Time a reference kernel first and compare normalized times."),
+    junit: Path | None = typer.Option(None, "--junit", metavar="FILE", rich_help_panel=PANEL_GATES,
+                                      help="Write the gates' outcome as JUnit XML."),
+    scan_topic: str | None = SCAN_TOPIC,
+    odom_topic: str | None = ODOM_TOPIC,
     odom_frame: str | None = ODOM_FRAME,
     base_frame: str | None = BASE_FRAME,
-    as_json: bool = typer.Option(False, "--json", help="Print the report as JSON (schema carto.profile v1)."),
-    output: Path | None = typer.Option(None, "--output", help="Also write the JSON report to this file."),
-    baseline: Path | None = typer.Option(None, "--baseline", help="A previous --output to compare against."),
-    max_regression: float = typer.Option(0.20, "--max-regression", help="Allowed slow-down per stage (0.20 = 20%)."),
-    calibrate: bool = typer.Option(False, "--calibrate",
-                                   help="Time a reference kernel first and compare normalized times."),
-    junit: Path | None = typer.Option(None, "--junit", help="Write the gates' outcome as JUnit XML."),
-    max_scans: int | None = typer.Option(None, "--max-scans", help="Profile only the first N scans."),
-    relocalize_map: Path | None = typer.Option(
-        None, "--relocalize", help="Also profile relocalizing every 10th scan of RECORDING in this map.carto."),
-    algorithm: str | None = ALGORITHM,
-    force: bool = typer.Option(False, "--force", "-f", help="Replace the --output file if it exists."),
     min_z: float | None = MAP_MIN_Z,
     max_z: float | None = MAP_MAX_Z,
-    repeat: int = typer.Option(1, "--repeat", help="Map the recording N times; each stage keeps its lowest CPU "
-                               "time and the spread, which widens the gates' allowance (3 for CI baselines)."),
     jobs: int | None = JOBS,
     memory_budget: str | None = MEMORY_BUDGET,
 ):
@@ -395,6 +545,8 @@ def profile_(
                           baseline=baseline, calibrate_first=calibrate, max_scans=max_scans,
                           relocalize_map=relocalize_map, on_total=bar.set_total, on_scan=bar.advance,
                           algorithm=algorithm, force=force, repeat=repeat, jobs=jobs)
+    for warning in run.warnings:
+        typer.echo(f"carto: warning: {warning}", err=True)
     report = run.report
     typer.echo(json.dumps(report, indent=2) if as_json else format_report(report))
     if not as_json and "relocalization" in report:
@@ -404,51 +556,85 @@ def profile_(
     _finish_gates(run.gates(max_regression), junit, "carto.profile", "slower than baseline")
 
 
+def _heading_sigma(text: str) -> float:
+    """--sigma-yaw in radians, or degrees with a 'deg' suffix, as every angle carto reads."""
+    import math
+
+    from carto_cli.core import parse
+
+    value = parse.angle(text, "--sigma-yaw", CartoError)
+    if value > math.pi and not text.strip().lower().endswith("deg"):
+        # --sigma-yaw took degrees until it followed --initial-pose: a bare number above half a turn is most
+        # likely a command line from then, and read as radians it would silently widen the search to every heading.
+        raise CartoError(f"--sigma-yaw is in radians: {text} rad is more than half a turn (for degrees: {text}deg)")
+    return value
+
+
 @app.command("relocalize")
 @handle_errors
 def relocalize_(
     map_file: Path = typer.Argument(
-        ..., help="map.carto written by `carto map`, or a map_server YAML (PGM/PNG image: slam_toolbox, GMapping, "
+        ..., metavar="MAP",
+        help="map.carto written by `carto map`, or a map_server YAML (PGM/PNG image: slam_toolbox, GMapping, "
                   "a floor plan)."),
-    recording: Path = typer.Argument(..., help="Recording holding the scan(s) to relocalize."),
+    recording: Path = typer.Argument(..., metavar="RECORDING", help="Recording holding the scan(s) to relocalize."),
     initial_pose: str | None = typer.Option(
-        None, "--initial-pose", help="Prior x,y,yaw in the map frame (m, m, rad; 'deg' suffix for degrees)."),
-    at: float | None = typer.Option(None, "--at", help="Relocalize the scan nearest this time (s)."),
-    scan_index: int | None = typer.Option(None, "--scan-index", help="Relocalize the N-th scan (from 0)."),
-    sigma_xy: float | None = typer.Option(None, "--sigma-xy", help="Prior position uncertainty (m)."),
-    sigma_yaw: float | None = typer.Option(None, "--sigma-yaw", help="Prior heading uncertainty (degrees)."),
-    corridor: bool = typer.Option(False, "--corridor", help="Keep submaps in a sector along the prior's heading."),
-    global_: bool = typer.Option(False, "--global", help="No prior: search every submap."),
+        None, "--initial-pose", metavar="X,Y,YAW", rich_help_panel=PANEL_PRIOR,
+        help="Prior pose in the map frame (m, m, rad, or 'deg' suffixed)."),
+    at: float | None = typer.Option(None, "--at", metavar="T", rich_help_panel=PANEL_SCANS,
+                                    help="Relocalize the scan nearest this time (s)."),
+    scan_index: int | None = typer.Option(None, "--scan-index", metavar="N", rich_help_panel=PANEL_SCANS,
+                                          help="Relocalize the N-th scan (from 0)."),
+    sigma_xy: float | None = typer.Option(None, "--sigma-xy", metavar="M", rich_help_panel=PANEL_PRIOR,
+                                          help="Prior position uncertainty (m)."),
+    sigma_yaw: str | None = typer.Option(None, "--sigma-yaw", metavar="ANGLE", rich_help_panel=PANEL_PRIOR,
+                                         help="Prior heading uncertainty (rad, or 'deg' suffixed: 5deg)."),
+    corridor: bool = typer.Option(False, "--corridor", rich_help_panel=PANEL_PRIOR,
+                                  help="Search only a sector along the prior's heading."),
+    global_: bool = typer.Option(False, "--global", rich_help_panel=PANEL_PRIOR,
+                                 help="No prior: search every submap."),
     queries: Path | None = typer.Option(
-        None, "--queries", help="Batch: lines 't|index x y yaw [sigma_xy sigma_yaw]'; writes a CSV."),
-    csv_out: Path | None = typer.Option(None, "--csv", help="Batch results CSV (default: QUERIES.results.csv)."),
-    scan_topic: str | None = typer.Option(None, "--scan-topic"),
+        None, "--queries", metavar="FILE", rich_help_panel=PANEL_SCANS,
+        help="Batch: a text file, one query a line, 'T x y yaw [sigma_xy sigma_yaw]' ('- - -': "
+        "global). T is a time (s, the recording's clock), also without a header line; a first line 'index x y yaw' "
+        "makes it a scan index (from 0). Writes a CSV."),
+    csv_out: Path | None = typer.Option(None, "--csv", metavar="FILE", rich_help_panel=PANEL_SCANS,
+                                        help="Batch results (default: QUERIES.results.csv)."),
+    scan_topic: str | None = SCAN_TOPIC,
     overrides: list[str] | None = typer.Option(
-        None, "--set", "-s", help="Override one of the map's options, e.g. relocalization.min_score=0.65 "
+        None, "--set", "-s", metavar="KEY=VALUE",
+        help="Override one of the map's options, e.g. relocalization.min_score=0.65 "
         "(repeatable; angles in radians, or '20deg')."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace the results CSV if it exists."),
     max_jump: float | None = typer.Option(
-        None, "--max-jump", help="An answer farther than this from the prior (m) is judged 'lost'."),
+        None, "--max-jump", metavar="M", rich_help_panel=PANEL_PRIOR,
+        help="An answer farther than M from the prior (m) is judged 'lost'."),
     profile: str | None = typer.Option(
-        None, "--profile", "-p", help="Relocalization settings of a profile (office, corridor, warehouse, ... or a "
-        "path) instead of the map's own; a map_server map takes the whole profile."),
+        None, "--profile", "-p", metavar="NAME",
+        help="Relocalization settings of a profile (office, corridor, ... or a path), not the map's own; a map_server "
+             "map takes the whole profile."),
     track: bool = typer.Option(
-        False, "--track", help="A pose for every scan of the recording: first fix from --initial-pose or a global "
+        False, "--track", rich_help_panel=PANEL_SCANS,
+        help="A pose for every scan of the recording: first fix from --initial-pose or a global "
         "search, then odometry-predicted matches; writes trajectory.tum, track.csv, track.json into -o."),
-    output: Path | None = typer.Option(None, "--output", "-o", help="--track: output directory (default NAME_track "
-                                       "next to the recording)."),
+    output: Path | None = typer.Option(None, "--output", "-o", metavar="DIR", rich_help_panel=PANEL_SCANS,
+                                       help="--track: output directory (default NAME_track "
+                                       "in the current directory)."),
     odom_topic: str | None = typer.Option(
-        None, "--odom-topic", help="Odometry topic: --track's predictions, and the scans around a query that check "
+        None, "--odom-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
+        help="Odometry topic: --track's predictions, and the scans around a query that check "
         "an answer no prior's window confirmed."),
     odom_frame: str | None = ODOM_FRAME,
     base_frame: str | None = BASE_FRAME,
     min_z: float = MIN_Z,
     max_z: float = MAX_Z,
-    jobs: int | None = typer.Option(None, "--jobs", "-j", min=1, help="--queries: queries relocalized at once; "
-                                    "one query: threads for a whole-map search (default: every core). The "
-                                    "answers are the same for any number; a batch's timings include waiting "
-                                    "for a core (1 for latency figures)."),
+    jobs: int | None = typer.Option(None, "--jobs", "-j", metavar="N", callback=_at_least_one,
+                                    rich_help_panel=PANEL_PERFORMANCE,
+                                    help="--queries: queries relocalized at once; one query: threads for a "
+                                         "whole-map search (default: every core). The answers are the same for any "
+                                         "number; a batch's timings include waiting for a core (1 for latency "
+                                         "figures)."),
 ):
     """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search.
 
@@ -458,9 +644,10 @@ def relocalize_(
 
     from carto_cli.commands.common import z_slice
 
+    yaw_sigma = None if sigma_yaw is None else _heading_sigma(sigma_yaw)
     if track:
         _track(map_file, recording, output, initial_pose=initial_pose, sigma_xy=sigma_xy,
-               sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), scan_topic=scan_topic,
+               sigma_yaw=yaw_sigma, scan_topic=scan_topic,
                odom_topic=odom_topic, odom_frame=odom_frame, base_frame=base_frame, overrides=overrides,
                profile=profile, max_jump=max_jump, force=force,
                read=z_slice(min_z, max_z), as_json=as_json)
@@ -471,20 +658,23 @@ def relocalize_(
 
     run = run_relocalize(
         map_file, recording, initial_pose=initial_pose, at=at, scan_index=scan_index, sigma_xy=sigma_xy,
-        sigma_yaw=None if sigma_yaw is None else math.radians(sigma_yaw), corridor=corridor, global_search=global_,
+        sigma_yaw=yaw_sigma, corridor=corridor, global_search=global_,
         queries=queries, csv_out=csv_out, scan_topic=scan_topic, overrides=overrides,
         on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force,
         read=z_slice(min_z, max_z), profile=profile, max_jump=max_jump, jobs=jobs, odom_topic=odom_topic,
         odom_frame=odom_frame, base_frame=base_frame)
     if run.auto is not None and not as_json:
         typer.echo(f"auto: {run.auto.describe()}", err=True)
+    from carto_cli.commands.common import compiling_note
+
     if as_json:
         typer.echo(json.dumps(run.to_dict(), indent=2))
     elif run.summary is not None:
         s = run.summary
         typer.echo(f"{s.successes}/{s.queries} relocalized ({100 * s.success_rate:.1f}%; "
                    + ", ".join(f"{k} {v}" for k, v in s.verdicts.items())
-                   + f"), p50 {s.p50_ms:.1f} ms, p95 {s.p95_ms:.1f} ms, p99 {s.p99_ms:.1f} ms -> {run.csv}")
+                   + f"), p50 {s.p50_ms:.1f} ms, p95 {s.p95_ms:.1f} ms, p99 {s.p99_ms:.1f} ms"
+                   + f"{compiling_note(run.compile_s)} -> {run.csv}")
     else:
         result, scan = run.result, run.scan
         assert result is not None and scan is not None
@@ -498,7 +688,7 @@ def relocalize_(
             typer.echo(f"sigma {sig[0]:.3f} m, {sig[1]:.3f} m, {math.degrees(sig[2]):.2f}°; ambiguity "
                        f"{result.ambiguity:.3f}; {100 * result.inlier_fraction:.0f} % of the points on walls")
         typer.echo("timing " + ", ".join(f"{k} {v:.1f} ms" for k, v in t.items())
-                   + f", total {result.total_ms:.1f} ms")
+                   + f", total {result.total_ms:.1f} ms{compiling_note(run.compile_s)}")
         if result.reason:
             typer.echo(f"{'why' if not result.success else 'notes'}: {result.reason}")
     if run.result is not None and run.result.verdict != "ok":
@@ -506,12 +696,13 @@ def relocalize_(
 
 
 def _track(map_file: Path, recording: Path, output: Path | None, *, as_json: bool, **kwargs) -> None:
+    from carto_cli.commands.common import compiling_note
     from carto_cli.commands.relocalize import run_track
     from carto_cli.core.progress import progress
 
-    with progress("tracking", None, state.quiet) as bar:
+    with progress(f"tracking {recording.name}", None, state.quiet) as bar:
         run = run_track(map_file, recording, output, on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True),
-                        on_scan=lambda _scan: bar.advance(), **kwargs)
+                        on_scan=lambda _scan: bar.advance(), on_total=bar.set_total, **kwargs)
     s = run.summary
     if run.auto is not None and not as_json:
         typer.echo(f"auto: {run.auto.describe()}", err=True)
@@ -521,7 +712,8 @@ def _track(map_file: Path, recording: Path, output: Path | None, *, as_json: boo
         first = ("no fix" if s.first_fix_index is None
                  else f"first fix at scan {s.first_fix_index} after {s.first_fix_s:.2f} s")
         typer.echo(f"{s.scans} scans: " + ", ".join(f"{k} {v}" for k, v in s.verdicts.items())
-                   + f"; {first}; {s.relocalizations} searches; {s.scans_per_second:.0f} scans/s -> {run.outdir}")
+                   + f"; {first}; {s.relocalizations} searches; {s.scans_per_second:.0f} scans/s"
+                   + f"{compiling_note(run.compile_s)} -> {run.outdir}")
     if s.first_fix_index is None:
         raise typer.Exit(EXIT_CHECK_FAILED)
 
@@ -529,19 +721,25 @@ def _track(map_file: Path, recording: Path, output: Path | None, *, as_json: boo
 @app.command("render")
 @handle_errors
 def render_(
-    map_file: Path = typer.Argument(..., help="map.carto written by `carto map`, or Cartographer's .pbstream."),
-    outdir: Path = typer.Option(..., "--output", "-o", help="Output directory."),
-    resolution: float | None = typer.Option(None, "--resolution", help="Cell size of the exported map (m; default "
-                                            "the map's own)."),
-    mode: str = typer.Option("trinary", "--mode", help="trinary (map.pgm) or scale (map.scale.png with alpha: the "
-                             "probabilities, unknown transparent)."),
+    map_file: Path = typer.Argument(..., metavar="MAP",
+                                    help="map.carto written by `carto map`, or Cartographer's .pbstream."),
+    outdir: Path = typer.Option(..., "--output", "-o", metavar="DIR", help="Output directory."),
+    resolution: float | None = typer.Option(None, "--resolution", metavar="M", rich_help_panel=PANEL_IMAGE,
+                                            help="Cell size of the exported map (m; default the map's own)."),
+    mode: str = typer.Option("trinary", "--mode", metavar="MODE", rich_help_panel=PANEL_IMAGE,
+                             help="trinary (map.pgm) or scale (map.scale.png with alpha: the probabilities, unknown "
+                                  "transparent)."),
     occupied_thresh: float | None = typer.Option(
-        None, "--occupied-thresh", help="trinary: cells at or above this probability are walls (default: more hit "
-        "than miss evidence)."),
+        None, "--occupied-thresh", metavar="P", rich_help_panel=PANEL_IMAGE,
+        help="Walls from this probability up: trinary cuts map.pgm there (default: more hit than miss evidence); "
+             "scale leaves the cut to map_server. map.yaml carries it (default 0.65)."),
     free_thresh: float | None = typer.Option(
-        None, "--free-thresh", help="trinary: cells at or below this probability are free (between: unknown)."),
-    png_scale: int | None = typer.Option(None, "--png-scale", help="Pixels per cell in map.png (default: about "
-                                         "900 px on the longer side, at most 8)."),
+        None, "--free-thresh", metavar="P", rich_help_panel=PANEL_IMAGE,
+        help="Free up to this probability (between: unknown in trinary, graded in scale); map.yaml carries it "
+             "(default 0.196)."),
+    png_scale: int | None = typer.Option(None, "--png-scale", metavar="N", rich_help_panel=PANEL_IMAGE,
+                                         help="Pixels per cell in map.png (default: about 900 px on the longer side, "
+                                              "at most 8)."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
     pbstream: bool = typer.Option(False, "--pbstream", help="Also write map.pbstream: the map as Cartographer's "
                                   "state (its tools and --load_state_filename read it)."),
@@ -556,7 +754,7 @@ def render_(
     typer.echo(f"{w} x {h} cells at {done.image.resolution:g} m -> {done.image_file}, {done.yaml}, {done.png}{extra}")
 
 
-profiles_app = typer.Typer(help="Environment profiles: list them, show the effective options.", no_args_is_help=True)
+profiles_app = _Typer(help="Environment profiles: list them, show the effective options.", no_args_is_help=True)
 app.add_typer(profiles_app, name="profiles")
 
 
@@ -564,16 +762,15 @@ app.add_typer(profiles_app, name="profiles")
 @handle_errors
 def profiles_list():
     """Profiles shipped with carto (layered over default.yaml by --profile NAME)."""
-    from carto_cli.commands.profiles import describe_profiles
+    from carto_cli.commands.profiles import format_profile_list
 
-    for name, first in describe_profiles():
-        typer.echo(f"{name:<12} {first}")
+    typer.echo(format_profile_list())
 
 
 @profiles_app.command("show")
 @handle_errors
 def profiles_show(
-    name: str = typer.Argument(..., help="Profile name or path."),
+    name: str = typer.Argument(..., metavar="NAME", help="Profile name or path."),
     overrides: list[str] | None = SET,
     changed: bool = typer.Option(False, "--changed", help="Only the options that differ from the default."),
 ):
@@ -586,25 +783,39 @@ def profiles_show(
 @app.command("tune")
 @handle_errors
 def tune_(
-    recordings: list[Path] = typer.Argument(..., help="One or more recordings; a trial maps them all."),
-    space: Path | None = typer.Option(None, "--space", help="Search space YAML (default: the base profile's)."),
-    trials: int = typer.Option(20, "--trials", help="Trials to add in this run (a rerun resumes the study)."),
+    recordings: list[Path] = typer.Argument(..., metavar="RECORDINGS",
+                                            help="One or more recordings; a trial maps them all."),
+    space: Path | None = typer.Option(None, "--space", metavar="FILE", rich_help_panel=PANEL_STUDY,
+                                      help="Search space YAML (default: the base profile's)."),
+    trials: int = typer.Option(20, "--trials", metavar="N", rich_help_panel=PANEL_STUDY,
+                               help="Trials to add in this run (a rerun resumes the study)."),
     objective: str = typer.Option(
-        "auto", "--objective", help="relations, ground-truth, relocalization, map-quality or auto."),
-    relations: list[Path] | None = typer.Option(None, "--relations", help="Relations file per recording."),
-    ground_truth: list[Path] | None = typer.Option(None, "--ground-truth", help="Reference trajectory per recording."),
+        "auto", "--objective", metavar="NAME", rich_help_panel=PANEL_OBJECTIVE,
+        help="relations, ground-truth, relocalization, map-quality or auto."),
+    relations: list[Path] | None = typer.Option(None, "--relations", metavar="FILE", rich_help_panel=PANEL_OBJECTIVE,
+                                                help="Relations file per recording."),
+    ground_truth: list[Path] | None = typer.Option(None, "--ground-truth", metavar="FILE",
+                                                   rich_help_panel=PANEL_OBJECTIVE,
+                                                   help="Reference trajectory per recording."),
     profile: str | None = PROFILE,
     overrides: list[str] | None = SET,
-    time_weight: float = typer.Option(0.0, "--time-weight", help="Add W x (ms per scan) to the objective."),
+    time_weight: float = typer.Option(0.0, "--time-weight", metavar="W", rich_help_panel=PANEL_OBJECTIVE,
+                                      help="Add W x (ms per scan) to the objective."),
     storage: str | None = typer.Option(
-        None, "--storage", help="Optuna storage URL (default: sqlite next to -o; postgresql://... to share)."),
-    study: str | None = typer.Option(None, "--study", help="Study name (default: the output's stem)."),
-    n_jobs: int = typer.Option(1, "--n-jobs", help="Trials in parallel, each in its own process."),
-    seed: int | None = typer.Option(None, "--seed", help="Seed of the TPE sampler."),
-    max_scans: int | None = typer.Option(None, "--max-scans", help="Map only the first N scans of each recording."),
-    out: Path = typer.Option(..., "--output", "-o", help="The tuned profile (YAML over the base profile)."),
+        None, "--storage", metavar="URL", rich_help_panel=PANEL_STUDY,
+        help="Optuna storage URL (default: sqlite next to -o; postgresql://... to share)."),
+    study: str | None = typer.Option(None, "--study", metavar="NAME", rich_help_panel=PANEL_STUDY,
+                                     help="Study name (default: the output's stem)."),
+    n_jobs: int = typer.Option(1, "--n-jobs", metavar="N", rich_help_panel=PANEL_STUDY,
+                               help="Trials in parallel, each in its own process."),
+    seed: int | None = typer.Option(None, "--seed", metavar="N", rich_help_panel=PANEL_STUDY,
+                                    help="Seed of the TPE sampler."),
+    max_scans: int | None = typer.Option(None, "--max-scans", metavar="N", rich_help_panel=PANEL_INPUT,
+                                         help="Map only the first N scans of each recording."),
+    out: Path = typer.Option(..., "--output", "-o", metavar="FILE",
+                             help="The tuned profile (YAML over the base profile)."),
     algorithm: str = typer.Option(
-        "cartographer", "--algorithm",
+        "cartographer", "--algorithm", metavar="NAME",
         help="Mapping system each trial maps with: cartographer (the default) or gmapping; with gmapping the "
              "default --space is the gmapping.* space (spaces/gmapping.yaml)."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace an -o file that is not this study's output "
@@ -616,7 +827,7 @@ def tune_(
     from carto_cli.commands.tune import run_tune, summary_line
     from carto_cli.core.progress import progress
 
-    with progress("tuning", trials, state.quiet) as bar:
+    with progress("tuning", trials, state.quiet, unit="trials") as bar:
         def on_trial(number, value, best):
             bar.advance()
             if best is not None:
@@ -635,9 +846,9 @@ def tune_(
 @app.command("options")
 @handle_errors
 def options_(
-    filter_: str | None = typer.Argument(None, metavar="[FILTER | import]",
+    filter_: str | None = typer.Argument(None, metavar="FILTER|import",
                                          help="Only options whose name contains this; or 'import' and a file."),
-    lua: Path | None = typer.Argument(None, metavar="[ROBOT.lua]",
+    lua: Path | None = typer.Argument(None, metavar="ROBOT.lua",
                                       help="With 'import': a Cartographer Lua configuration, printed as a carto "
                                       "profile (YAML) on stdout."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
@@ -667,16 +878,12 @@ def options_(
         typer.echo(format_option(i))
 
 
-def _terminate_as_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
+def stop_on_signals() -> None:
+    """Ctrl-C and SIGTERM (a CI job cancelled, `timeout`, `docker stop`) stop a command alike: exit 130, the
+    output set left as it was, whatever error the interrupt turns into where it lands (core.interrupts)."""
+    from carto_cli.core import interrupts
 
-
-def stop_on_sigterm() -> None:
-    """SIGTERM (a CI job cancelled, `timeout`, `docker stop`) stops a command as Ctrl-C does: exit 130, the
-    output set left as it was."""
-    import signal
-
-    signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+    interrupts.install()
 
 
 GLOBAL_FLAGS = ("--debug", "--quiet", "-q")
@@ -697,7 +904,7 @@ def hoist_global_flags(argv: list[str]) -> list[str]:
 def main() -> None:
     import sys
 
-    stop_on_sigterm()
+    stop_on_signals()
     try:
         app(prog_name="carto", args=hoist_global_flags(sys.argv[1:]))
     except SystemExit as stop:
@@ -715,6 +922,9 @@ def leave(code) -> None:
     import sys
     import threading
 
+    from carto_cli.core import interrupts
+
+    interrupts.hold()  # what is left is reporting and leaving: a signal now must not end in a traceback
     main_thread = threading.main_thread()
     if any(t is not main_thread and t.is_alive() and not t.daemon for t in threading.enumerate()):
         sys.exit(code)

@@ -1,5 +1,5 @@
-"""What several commands share: the point-cloud slice of --min-z/--max-z, the --algorithm check, and the gates'
-JUnit output."""
+"""What several commands share: the point-cloud slice of --min-z/--max-z, the --algorithm check, the gates'
+JUnit output and the note on compiling kernels."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,7 +8,9 @@ from carto_cli.core.errors import CartoError
 from carto_cli.evaluation.gates import GateResult, write_junit
 from carto_cli.io.recording import ReadOptions
 
-__all__ = ["check_algorithm", "record_gates", "z_slice"]
+__all__ = ["COMPILE_NOTE_MIN_S", "check_algorithm", "compiling_note", "record_gates", "z_slice"]
+
+COMPILE_NOTE_MIN_S = 1.0  # below this, compiling kernels is not worth a mention
 
 
 def z_slice(min_z: float, max_z: float) -> ReadOptions:
@@ -33,3 +35,11 @@ def record_gates(gates: list[GateResult], junit: Path | None, suite: str) -> lis
     if junit is not None:
         write_junit(junit, suite, gates)
     return [g for g in gates if not g.passed]
+
+
+def compiling_note(seconds: float) -> str:
+    """' (incl. N s compiling kernels: ...)' after a figure that includes ``seconds`` of compiling, when they are
+    worth a mention (the first run after installing), else ''. The same words for every command."""
+    if seconds > COMPILE_NOTE_MIN_S:
+        return f" (incl. {seconds:.0f} s compiling kernels: later runs load them from the cache)"
+    return ""

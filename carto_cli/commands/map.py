@@ -8,7 +8,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
-from carto_cli.commands.common import check_algorithm
+from carto_cli.commands.common import check_algorithm, compiling_note
 from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
 from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
@@ -24,8 +24,6 @@ __all__ = ["OUTPUT_NAMES", "MapOutputs", "check_outdir", "compile_note", "defaul
 OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto", "summary.json")
 # What a recording's name ends with: cut off for the default output directory, the rest of the name kept
 RECORDING_SUFFIXES = (".gz", ".bag", ".mcap", ".db3", ".clf", ".log")
-
-COMPILE_NOTE_MIN_S = 1.0  # below this, compiling kernels is not worth a mention
 
 
 @dataclass
@@ -168,24 +166,42 @@ def run_map(
     return result, outputs
 
 
-def summary_line(result: MapResult) -> str:
+def summary_line(result: MapResult, timer=None, compiled: bool | None = None) -> str:
+    """The run in one line. With the run's ``timer`` its wall time is the whole run's (reading, surveying, loading
+    or compiling kernels, mapping, writing), and a first run says how much of it went to compiling (``compiled``:
+    see :func:`compile_note`); without, the mapping's alone (summary.json's ``wall_time_s``). scans/s is the
+    mapping's rate either way."""
     s = result.stats
+    if timer is None:
+        wall = f"{s['wall_time_s']:.1f} s wall"
+    else:
+        # The kernels compile before mapping starts: a wall that left them out would not include what the note
+        # says it does.
+        wall = f"{timer.snapshot().wall_ns / 1e9:.1f} s wall{compile_note(timer, compiled)}"
     peak = f", {s['peak_memory_mb']:.0f} MB peak memory" if s.get("peak_memory_mb") else ""
     if s.get("algorithm") == "gmapping":
         return (f"gmapping: {s['scans']} scans ({s['processed_scans']} processed), {s['particles']} particles, "
                 f"{s['resamplings']} resamplings, {s['map_memory_peak_bytes'] / 2**20:.0f} MB peak map, "
-                f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s{peak}")
+                f"{wall}, {s['scans_per_s']:.0f} scans/s{peak}")
     return (f"{s['scans']} scans, {s['nodes']} nodes, {s['submaps']} submaps, "
             f"{s.get('loop_closures', 0)} loop closures, "
-            f"{s['wall_time_s']:.1f} s wall, {s['scans_per_s']:.0f} scans/s{peak}")
+            f"{wall}, {s['scans_per_s']:.0f} scans/s{peak}")
 
 
 def compile_note(timer, compiled: bool | None = None) -> str:
-    """' (incl. N s compiling kernels: ...)' when the run compiled kernels (``compiled``; None: whether this process
-    did) and paid noticeably for it, else ''. Loading cached kernels can take a second too, and is no news."""
+    """' (incl. N s compiling kernels: later runs ...)' when the run compiled kernels (``compiled``; None: whether
+    this process did) and paid noticeably for it, else ''. N is every ``jit warm-up`` stage of the run, wherever
+    it ran (a warm-up inside the survey too). Loading cached kernels can take a second too, and is no news."""
     if compiled is None:
         compiled = kernels.compiled_here()
-    warm_up = timer.snapshot().find(kernels.STAGE)
-    if compiled and warm_up is not None and warm_up.total_ns > COMPILE_NOTE_MIN_S * 1e9:
-        return f" (incl. {warm_up.total_ns / 1e9:.0f} s compiling kernels: later runs load them from the cache)"
-    return ""
+    if not compiled:
+        return ""
+    return compiling_note(_warm_up_ns(timer.snapshot().root) / 1e9)
+
+
+def _warm_up_ns(stage) -> int:
+    """The time of the warm-up stages under ``stage`` (not counting one inside another twice, nor a concurrent
+    branch: work on another thread or process that the wall time does not add up)."""
+    if stage.name == kernels.STAGE:
+        return stage.total_ns
+    return sum(_warm_up_ns(child) for child in stage.children if not child.concurrent)

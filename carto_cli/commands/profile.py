@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from carto_cli.commands.common import check_algorithm
@@ -24,6 +24,7 @@ __all__ = ["ProfileRun", "read_baseline", "run_profile"]
 class ProfileRun:
     report: dict  # see evaluation/profiling.py for its schema
     baseline: dict | None = None
+    warnings: list[str] = field(default_factory=list)  # as `carto map` tells them: the recording's, what was dropped
 
     def gates(self, max_regression: float = 0.20) -> list[GateResult]:
         """Per-stage speed against the baseline (a slow-down of up to ``max_regression`` passes)."""
@@ -88,6 +89,7 @@ def run_profile(
         check_baseline(known)
     calibration = calibrate() if calibrate_first else None
     runs = []
+    warnings: list[str] = []
     with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic, odom_frame=odom_frame,
                 base_frame=base_frame) as source, RecordStream(source.recording, source.selection,
                                                                source.selection.topics, jobs=jobs) as stream:
@@ -106,6 +108,7 @@ def run_profile(
                                                   stream=stream)
             timer.stop()
             runs.append(build_report(result, timer, configured.options, recording, calibration))
+            warnings = result.warnings  # every repeat reads the same records
     report = merge_repeats(runs)
     if configured.auto is not None and configured.regime is not None:
         report["auto"] = {"detected": configured.regime.describe(), "profile": configured.auto.profile,
@@ -120,4 +123,4 @@ def run_profile(
             report["relocalization"] = profile_relocalization(load_map(relocalize_map), rec, scan_topic=scan_topic)
     if output is not None:
         write_text_atomic(output, json.dumps(report, indent=2) + "\n")
-    return ProfileRun(report, base)
+    return ProfileRun(report, base, warnings)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import itertools
 import json
@@ -9,9 +10,11 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, TypeVar, cast
 
 import numpy as np
 
+from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
 from carto_cli.core.progress import progress
 from carto_cli.core.records import Scan
@@ -131,6 +134,7 @@ class RelocalizeRun:
     summary: BatchSummary | None = None
     csv: Path | None = None
     auto: AutoRelocalization | None = None  # what auto chose from the map (map.carto) or the scans (map_server)
+    compile_s: float = 0.0  # of the run's time, compiling kernels (a first run after installing)
 
     @property
     def batch(self) -> bool:
@@ -149,6 +153,23 @@ class RelocalizeRun:
         return data
 
 
+_Run = TypeVar("_Run", bound=Callable[..., Any])
+
+
+def _noting_compiles(run: _Run) -> _Run:
+    """``run``'s result with ``compile_s``: the seconds it spent compiling kernels. Relocalization compiles its
+    kernels on first use, not in a warm-up as mapping does, so only numba can say how long that took."""
+    @functools.wraps(run)
+    def timed(*args, **kwargs):
+        with kernels.compile_time() as compiling:
+            done = run(*args, **kwargs)
+        done.compile_s = compiling()
+        return done
+
+    return cast(_Run, timed)
+
+
+@_noting_compiles
 def run_relocalize(
     map_file: Path,
     recording: Path,
@@ -215,7 +236,7 @@ def run_relocalize(
         selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
         if queries is not None:
             qs = read_queries(queries)
-            with progress("relocalizing", len(qs), quiet) as bar:
+            with progress("relocalizing", len(qs), quiet, unit="queries") as bar:
                 run.results, run.summary = relocalize_many(relocalizer, rec, qs, scan_topic=scan_topic,
                                                            corridor=corridor, on_query=bar.advance,
                                                            laser_pose=mount, max_jump=max_jump, jobs=jobs,
@@ -247,6 +268,7 @@ class TrackRun:
     summary: TrackSummary
     warnings: list[str] = field(default_factory=list)
     auto: AutoRelocalization | None = None
+    compile_s: float = 0.0  # of the run's time, compiling kernels (a first run after installing)
 
     def to_dict(self) -> dict:
         return {"outdir": str(self.outdir), **self.summary.to_dict(),
@@ -261,6 +283,7 @@ def default_track_dir(recording: Path) -> Path:
     return out.with_name(out.name[:-len("_map")] + "_track")
 
 
+@_noting_compiles
 def run_track(
     map_file: Path,
     recording: Path,
@@ -280,12 +303,14 @@ def run_track(
     read: ReadOptions | None = None,
     on_warning: Callable[[str], None] | None = None,
     on_scan: Callable[[TrackedScan], None] | None = None,
+    on_total: Callable[[int], None] | None = None,
 ) -> TrackRun:
     """A pose and a verdict for every scan of ``recording`` in the map (``relocalization.tracking``): the first
     from ``initial_pose`` or a global search, then each from the previous one moved by odometry; writes
     ``trajectory.tum`` (the scans judged ok), ``track.csv`` (every scan: pose, verdict, source, score, sigmas)
     and ``track.json`` (the summary: verdict counts, time to first fix, scans per second) into ``outdir``
-    (default NAME_track next to the recording) as one set; an earlier set is replaced only with ``force``."""
+    (default NAME_track in the current directory) as one set; an earlier set is replaced only with ``force``.
+    ``on_total`` hears how many scans the recording holds (before the first ``on_scan``)."""
     outdir = Path(outdir) if outdir is not None else default_track_dir(recording)
     if outdir.exists() and not outdir.is_dir():
         raise CartoError("exists and is not a directory; the outputs go into a directory (give another -o)", outdir)
@@ -304,6 +329,8 @@ def run_track(
     with open_recording(recording, read) as rec:
         _tell(rec.warnings, warnings, on_warning)
         selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
+        if on_total is not None:
+            on_total(sum(t.count for t in rec.topics() if t.name == selection.scan))
         mount = None
         if relocalizer is None:
             mount, auto = _from_scans(loaded, rec, selection.scan, profile)

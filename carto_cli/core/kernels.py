@@ -12,7 +12,8 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterator
+from contextlib import contextmanager
 
 from carto_cli.core.timing import NullTimer
 
@@ -73,6 +74,14 @@ def warm_up(timer=None, systems: Collection[str] | None = None) -> None:
                     _done.add(fn)
             for helper in helpers:
                 helper.wait()  # a helper that failed only means this process compiles its share below
+        except BaseException:
+            # Ctrl-C, SIGTERM or an error here: the helpers would compile on after this process is gone (they are
+            # not its forks and do not die with it). Numba writes a cache entry to a temporary it then renames:
+            # a killed helper leaves no entry half-written.
+            for helper in helpers:
+                helper.kill()
+                helper.wait()
+            raise
         finally:
             if claims is not None:
                 shutil.rmtree(claims, ignore_errors=True)
@@ -147,3 +156,17 @@ def _helper(names: list[str], claims: str) -> None:
         if claim(claims, name):
             module, qualname = name.split(":")
             getattr(importlib.import_module(module), qualname)()
+
+
+@contextmanager
+def compile_time() -> Iterator[Callable[[], float]]:
+    """Seconds this process spends compiling kernels while the block runs (numba's own count of its cache misses:
+    loading a cached kernel is not compiling), read through the callable it gives, during or after the block. For
+    work whose kernels compile on first use rather than in a warm-up (relocalize): on a cold cache that is seconds a
+    user should hear about. Kernels compile one at a time (numba's compiler lock), so nested and concurrent
+    compiles are counted once."""
+    from numba.core import event
+
+    listener = event.TimingListener()
+    with event.install_listener("numba:compile", listener):
+        yield lambda: listener.duration if listener.done else 0.0

@@ -25,8 +25,10 @@ Stages are meant for pieces of work of tens of microseconds or more (one enter a
 exit costs about a microsecond); time inner loops with a sampling profiler instead.
 Not thread-safe: a thread of its own gets a timer of its own from ``concurrent(name)``, whose tree the
 report shows beside the main one (marked as running concurrently, so it is not part of the wall-time sum);
-work measured on worker threads is added after the fact with ``add`` (thread time, summed over workers).
-``NullTimer`` has the same interface and does nothing, for runs without profiling.
+work measured on worker threads goes into such a branch after the fact with ``add`` (thread time, summed
+over workers), never under a stage of this thread, which would then last less than its children.
+Names are unique among siblings (a concurrent branch too: ``snapshot`` refuses a clash), so a path names one
+stage. ``NullTimer`` has the same interface and does nothing, for runs without profiling.
 """
 from __future__ import annotations
 
@@ -76,6 +78,10 @@ class _Node:
         return node
 
 
+# What ``export_tree`` gives: a timer's stages and, by name, its concurrent timers' own.
+_Tree = tuple[_Node, list[tuple[str, "_Tree"]]]
+
+
 class _Stage:
     __slots__ = ("_name", "_timer")
 
@@ -83,21 +89,25 @@ class _Stage:
         self._timer = timer
         self._name = name
 
+    # The CPU clock is read inside the wall interval, not around it: reading the process's CPU time is a system
+    # call at which a busy machine often switches to other work (on 2 loaded cores, reads stalled up to 30 ms,
+    # 0.8-2.2 s of a 10 s profile), and read outside the interval every stall went to the parent's "(other)"
+    # (most of `match`'s time: its two children's four reads).
     def __enter__(self):
         t = self._timer
-        t._stack.append(t._stack[-1].child(self._name))
+        t._starts.append(t._clock())
+        top = t._stack[-1]
+        t._stack.append(top.children.get(self._name) or top.child(self._name))
         if t._cpu_clock is not None:
             t._cpu_starts.append(t._cpu_clock())
-        t._starts.append(t._clock())
         return self
 
     def __exit__(self, *exc):
         t = self._timer
-        end = t._clock()
         node = t._stack.pop()
-        dt = end - t._starts.pop()
         if t._cpu_clock is not None:
             node.cpu_ns += t._cpu_clock() - t._cpu_starts.pop()
+        dt = t._clock() - t._starts.pop()
         node.total_ns += dt
         node.count += 1
         if t._in_scan:
@@ -147,7 +157,7 @@ class StageTimer:
         self._touched: list[_Node] = []
         self._t0 = clock()
         self._t_stop: int | None = None
-        self._concurrent: list[tuple[str, StageTimer]] = []
+        self._concurrent: dict[str, StageTimer] = {}
 
     # -- recording
 
@@ -160,8 +170,8 @@ class StageTimer:
         return _Scan(self)
 
     def add(self, name: str, ns: int, count: int = 1) -> None:
-        """Record ``count`` runs of ``name`` lasting ``ns`` in all, measured elsewhere (e.g. on worker threads),
-        as a child of the innermost open stage. Summed over threads, children may outlast their parent."""
+        """Record ``count`` runs of ``name`` lasting ``ns`` in all, measured elsewhere, as a child of the innermost
+        open stage: work that ran within that stage, or, in a ``concurrent`` timer, on other threads."""
         node = self._stack[-1].child(name)
         node.total_ns += int(ns)
         node.count += int(count)
@@ -173,23 +183,32 @@ class StageTimer:
             node.scan_ns += int(ns)
 
     def concurrent(self, name: str) -> StageTimer:
-        """A timer for a thread of its own (e.g. the pose graph's background worker); its stages appear under
-        ``name`` at the top of this timer's report, marked concurrent."""
-        timer = StageTimer(self._clock, self._cpu_clock)
-        self._concurrent.append((name, timer))
+        """A timer for a thread of its own (e.g. the pose graph's background worker) or for time measured on
+        worker threads; its stages appear under ``name`` at the top of this timer's report, marked concurrent.
+        The same name gives the same timer: one branch per name, however often it is asked for."""
+        timer = self._concurrent.get(name)
+        if timer is None:
+            if not name or SEP in name:
+                raise ValueError(f"stage names must be non-empty and contain no '{SEP}': {name!r}")
+            timer = self._concurrent[name] = StageTimer(self._clock, self._cpu_clock)
         return timer
 
-    def export_tree(self) -> _Node:
-        """The recorded stages as one picklable value (a concurrent timer run in another process)."""
+    def export_tree(self) -> _Tree:
+        """The recorded stages, with those of this timer's concurrent timers, as one picklable value (a
+        concurrent timer run in another process)."""
         if len(self._stack) != 1 or self._in_scan:
             raise RuntimeError("export_tree: a stage or scan is still open")
-        return self._root
+        return self._root, [(name, timer.export_tree()) for name, timer in self._concurrent.items()]
 
-    def import_tree(self, tree: _Node) -> None:
+    def import_tree(self, tree: _Tree) -> None:
         """Take the stages ``export_tree`` gave, in place of this timer's own."""
-        self._root = tree
-        self._stack = [tree]
-        self._scan_node = tree.children.get(SCAN_STAGE)
+        root, concurrent = tree
+        self._root = root
+        self._stack = [root]
+        self._scan_node = root.children.get(SCAN_STAGE)
+        self._concurrent = {}
+        for name, subtree in concurrent:
+            self.concurrent(name).import_tree(subtree)
 
     def begin_scan(self) -> None:
         if self._in_scan:
@@ -200,19 +219,19 @@ class StageTimer:
             self._scan_node = self._root.child(SCAN_STAGE)
         self._stack.append(self._scan_node)
         self._in_scan = True
+        self._scan_start = self._clock()  # the CPU clock inside the wall interval, as for a stage
         if self._cpu_clock is not None:
             self._scan_cpu_start = self._cpu_clock()
-        self._scan_start = self._clock()
 
     def end_scan(self) -> None:
         if not self._in_scan:
             raise RuntimeError("end_scan: no scan is open")
         if self._stack[-1] is not self._scan_node:
             raise RuntimeError(f"end_scan: stage '{self._stack[-1].name}' is still open")
-        dt = self._clock() - self._scan_start
         node = self._scan_node
         if self._cpu_clock is not None:
             node.cpu_ns += self._cpu_clock() - self._scan_cpu_start
+        dt = self._clock() - self._scan_start
         node.total_ns += dt
         node.count += 1
         node.samples.append(dt)
@@ -270,7 +289,10 @@ class StageTimer:
             else:
                 total, count = node.total_ns + extra, node.count + int(is_open)
             if node is self._root:
-                children += [_graft(name, timer.snapshot().root) for name, timer in self._concurrent]
+                children += [_graft(name, timer.snapshot().root) for name, timer in self._concurrent.items()]
+                names = [c.name for c in children]
+                if len(set(names)) < len(names):
+                    raise ValueError(f"a concurrent branch is named as a stage beside it: {names}")
             return StageStats(
                 name=node.name, path=path, total_ns=total, cpu_ns=node.cpu_ns if self._cpu_clock else None,
                 self_ns=max(0, total - sum(c.total_ns for c in children if not c.concurrent)), count=count,
@@ -287,8 +309,9 @@ def _graft(name: str, root: StageStats) -> StageStats:
         return replace(s, path=path, children=[repath(c, f"{path}{SEP}{c.name}") for c in s.children])
 
     children = [repath(c, f"{name}{SEP}{c.name}") for c in root.children]
-    total = sum(c.total_ns for c in children)
-    cpu = sum(c.cpu_ns or 0 for c in children) if root.cpu_ns is not None else None
+    # Its own concurrent branches (worker threads of that thread) are beside its busy time, not part of it.
+    total = sum(c.total_ns for c in children if not c.concurrent)
+    cpu = sum(c.cpu_ns or 0 for c in children if not c.concurrent) if root.cpu_ns is not None else None
     return StageStats(name=name, path=name, total_ns=total, self_ns=0, count=1, in_scan=False, cpu_ns=cpu,
                       children=children, concurrent=True)
 
@@ -493,7 +516,7 @@ def report_tree_text(timer: StageTimer | NullTimer | Snapshot) -> str:
         if s.path == SCAN_STAGE:
             name = f"{SCAN_STAGE} ({snap.scans} scans)"
         elif s.concurrent:
-            name = f"{s.name} (concurrent: its own thread or process, not in the sum)"
+            name = f"{s.name} (concurrent: other threads or a process, not in the sum)"
         row(prefix + branch + name, s.total_ns, s.in_scan, str(s.count) if s.path else "",
             s.percentile_ms(50), s.percentile_ms(95))
         if not s.children:

@@ -204,6 +204,8 @@ def _tree_text(timing: dict) -> str:
 
     def visit(node: dict, prefix: str, last: bool, depth: int):
         name = "total (wall)" if depth == 0 else node["name"]
+        if node.get("concurrent"):
+            name += " (concurrent: not in the sum)"
         branch = "" if depth == 0 else ("└─ " if last else "├─ ")
         share = fmt(None if node["share"] is None else 100 * node["share"], ".1f")
         rows.append((prefix + branch + name, fmt(node["total_ms"], ".1f"), fmt(node["ms_per_scan"], ".3f"),

@@ -8,6 +8,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from carto_cli.core import interrupts
 from carto_cli.core.errors import CartoError
 
 
@@ -82,12 +83,13 @@ def output_set(outdir: str | Path, names: Iterable[str]) -> Iterator[Path]:
             raise CartoError(f"cannot write the outputs: {e.strerror or e}; the earlier outputs are kept",
                              outdir) from None
         written = {p.name for p in staging.iterdir()}
-        for name in names:
-            if name in written:
-                os.replace(staging / name, outdir / name)
-            elif (outdir / name).exists():
-                (outdir / name).unlink()
-        done = True
+        with interrupts.deferred():  # a Ctrl-C here would leave a set of two runs' files
+            for name in names:
+                if name in written:
+                    os.replace(staging / name, outdir / name)
+                elif (outdir / name).exists():
+                    (outdir / name).unlink()
+            done = True
     finally:
         shutil.rmtree(staging, ignore_errors=True)
         if created and not done and not any(outdir.iterdir()):

@@ -47,7 +47,8 @@ def _pgm_header(h: int, w: int) -> bytes:
     return f"P5\n# carto map\n{w} {h}\n255\n".encode()
 
 
-def map_yaml(image_name: str, image: OccupancyImage | AssembledImage, mode: str = "trinary") -> str:
+def map_yaml(image_name: str, image: OccupancyImage | AssembledImage, mode: str = "trinary",
+             occupied_thresh: float = OCCUPIED_THRESH, free_thresh: float = FREE_THRESH) -> str:
     ox, oy = image.origin
     return (
         f"image: {image_name}\n"
@@ -55,14 +56,39 @@ def map_yaml(image_name: str, image: OccupancyImage | AssembledImage, mode: str 
         f"resolution: {image.resolution:.6g}\n"
         f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\n"
         f"negate: 0\n"
-        f"occupied_thresh: {OCCUPIED_THRESH}\n"
-        f"free_thresh: {FREE_THRESH}\n"
+        f"occupied_thresh: {float(occupied_thresh)}\n"
+        f"free_thresh: {float(free_thresh)}\n"
     )
 
 
-def _thresholded_rows(p: np.ndarray, occupied_thresh: float, free_thresh: float) -> np.ndarray:
+def _checked_thresholds(occupied_thresh: float | None, free_thresh: float | None) -> tuple[float, float]:
+    occ = OCCUPIED_THRESH if occupied_thresh is None else float(occupied_thresh)
+    free = FREE_THRESH if free_thresh is None else float(free_thresh)
+    if not 0.0 <= free < occ <= 1.0:
+        raise CartoError(f"need 0 <= --free-thresh ({free:g}) < --occupied-thresh ({occ:g}) <= 1")
+    return occ, free
+
+
+def _unknown_grey(occupied_thresh: float, free_thresh: float) -> int:
+    """The grey of a trinary image's unknown cells: 205, map_server's own, unless the thresholds read it as free
+    or occupied (map_server: occupancy (255 - grey) / 255, free below ``free_thresh``, occupied above
+    ``occupied_thresh``); then the grey nearest the middle of the two that map_server reads as unknown."""
+    def unknown(grey: int) -> bool:
+        return free_thresh <= (255 - grey) / 255 <= occupied_thresh
+
+    if unknown(UNKNOWN):
+        return UNKNOWN
+    middle = 255.0 * (1.0 - 0.5 * (occupied_thresh + free_thresh))
+    greys = sorted((g for g in range(1, 254) if unknown(g)), key=lambda g: abs(g - middle))
+    if not greys:
+        raise CartoError(f"--free-thresh ({free_thresh:g}) and --occupied-thresh ({occupied_thresh:g}) are closer "
+                         "than one grey level: map_server would read no pixel as unknown")
+    return greys[0]
+
+
+def _thresholded_rows(p: np.ndarray, occupied_thresh: float, free_thresh: float, unknown: int) -> np.ndarray:
     known = ~np.isnan(p)
-    pixels = np.full(p.shape, UNKNOWN, dtype=np.uint8)
+    pixels = np.full(p.shape, unknown, dtype=np.uint8)
     pixels[known & (p >= occupied_thresh)] = 0
     pixels[known & (p <= free_thresh)] = 254
     return pixels
@@ -84,12 +110,15 @@ def write_map(outdir: Path, image: OccupancyImage | AssembledImage, stem: str = 
 
     ``trinary`` (``stem.pgm``): without thresholds a cell is occupied or free by the balance of its evidence
     (``to_pgm_pixels``); with ``occupied_thresh`` / ``free_thresh`` by its probability, cells in between unknown.
-    ``scale`` (``stem.scale.png``, grey and alpha): the probability itself, map_server reading it in scale mode.
+    ``scale`` (``stem.scale.png``, grey and alpha): the probability itself, which map_server cuts at the YAML's
+    thresholds (occupied above ``occupied_thresh``, free below ``free_thresh``, 1..99 between).
+    The YAML carries the thresholds given (default 0.65 / 0.196).
     """
     if 0 in image.shape:
         raise CartoError("the map is empty: no scan was inserted", outdir)
     if mode not in ("trinary", "scale"):
         raise CartoError(f"--mode must be trinary or scale, got {mode!r}")
+    occ, free = _checked_thresholds(occupied_thresh, free_thresh)
     outdir.mkdir(parents=True, exist_ok=True)
     yml = outdir / f"{stem}.yaml"
     if mode == "scale":
@@ -105,19 +134,16 @@ def write_map(outdir: Path, image: OccupancyImage | AssembledImage, stem: str = 
             def pixels(rows: np.ndarray) -> np.ndarray:
                 return _pgm_rows(rows, True)
         else:
-            occ = OCCUPIED_THRESH if occupied_thresh is None else float(occupied_thresh)
-            free = FREE_THRESH if free_thresh is None else float(free_thresh)
-            if not 0.0 <= free < occ <= 1.0:
-                raise CartoError(f"need 0 <= --free-thresh ({free:g}) < --occupied-thresh ({occ:g}) <= 1")
+            grey = _unknown_grey(occ, free)
 
             def pixels(rows: np.ndarray) -> np.ndarray:
-                return _thresholded_rows(rows, occ, free)
+                return _thresholded_rows(rows, occ, free, grey)
         # Strip by strip, top first: a campus-sized map is never held whole (grid.occupancy_image.AssembledImage).
         with atomic_output(img) as tmp, open(tmp, "wb") as f:
             f.write(_pgm_header(*image.shape))
             for rows in image_rows(image):
                 f.write(np.ascontiguousarray(pixels(rows)).tobytes())
-    write_text_atomic(yml, map_yaml(img.name, image, mode))
+    write_text_atomic(yml, map_yaml(img.name, image, mode, occ, free))
     return img, yml
 
 
@@ -130,6 +156,11 @@ PNG_WALL_EDGE = 110  # p just above 0.5 ... 0 at p = 0.9
 PNG_TARGET_PX = 900  # the longer side of map.png is scaled up towards this (whole multiples, at most 8x)
 PNG_MAX_PX = 4096  # a map longer than this (cells) is drawn with whole blocks of cells per pixel to fit
 _FOOTER_PX = 34
+# map.png's colours (BGR). The start is blue, not a green like the loop closures': on a map dense with closures
+# (aces) a green start dot was lost among them.
+PATH_BGR = (40, 40, 220)
+START_BGR = (200, 90, 10)
+LOOP_CLOSURE_BGR = (60, 170, 60)
 
 
 def to_png_pixels(image: OccupancyImage | AssembledImage) -> np.ndarray:
@@ -170,8 +201,8 @@ def render_png(
     legend: bool = True,
 ) -> np.ndarray:
     """BGR image for people: the map (``to_png_pixels``) scaled by ``scale`` (default ``png_scale_for``),
-    loop-closure constraints in green, the trajectory in red with its start (green dot) and end (red square),
-    and below it a footer with a scale bar and a legend."""
+    loop-closure constraints in green, the trajectory in red with its start (blue dot, drawn last so nothing hides
+    it) and end (red square), and below it a footer with a scale bar and a legend."""
     longest = max(image.shape) if 0 not in image.shape else 1
     if longest > PNG_MAX_PX:
         # A campus at 5 cm is 20,000 cells across: drawn whole it would take gigabytes, and no screen shows it.
@@ -193,14 +224,17 @@ def render_png(
     if constraints_xy is not None and len(constraints_xy):
         a, b = px(constraints_xy[:, :2]), px(constraints_xy[:, 2:4])
         for p, q in zip(a, b):
-            cv2.line(bgr, tuple(p), tuple(q), (60, 170, 60), 1, cv2.LINE_AA, shift)
+            cv2.line(bgr, tuple(p), tuple(q), LOOP_CLOSURE_BGR, 1, cv2.LINE_AA, shift)
     if trajectory_xy is not None and len(trajectory_xy) > 1:
         pts = px(trajectory_xy[:, :2])
-        cv2.polylines(bgr, [pts.reshape(-1, 1, 2)], False, (40, 40, 220), 1, cv2.LINE_AA, shift)
+        cv2.polylines(bgr, [pts.reshape(-1, 1, 2)], False, PATH_BGR, 1, cv2.LINE_AA, shift)
         r = max(3, scale + 2) * one
-        cv2.circle(bgr, tuple(pts[0]), r, (40, 170, 40), -1, cv2.LINE_AA, shift)
         e = pts[-1]
-        cv2.rectangle(bgr, tuple(e - r), tuple(e + r), (40, 40, 220), -1, cv2.LINE_AA, shift)
+        cv2.rectangle(bgr, tuple(e - r), tuple(e + r), PATH_BGR, -1, cv2.LINE_AA, shift)
+        # A white ring sets the dot off from the lines under it; a loop ends where it began, so the end square
+        # would cover the start if drawn after it.
+        cv2.circle(bgr, tuple(pts[0]), r + one, (255, 255, 255), -1, cv2.LINE_AA, shift)
+        cv2.circle(bgr, tuple(pts[0]), r, START_BGR, -1, cv2.LINE_AA, shift)
     if not legend:
         return bgr
     return _with_footer(bgr, image.resolution / scale)
@@ -223,8 +257,8 @@ def _with_footer(bgr: np.ndarray, metres_per_px: float) -> np.ndarray:
     cv2.putText(out, label, (12 + bar_px, y), font, size, ink, 1, cv2.LINE_AA)
     x = 12 + bar_px + cv2.getTextSize(label, font, size, 1)[0][0] + 14
     items = [("free", (PNG_FREE,) * 3, "box"), ("wall", (0, 0, 0), "box"), ("unknown", (PNG_UNKNOWN,) * 3, "box"),
-             ("path", (40, 40, 220), "line"), ("start", (40, 170, 40), "dot"), ("end", (40, 40, 220), "square"),
-             ("loop closure", (60, 170, 60), "line")]
+             ("path", PATH_BGR, "line"), ("start", START_BGR, "dot"), ("end", PATH_BGR, "square"),
+             ("loop closure", LOOP_CLOSURE_BGR, "line")]
     for text, colour, kind in items:
         if x + 27 + cv2.getTextSize(text, font, size, 1)[0][0] > width:
             x, y = 8, y + row

@@ -23,6 +23,7 @@ import time
 from collections.abc import Generator, Iterable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
+from carto_cli.core import interrupts
 from carto_cli.core.errors import CartoError
 from carto_cli.core.parallel import available_cores, die_with_parent, fork_safe
 from carto_cli.core.records import Record
@@ -221,6 +222,7 @@ def _serve(recording: Recording, selection: TopicSelection, topics: list[str], s
     die_with_parent(parent)
     parents_end.close()  # else a write to a full pipe would wait for this process itself to read it
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C stops
+    interrupts.clear()  # only a signal to this process counts here
     clock = time.perf_counter_ns
     batch: list[Record] = []
 
@@ -249,6 +251,10 @@ def _serve(recording: Recording, selection: TopicSelection, topics: list[str], s
     except BrokenPipeError:
         pass  # the parent stopped reading
     except BaseException as e:  # handed to the parent, raised after the records read before it
+        if interrupts.is_interrupt(e):
+            # A SIGTERM of its own (`timeout` signals the whole group), maybe turned by a reader into a corrupt
+            # file's error: the parent must read it as an interrupt.
+            e = KeyboardInterrupt()
         try:
             message = pickle.dumps(("error", e))
             pickle.loads(message)  # an exception with its own constructor may pickle and not unpickle

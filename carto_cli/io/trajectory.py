@@ -90,7 +90,7 @@ def parse_table(path: str | Path, allowed_columns: tuple[int, ...], what: str) -
         if ncols is None:
             if len(body) not in allowed_columns:
                 expected = " or ".join(str(c) for c in allowed_columns)
-                raise FormatError(f"line {number}: expected {expected} columns for a {what}, got {len(body)}",
+                raise FormatError(f"line {number}: expected {expected} columns in a {what} file, got {len(body)}",
                                   path)
             ncols = len(body)
         elif len(body) != ncols:

@@ -120,6 +120,24 @@ class ConstraintBuilderStats:
     accepted: int = 0
 
 
+# The concurrent branch of the builder's timer that the steps of searches run on worker threads go to (thread
+# time, summed over the workers: they run beside whatever stage is open when a search is recorded).
+SEARCH_THREADS = "search threads"
+
+
+class _OnThread:
+    """A search submitted to a worker thread, and the branch its steps' time goes to when it is recorded."""
+
+    __slots__ = ("future", "timer")
+
+    def __init__(self, future, timer):
+        self.future = future
+        self.timer = timer
+
+    def result(self) -> SearchOutcome:
+        return self.future.result()
+
+
 class ConstraintBuilder:
     def __init__(self, options: Options, timer=None, seed: int = 0, jobs: int | None = 1):
         """``jobs``: threads for ``search_many`` (None: every available core; 1: the caller's thread)."""
@@ -210,14 +228,26 @@ class ConstraintBuilder:
         work = [(node, submap, global_search, self.stack(submap.index, submap.grid))
                 for node, submap, global_search in pairs]
         if self.jobs == 1:
-            return [Done(self._match(*item)) for item in work]
+            done = []
+            for item in work:
+                outcome = self._match(*item)
+                # Searched now, within the caller's open stage: its steps are that stage's children.
+                for name, ns in outcome.ns.items():
+                    self.timer.add(name, ns)
+                done.append(Done(outcome))
+            return done
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=self.jobs, thread_name_prefix="carto-search")
-        return [self._pool.submit(self._match, *item) for item in work]
+        threads = self.timer.concurrent(SEARCH_THREADS)
+        return [_OnThread(self._pool.submit(self._match, *item), threads) for item in work]
 
     def record(self, handle) -> LoopClosure | None:
         """A submitted search's closure (None if it found none), counted in the statistics; waits for it."""
-        return self._record(handle.result())
+        outcome = handle.result()
+        if isinstance(handle, _OnThread):
+            for name, ns in outcome.ns.items():
+                handle.timer.add(name, ns)
+        return self._record(outcome)
 
     def _match(self, node: NodeData, submap: SubmapData, global_search: bool,
                stack: PrecomputationGridStack) -> SearchOutcome:
@@ -294,8 +324,6 @@ class ConstraintBuilder:
         return moved > DRIFT_BASE + self.cb.max_drift * travel
 
     def _record(self, o: SearchOutcome) -> LoopClosure | None:
-        for name, ns in o.ns.items():
-            self.timer.add(name, ns)
         if o.outcome == "empty":
             return None
         stats = self.stats

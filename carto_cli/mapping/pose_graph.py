@@ -81,6 +81,11 @@ class PoseGraphStats:
     last_summary: OptimizationSummary | None = None
 
 
+# The concurrent branch of the graph's timer that periodic optimizations solved on the optimizer's own thread go to
+# (they run beside the next nodes; the graph's own stage for them is "optimization wait").
+OPTIMIZER_THREAD = "optimizer thread"
+
+
 class PoseGraph:
     def __init__(self, options: Options, timer=None, loop_closure: bool = True, seed: int = 0,
                  jobs: int | None = 1):
@@ -503,20 +508,24 @@ class PoseGraph:
         if self._solver is None and self.builder.jobs > 1:
             self._solver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="carto-optimize")
         if self._solver is None:
-            task: object = Done(_timed_optimize(problem))
+            with self.timer.stage("optimization"):
+                task: object = Done(_timed_optimize(problem))
+            thread = None
         else:
             task = self._solver.submit(_timed_optimize, problem)
-        self._running = (task, self.num_nodes, len(self.submaps))
+            thread = self.timer.concurrent(OPTIMIZER_THREAD)
+        self._running = (task, self.num_nodes, len(self.submaps), thread)
 
     def _land(self) -> None:
         """Apply the optimization running beside the nodes, if any (waiting for it)."""
         running, self._running = self._running, None
         if running is None:
             return
-        task, num_nodes, num_submaps = running
+        task, num_nodes, num_submaps, thread = running
         with self.timer.stage("optimization wait"):
             result, ns = task.result()
-        self.timer.add("optimization", ns)
+        if thread is not None:  # computed inline, it was timed where it ran
+            thread.add("optimization", ns)
         self._apply(result, num_nodes, num_submaps)
 
     def optimize(self, final: bool = False) -> OptimizationSummary | None:

@@ -448,7 +448,7 @@ def see_through_check(graph: PoseGraph, laser_pose=(0.0, 0.0, 0.0), *,
                                                                         ", before the final refinement")
     return QualityCheck(
         name, 100.0 * float(np.mean(fraction > NODE_SHARE)), SEE_THROUGH_SUSPECT, SEE_THROUGH_FAILED, "%",
-        f"of scans send over {NODE_SHARE:.0%} of their rays through walls seen from over {WINDOW_M:g} m "
+        f"of scans sent over {NODE_SHARE:.0%} of their rays through walls seen from over {WINDOW_M:g} m "
         f"of travel away{when}")
 
 

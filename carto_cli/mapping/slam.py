@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from carto_cli.core import interrupts
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import give_back, peak_kb, reset_peak, status_kb
 from carto_cli.core.parallel import available_cores, die_with_parent, fork_safe
@@ -215,6 +216,7 @@ def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply, parent: int) 
     """The child's loop (see _GraphProcess): run the calls, send the graph's data back, exit."""
     die_with_parent(parent)  # its inbox's pipe is this process's too: a killed parent would leave it waiting
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C stops
+    interrupts.clear()  # only a signal to this process counts here
     # A forked child starts with the parent's pages, shared until written: what it adds is its peak beyond them.
     inherited_kb = status_kb("VmRSS")
     try:
@@ -250,6 +252,10 @@ def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply, parent: int) 
         reply.send(("ok", {"peak_added_mb": peak_added_mb, "export_added_mb": export_added_mb}))
         reply.send_bytes(payload)
     except BaseException as e:  # handed to the parent
+        if interrupts.is_interrupt(e):
+            # A SIGTERM of its own (`timeout` signals the whole group), maybe wrapped by numba in a SystemError
+            # whose cause a pickle drops: the parent must read it as an interrupt.
+            e = KeyboardInterrupt()
         try:
             reply.send(("error", e))
         except Exception:  # not picklable
@@ -382,7 +388,8 @@ class Slam:
             raise ValueError("no scan got a pose")
         timer, graph = self.timer, self.graph
         if self.loop_closure:
-            with timer.stage("global"):
+            # Not "global": with more than one job that names the graph's own branch beside this stage.
+            with timer.stage("final optimization"):
                 graph.optimize(final=True)
         # No search follows the final optimization: the precomputation stacks (up to the whole budget) go back
         # before the map is assembled and judged, whose arrays would otherwise come on top of them (the 2-hour

@@ -29,6 +29,7 @@ class Query:
     sigma_xy: float | None = None
     sigma_yaw: float | None = None
     line: int = 0
+    file: str | None = None  # the queries file of ``line``, which an error about the query then names
 
 
 # ----------------------------------------------------------------------------------- parsing
@@ -53,8 +54,10 @@ def read_queries(path: str | Path) -> list[Query]:
         1013.0  3.2  1.0  90deg  0.3  5deg  <- per-query sigmas (m, rad or 'deg')
         1020.0  -    -    -                 <- no prior: global search
 
-    Without a header the first column is a time (s, the recording's clock). Angles are
-    radians unless suffixed 'deg'. Errors name the line.
+    The first column is a time (s, the recording's clock: the scan nearest it, within 1 s) unless a header
+    line 'index x y yaw' makes it a scan index (the recording's scans counted from 0); a headerless file is
+    read as times, whatever its numbers look like. Angles are radians unless suffixed 'deg'. Errors name
+    the file and the line, also those found when the scans are looked up (``scans_for_queries``).
     """
     path = Path(path)
     try:
@@ -113,7 +116,7 @@ def read_queries(path: str | Path) -> list[Query]:
             syaw = parse.angle(fields[5], "sigma_yaw", fail)
             if sxy <= 0 or syaw <= 0:
                 raise fail("sigmas must be positive")
-        out.append(Query(t, idx, prior, sxy, syaw, n))
+        out.append(Query(t, idx, prior, sxy, syaw, n, str(path)))
     if not out:
         raise CartoError("no queries in the file", path)
     return out
@@ -213,12 +216,15 @@ def _scan_pass(recording, queries: Sequence[Query], scan_topic: str | None, max_
     prev: tuple[int, Scan] | None = None
     count = 0
     last = None
+    first_time = 0.0
     for record in stream:
         gather.take(record, record.time if prev is None else prev[1].time)
         if not isinstance(record, Scan):  # only the scan topic's are read
             continue
         i = count
         count = i + 1
+        if i == 0:
+            first_time = record.time
         for k in by_index.get(i, ()):
             found[k] = (i, record)
             gather.found(k, record)
@@ -238,16 +244,23 @@ def _scan_pass(recording, queries: Sequence[Query], scan_topic: str | None, max_
         found[timed[j][1]] = last
         gather.found(timed[j][1], last[1])
         j += 1
+    rec_path = getattr(recording, "path", None)
     for k, q in enumerate(queries):
         where = f"line {q.line}: " if q.line else ""
+        # A query file's line is the user's to fix: the error names that file, and the recording in its text.
+        rec_name = Path(rec_path).name if q.file and rec_path else None
         if q.index is not None and k not in found:
-            raise CartoError(f"{where}scan index {q.index} is beyond the recording's {count} scans",
-                             getattr(recording, "path", None))
+            whose = f"{rec_name}'s" if rec_name else "the recording's"
+            raise CartoError(f"{where}scan index {q.index} is beyond {whose} {count} scans (0-{count - 1})",
+                             q.file or rec_path)
         if q.time is not None:
             dt = abs(found[k][1].time - q.time)
             if dt > max_time_offset:
-                raise CartoError(f"{where}no scan within {max_time_offset:g} s of t={q.time:.3f} "
-                                 f"(nearest is {dt:.3f} s away)", getattr(recording, "path", None))
+                of = f" of {rec_name}" if rec_name else ""
+                hint = ("; the first column is a time (s) unless the file's first line 'index x y yaw' makes it "
+                        "scan indices" if q.file else "")
+                raise CartoError(f"{where}no scan{of} within {max_time_offset:g} s of t={q.time:.3f} (its scans run "
+                                 f"from t={first_time:.3f} to {last[1].time:.3f}){hint}", q.file or rec_path)
     return found, gather.contexts
 
 

@@ -16,7 +16,7 @@ from carto_cli.io.map_image import write_png
 from carto_cli.options import Options, changed_options, load_options
 from carto_cli.tuning.objectives import OBJECTIVE_TEXT
 
-__all__ = ["draw_report", "write_profile", "write_trials_csv"]
+__all__ = ["LABEL_WIDTH", "draw_report", "option_labels", "write_profile", "write_trials_csv"]
 
 
 def _nest(flat: dict[str, Any]) -> dict:
@@ -82,9 +82,49 @@ def write_trials_csv(path: Path, trials) -> Path:
     return path
 
 
-def _short(name: str) -> str:
-    parts = name.split(".")
-    return ".".join(parts[-2:]) if len(parts) > 1 else name
+LABEL_WIDTH = 34  # characters the importance chart's label column holds
+
+
+def option_labels(names: Sequence[str], width: int = LABEL_WIDTH) -> dict[str, str]:
+    """A label of at most ``width`` characters for each option name, distinct for distinct names: the option's own
+    name after its section (two parts), more sections where two names would read alike, and sections shortened to
+    their initials where the label would not fit (``trajectory_builder_2d.real_time_correlative_scan_matcher.
+    linear_search_window`` -> ``rtcsm.linear_search_window``). Cut to the width from the left, four options of one
+    matcher all read ``real_time_correlative_scan_matcher``."""
+    names = list(dict.fromkeys(names))
+    depth = {n: min(2, n.count(".") + 1) for n in names}
+    while True:
+        labels = {n: _label(n, depth[n], width) for n in names}
+        alike: dict[str, list[str]] = {}
+        for n, label in labels.items():
+            alike.setdefault(label, []).append(n)
+        deeper = [n for group in alike.values() if len(group) > 1 for n in group if depth[n] <= n.count(".")]
+        if not deeper:
+            break
+        for n in deeper:
+            depth[n] += 1
+    # Names that still read alike with every section (possible only where initials or a cut hide the difference)
+    # are numbered.
+    for group in alike.values():
+        for k, n in enumerate(group[1:], start=2):
+            tag = f" #{k}"
+            labels[n] = labels[n][:width - len(tag)] + tag
+    return labels
+
+
+def _label(name: str, depth: int, width: int) -> str:
+    parts = name.split(".")[-depth:]
+    for k in range(len(parts)):  # sections shortened from the outermost in, until it fits
+        text = ".".join(parts)
+        if len(text) <= width:
+            return text
+        if k < len(parts) - 1:
+            parts[k] = "".join(word[:1] for word in parts[k].split("_") if word)
+    leaf, room = parts[-1], width - len(parts[-1]) - 1
+    if room > 0:  # the option's own name whole, after as much of its sections' initials as fits
+        return (".".join(parts[:-1])[:room] + "." if len(parts) > 1 else "") + leaf
+    keep = width - 2  # the option's name alone is too long: its middle gives way, both ends stay
+    return leaf[:keep // 2] + ".." + leaf[len(leaf) - (keep - keep // 2):]
 
 
 def draw_report(path: Path, trials, importances: dict[str, float], title: str = "carto tune") -> Path:
@@ -150,9 +190,10 @@ def draw_report(path: Path, trials, importances: dict[str, float], title: str = 
         items = sorted(importances.items(), key=lambda kv: -kv[1])[:12]
         row = min(34, (H - 100) // max(1, len(items)))
         top = max(v for _, v in items) or 1.0
+        labels = option_labels([name for name, _ in items])
         for k, (name, v) in enumerate(items):
             y = by0 + 10 + k * row
-            cv2.putText(img, _short(name)[:34], (680, y + row // 2 + 4), font, 0.4, black, 1, cv2.LINE_AA)
+            cv2.putText(img, labels[name], (680, y + row // 2 + 4), font, 0.4, black, 1, cv2.LINE_AA)
             w = int(round(v / top * (bx1 - bx0 - 50)))
             cv2.rectangle(img, (bx0, y + 4), (bx0 + max(w, 1), y + row - 4), blue, -1)
             cv2.putText(img, f"{v:.2f}", (bx0 + w + 5, y + row // 2 + 4), font, 0.4, black, 1, cv2.LINE_AA)

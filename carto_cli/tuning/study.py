@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import carto_cli.pipeline  # noqa: F401  (imports every mapping kernel, registering its warm-up)
-from carto_cli.core import kernels
+from carto_cli.core import interrupts, kernels
 from carto_cli.core.errors import CartoError
 from carto_cli.gmapping import ALGORITHMS
 from carto_cli.io.atomic import output_set
@@ -57,7 +57,7 @@ class TuneResult:
 
 
 _STOP = {"requested": False, "announce": True}
-_STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM") if hasattr(signal, n))
+_STOP_SIGNALS = interrupts.STOP_SIGNALS
 
 
 def _on_stop_signal(signum, frame):
@@ -65,6 +65,7 @@ def _on_stop_signal(signum, frame):
     second one interrupts the running trial at once; it is recorded as pruned (user attribute ``interrupted``),
     never as failed."""
     if _STOP["requested"]:
+        interrupts.record()  # what this raises may surface as another error (numba's SystemError around it)
         raise KeyboardInterrupt
     _STOP["requested"] = True
     if _STOP["announce"]:
@@ -123,15 +124,16 @@ def _objective(job: _Job):
                                               time_weight=job.time_weight, report=report, algorithm=job.algorithm)
         except optuna.TrialPruned:
             raise
-        except KeyboardInterrupt:
-            # Stopped from outside, not a failure of these options: pruned, so the sampler does not learn
-            # from it and the study shows no failed trial.
+        except (KeyboardInterrupt, Exception) as e:
+            if not interrupts.is_interrupt(e):  # recorded on the failed trial, the study goes on
+                trial.set_user_attr("error", f"{type(e).__name__}: {e}"[:500])
+                raise
+            # Stopped from outside (the second Ctrl-C may land in compiled code and come out as a SystemError),
+            # not a failure of these options: pruned, so the sampler does not learn from it and the study shows
+            # no failed trial.
             _STOP["requested"] = True
             trial.set_user_attr("interrupted", True)
             raise optuna.TrialPruned("interrupted") from None
-        except Exception as e:  # recorded on the failed trial, the study goes on
-            trial.set_user_attr("error", f"{type(e).__name__}: {e}"[:500])
-            raise
         for k, v in metrics.items():
             trial.set_user_attr(k, v)
         return value
@@ -171,6 +173,7 @@ def _run(job: _Job, worker: int, n_trials: int, on_trial=None) -> None:
 def _worker_main(job: _Job, worker: int, n_trials: int) -> None:  # pragma: no cover - runs in a child
     _STOP["requested"] = False
     _STOP["announce"] = False  # the parent says it once
+    interrupts.clear()
     for sig in _STOP_SIGNALS:
         signal.signal(sig, _on_stop_signal)
     _run(job, worker, n_trials)
@@ -270,6 +273,7 @@ def tune(
 
     _STOP["requested"] = False
     _STOP["announce"] = True
+    interrupts.clear()  # an earlier run's interrupt (a library caller's) is not this study's
     in_main = _is_main_thread()
     previous = {sig: signal.getsignal(sig) for sig in _STOP_SIGNALS} if in_main else {}
     for sig in previous:

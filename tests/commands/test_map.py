@@ -435,3 +435,29 @@ def test_two_jobs_decode_the_recording_in_a_process_of_their_own(sim_bag, tmp_pa
     assert runs[1][0] is None and runs[2][0] is not None
     assert runs[2][0].count >= sim.counts()["/scan"]  # every record the pass read, decoded over there
     assert runs[1][1:] == runs[2][1:]
+
+
+def test_summary_line_wall_includes_compile():
+    """Issue 42, item 10: a first run said "0.6 s wall ... (incl. 36 s compiling kernels)": the wall was the
+    mapping's alone while the kernels compiled before it (here inside the survey, another phase). The line's wall
+    is now the run's, which holds the compiling it claims to include; scans/s stays the mapping's."""
+    from types import SimpleNamespace
+
+    from carto_cli.commands.map import summary_line
+    from carto_cli.core import kernels
+    from carto_cli.core.timing import StageTimer
+
+    now = [0]
+    timer = StageTimer(clock=lambda: now[0])
+    now[0] += 500_000_000  # opening the recording
+    with timer.stage("survey"), timer.stage(kernels.STAGE):
+        now[0] += 36_000_000_000
+    now[0] += 600_000_000  # mapping
+    timer.stop()
+    stats = {"scans": 30, "nodes": 6, "submaps": 1, "loop_closures": 0, "wall_time_s": 0.6, "scans_per_s": 50.0}
+    assert summary_line(SimpleNamespace(stats=stats), timer, compiled=True) == (
+        "30 scans, 6 nodes, 1 submaps, 0 loop closures, 37.1 s wall (incl. 36 s compiling kernels: later runs load "
+        "them from the cache), 50 scans/s")
+    # A warm run: the run's wall, no note.
+    assert summary_line(SimpleNamespace(stats=stats), timer, compiled=False) == (
+        "30 scans, 6 nodes, 1 submaps, 0 loop closures, 37.1 s wall, 50 scans/s")

@@ -35,3 +35,37 @@ def test_show_profile():
     full = show_profile("corridor", ["trajectory_builder_2d.submaps.num_range_data=33"])
     assert full.startswith("trajectory_builder_2d:") and "num_range_data: 33" in full and not full.endswith("\n")
     assert show_profile("default", changed=True) == "{}"
+
+
+def test_profiles_list_shows_whole_first_sentences(monkeypatch):
+    """Issue 42, item 10: `carto profiles list` cut each description at the end of its file's first line, often
+    mid-sentence ("... tunnels, industrial")."""
+    from typer.testing import CliRunner
+
+    from carto_cli.cli import app
+
+    described = dict(describe_profiles())
+    assert described["corridor"].endswith("tens of metres long, few features along the axis.")
+    assert described["sparse"].endswith("drifting by a few percent).")
+    assert all(text.endswith(".") for text in described.values()), described
+    monkeypatch.setenv("COLUMNS", "80")
+    listed = CliRunner().invoke(app, ["profiles", "list"])
+    assert listed.exit_code == 0, listed.output
+    assert all(len(line) <= 80 for line in listed.stdout.splitlines()), listed.stdout
+    text = " ".join(listed.stdout.split())
+    for name, first in described.items():
+        assert f"{name} {first}" in text, name
+
+
+def test_profiles_show_auto_explains():
+    """Issue 42, item 10: `carto profiles show auto` said "unknown profile" though auto is `carto map`'s default."""
+    from typer.testing import CliRunner
+
+    from carto_cli.cli import app
+
+    shown = CliRunner().invoke(app, ["profiles", "show", "auto"])
+    assert shown.exit_code == 0, shown.output
+    text = " ".join(shown.stdout.split())
+    assert "unknown profile" not in shown.output
+    assert "for each recording" in text and "carto info REC" in text
+    assert "carto profiles show default" in text  # the options auto starts from

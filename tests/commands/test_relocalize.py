@@ -177,6 +177,37 @@ def test_cli_batch_prints_the_summary_line(cli_files, tmp_path):
     assert _cli("relocalize", map_path, bag, "--queries", q, "--csv", tmp_path / "out.csv", "--force").exit_code == 0
 
 
+def test_relocalize_prints_the_compile_note_on_a_cold_cache(cli_files, tmp_path, monkeypatch):
+    """Issue 42, item 10: the first relocalize after installing spent about 7 s compiling kernels without a word,
+    where map says it; now relocalize says it the same way (and nothing once they load from the cache)."""
+    from contextlib import contextmanager
+
+    from carto_cli.core import kernels
+
+    compiled = [7.2]
+
+    @contextmanager
+    def compile_time():  # numba's own count of compiling, as on a first run (the kernels here are cached)
+        yield lambda: compiled[0]
+
+    monkeypatch.setattr(kernels, "compile_time", compile_time, raising=False)
+    map_path, bag, qs = cli_files
+    scan, truth = qs[4]
+    note = "(incl. 7 s compiling kernels: later runs load them from the cache)"
+    one = _cli("relocalize", map_path, bag, "--initial-pose", ",".join(map(str, truth)), "--at", scan.time)
+    assert one.exit_code == 0, one.output
+    (timing,) = [line for line in one.stdout.splitlines() if line.startswith("timing ")]
+    assert timing.endswith(f" ms {note}")
+    q = tmp_path / "q.txt"
+    q.write_text(f"{scan.time} {truth[0]} {truth[1]} {truth[2]}\n")
+    batch = _cli("relocalize", map_path, bag, "--queries", q, "--csv", tmp_path / "out.csv")
+    assert batch.exit_code == 0, batch.output
+    assert batch.stdout.startswith("1/1 relocalized") and note in batch.stdout
+    compiled[0] = 0.0
+    warm = _cli("relocalize", map_path, bag, "--initial-pose", ",".join(map(str, truth)), "--at", scan.time)
+    assert warm.exit_code == 0 and "compiling" not in warm.output
+
+
 def test_cli_warns_on_stderr_and_fails_with_exit_2_on_user_errors(cli_files, tmp_path):
     map_path, bag, _ = cli_files
     r = _cli("relocalize", map_path, tmp_path / "missing.bag", "--global",
@@ -187,6 +218,25 @@ def test_cli_warns_on_stderr_and_fails_with_exit_2_on_user_errors(cli_files, tmp
     r = _cli("relocalize", map_path, bag)
     assert r.exit_code == 2
     assert r.stderr == "carto: error: give --initial-pose x,y,yaw, or --global, or --queries FILE\n"
+
+
+def test_headerless_query_file_errors_name_the_query_file(cli_files, tmp_path):
+    """Issue 42 item 7: a query line no scan answers is the query file's error, at its line; a headerless
+    number is a time, and the message and --queries' help say how to give a scan index instead."""
+    map_path, bag, _ = cli_files
+    q = tmp_path / "q.txt"
+    q.write_text("# x y in the map\n100 -0.5 0.3 0.62\n")
+    r = _cli("relocalize", map_path, bag, "--queries", q)
+    assert r.exit_code == 2 and len(r.stderr.splitlines()) == 1, r.output
+    assert r.stderr.startswith(f"carto: error: {q}: line 2: no scan of {bag.name} within 1 s of t=100.000 ")
+    assert "'index x y yaw'" in r.stderr
+    q.write_text("index x y yaw\n3 - - -\n100000 - - -\n")
+    with pytest.raises(CartoError, match=f"line 3: scan index 100000 is beyond {bag.name}'s 350 scans") as e:
+        run_relocalize(map_path, bag, queries=q)
+    assert e.value.path == str(q)
+    assert not q.with_suffix(".results.csv").exists()
+    help_text = " ".join(_cli("relocalize", "--help").output.replace("│", " ").split())
+    assert "a scan index (from 0)" in help_text and "time" in help_text
 
 
 def test_cli_rejects_an_unknown_override_by_name(cli_files):
@@ -251,7 +301,7 @@ def test_cli_tracks_a_recording(track_files, cli_files, tmp_path):
     r = _cli("relocalize", map_path, bag, "--track", "-o", out)
     assert r.exit_code == 2 and "--force" in r.output
     r = _cli("relocalize", map_path, bag, "--track", "-o", out, "--force", "--json")
-    assert r.exit_code == 0 and json.loads(r.output)["scans"] == 350
+    assert r.exit_code == 0 and json.loads(r.stdout)["scans"] == 350  # progress lines, if any, are on stderr
     r = _cli("relocalize", map_path, bag, "--output", out, "--initial-pose", "0,0,0")
     assert r.exit_code == 2 and "--track" in r.output
 

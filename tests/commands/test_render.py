@@ -72,6 +72,31 @@ def test_map_server_reads_the_export_cell_by_cell(mapped, tmp_path, kwargs):
     assert (occ[~known] == -1).all()
 
 
+def test_render_thresholds_in_scale_mode_reach_map_yaml_and_map_server(mapped, tmp_path):
+    """Issue 42 item 3: --occupied-thresh / --free-thresh are what map_server applies. map.yaml carries them in
+    both modes; scale mode keeps the probabilities and map_server cuts them there (occupied above, free below,
+    1..99 between); trinary cuts the image there, with the unknown grey still unknown under them."""
+    out, _ = mapped
+    for mode, occ_t, free_t in (("scale", 0.8, 0.1), ("scale", 0.75, 0.3), ("trinary", 0.8, 0.3)):
+        done = run_render(out / "map.carto", tmp_path / f"{mode}{free_t}", mode=mode, occupied_thresh=occ_t,
+                          free_thresh=free_t)
+        occ, meta = _map_server(done.yaml)
+        assert (meta["occupied_thresh"], meta["free_thresh"]) == (occ_t, free_t)
+        p = done.image.probability
+        known = ~np.isnan(p)
+        assert (occ[~known] == -1).all()
+        walls, free = known & (p > occ_t + 0.01), known & (p < free_t - 0.01)
+        assert (occ[walls] == 100).all() and (occ[free] == 0).all()
+        if mode == "trinary":
+            assert (occ[known & (p > free_t) & (p < occ_t)] == -1).all()
+            continue
+        mid = known & (p > free_t + 0.01) & (p < occ_t - 0.01)
+        assert walls.sum() > 100 and mid.sum() > 100  # the map has cells on both sides of the new wall cut
+        assert np.abs(occ[mid] - np.rint(1 + 98 * (p[mid] - free_t) / (occ_t - free_t))).max() <= 2
+        # what the defaults read differently: cells between 0.65 and the new cut are no longer walls
+        assert (occ[known & (p > 0.66) & (p < occ_t - 0.01)] < 100).all()
+
+
 def test_the_png_is_readable_by_people(mapped, tmp_path):
     out, _ = mapped
     done = run_render(out / "map.carto", tmp_path / "r", png_scale=2)
@@ -95,6 +120,9 @@ def test_bad_requests_are_one_line_errors(mapped, tmp_path):
         run_render(out / "map.carto", tmp_path / "a", resolution=0)
     with pytest.raises(CartoError, match="--free-thresh"):
         run_render(out / "map.carto", tmp_path / "b", occupied_thresh=0.3, free_thresh=0.6)
+    with pytest.raises(CartoError, match="closer than one grey level"):
+        run_render(out / "map.carto", tmp_path / "b", occupied_thresh=0.501, free_thresh=0.5)
+    assert not (tmp_path / "b").exists()
     run_render(out / "map.carto", tmp_path / "c")
     r = CliRunner().invoke(app, ["render", str(out / "map.carto"), "-o", str(tmp_path / "c")])
     assert r.exit_code == 2 and "--force" in r.output

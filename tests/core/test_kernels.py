@@ -85,3 +85,48 @@ def test_a_warm_up_that_finds_its_kernels_uncached_counts_as_compiling(empty_reg
     assert not kernels.compiled_here()
     kernels.warm_up(systems=("gmapping",))
     assert kernels.compiled_here()
+
+
+def test_compile_time_counts_compiling_not_calling():
+    """What relocalize's compile note reads: the seconds numba spent compiling inside the block, none for a kernel
+    it has already compiled."""
+    import numba
+    import numpy as np
+
+    @numba.njit(cache=False)
+    def toy(x):
+        return np.sum(x * 2.0)
+
+    with kernels.compile_time() as compiling:
+        toy(np.ones(3))
+    assert compiling() > 0.0
+    with kernels.compile_time() as again:
+        toy(np.ones(4))
+    assert again() == 0.0
+
+
+def test_an_interrupted_warm_up_leaves_no_helper_compiling(empty_registry, monkeypatch):
+    """Ctrl-C while the kernels compile on a cold cache: the helper processes (not forks of this one, so they do
+    not die with it) are stopped, not left compiling after carto has gone (issue 42, item 2)."""
+    import subprocess
+    import sys
+
+    helpers = []
+
+    def start(wanted, claims):
+        helpers.append(subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"]))
+        return helpers
+
+    @kernels.register_warm_up
+    def first():
+        raise KeyboardInterrupt
+
+    @kernels.register_warm_up
+    def second():
+        pass
+
+    monkeypatch.setattr(kernels, "cold_cache", lambda wanted: True)
+    monkeypatch.setattr(kernels, "_start_helpers", start)
+    with pytest.raises(KeyboardInterrupt):
+        kernels.warm_up()
+    assert helpers and all(h.poll() is not None for h in helpers)

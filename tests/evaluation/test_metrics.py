@@ -115,6 +115,15 @@ def test_read_relations_malformed(tmp_path):
         read_relations(p)
 
 
+def test_eval_says_a_relations_file_not_a_relations(tmp_path):
+    """Issue 42, item 10: a relations file with the wrong column count was "expected 8 columns for a relations"."""
+    p = tmp_path / "rel.txt"
+    p.write_text("1 2 0.1 0 0 0 0\n")
+    with pytest.raises(FormatError) as e:
+        read_relations(p)
+    assert "line 1: expected 8 columns in a relations file, got 7" in str(e.value)
+
+
 # --------------------------------------------------------------------------- ATE and RPE
 
 

@@ -42,3 +42,26 @@ def test_a_map_longer_than_png_max_px_is_drawn_with_blocks_of_cells(monkeypatch)
     assert max(coarse) <= 100
     up = min(8, map_image.PNG_TARGET_PX // max(coarse))  # then scaled up for people as any small map
     assert bgr.shape[:2] == (coarse[0] * up, coarse[1] * up)
+
+
+def test_start_marker_and_loop_closures_have_distinct_colours():
+    """Issue 42, item 10: the start dot and the loop-closure lines were two nearly equal greens, so on a map dense
+    with loop closures (aces) the start was lost among them; in the legend too."""
+    from carto_cli.grid.occupancy_image import OccupancyImage
+
+    image = OccupancyImage(np.full((100, 100), 0.1, np.float32), 0.1, (0.0, 0.0))  # 10 m of free space
+    trajectory = np.array([[2.0, 2.0, 0.0], [8.0, 2.0, 0.0], [8.0, 8.0, 0.0]])
+    closures = np.array([[2.0, 2.0, 8.0, 8.0], [2.0, 8.0, 8.0, 2.0]])  # one of them from the start
+    bgr = map_image.render_png(image, trajectory, closures, scale=4)
+
+    def at(xy):
+        col, row = (image.world_to_pixel(np.array([xy])) * 4 - 0.5)[0]
+        return bgr[int(round(row)), int(round(col))].astype(int)
+
+    start, closure = at((2.0, 2.0)), at((5.0, 5.0))  # the start dot; the closures' crossing, far from any path
+    assert np.abs(start - closure).max() >= 100, (start, closure)
+    assert closure[1] > closure[0] + 60 and closure[1] > closure[2] + 60  # the closures stay green
+    # The legend's swatches show the same two colours.
+    footer = bgr[400:].reshape(-1, 3).astype(int)
+    for colour in (start, closure):
+        assert (np.abs(footer - colour).max(axis=1) <= 2).any(), colour

@@ -235,3 +235,32 @@ def test_a_pass_may_not_ask_for_topics_the_stream_does_not_read(tmp_path):
                 stream.records([selection.scan, selection.odometry])
             with pytest.raises(ValueError, match="not read by this stream"):
                 stream.prefix([selection.odometry])
+
+
+class InterruptedWhileReading(MemoryRecording):
+    """A reader stopped by a SIGTERM of the child's own (`timeout` signals the whole group), which the file's
+    reader turned into a "corrupt file" error, as io.sources' translate_errors turns anything."""
+
+    read_ahead = True  # read in a child
+
+    def independent(self) -> InterruptedWhileReading:
+        return self
+
+    def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
+        for i, record in enumerate(super().records(topics)):
+            if i == 5:
+                try:
+                    raise KeyboardInterrupt
+                except KeyboardInterrupt as e:
+                    raise FormatError("corrupt or truncated log: KeyboardInterrupt") from e
+            yield record
+
+
+def test_an_interrupted_child_reads_as_an_interrupt_here():
+    """Not as the damaged file it was reported as (the pickle that carries it over drops its cause)."""
+    rec = InterruptedWhileReading(memory_records(20))
+    selection = select_topics(rec)
+    with RecordStream(rec, selection, selection.topics, jobs=2) as stream:
+        with pytest.raises(KeyboardInterrupt):
+            for _ in stream.records(selection.topics):
+                pass

@@ -76,7 +76,7 @@ def test_reads_the_bench_ground_truth():
 
 
 @pytest.mark.parametrize("text, message", [
-    ("1 2 3\n", "line 1: expected 8 or 4 columns for a trajectory, got 3"),
+    ("1 2 3\n", "line 1: expected 8 or 4 columns in a trajectory file, got 3"),
     ("# c\n1 2 3 4\n2 2 3 4 5 6 7 8\n", "line 3: expected 4 columns like the lines before, got 8"),
     ("1 2 3 4\n2 2 x 4\n", "line 2: not a number: 'x'"),
     ("1 2 3 4\n2 2 nan 4\n", "line 2: values must be finite"),

@@ -280,6 +280,43 @@ def test_the_graph_is_the_same_for_any_number_of_jobs_and_any_memory_budget(two_
         np.testing.assert_array_equal(inline.poses, other.poses)
 
 
+def test_profile_tree_has_unique_names_and_no_stage_shorter_than_its_children(two_laps):
+    """Issue 42 item 8, on every way the graph runs (inline, its own process, a thread beside local SLAM): no two
+    siblings share a name, and no stage lasts less than the stages run within it. The searches' and the
+    periodic optimizations' time on worker threads is a concurrent branch of its own (thread time, beside the
+    stages the wall time adds up), never a child of the stage that happened to be open when it was collected."""
+    import threading
+
+    from carto_cli.core.timing import StageTimer
+
+    sim, _, mapped = two_laps
+    options = load_options(None, [CB + "fast_correlative_scan_matcher.multilevel=true"])
+    release = threading.Event()
+    for jobs, other_thread in ((1, False), (2, False), (2, True)):
+        # Another thread of the caller's (as a progress bar's) keeps the graph out of a forked process.
+        other = threading.Thread(target=release.wait, daemon=True) if other_thread else None
+        if other is not None:
+            other.start()
+        timer = StageTimer()
+        try:
+            result = build(sim.recording(), options, jobs=jobs, timer=timer)
+        finally:
+            release.set()
+        timer.stop()
+        assert result.stats["loop_closures"] == mapped.stats["loop_closures"] > 20
+        snap = timer.snapshot()
+        names = set()
+        for stage in snap.root.walk():
+            kids = [c.name for c in stage.children]
+            assert len(kids) == len(set(kids)), (jobs, other_thread, stage.path, kids)
+            inside = sum(c.total_ns for c in stage.children if not c.concurrent)
+            # a concurrent branch's time is its own stages' (one thread's busy time, or many threads' summed)
+            assert inside <= stage.total_ns or (stage.concurrent and inside == stage.total_ns), \
+                (jobs, other_thread, stage.path, inside, stage.total_ns)
+            names.add(stage.name)
+        assert {"branch and bound", "refinement", "optimization"} <= names, (jobs, other_thread, names)
+
+
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_a_periodic_optimization_is_taken_a_period_later_and_carries_the_nodes_added_meanwhile(jobs):
     """Odometry 10 % longer than local SLAM's steps, so an optimization moves the nodes: the result of the one

@@ -122,6 +122,14 @@ def test_to_dict_is_json_ready(mapped):
 
 
 @pytest.mark.slow_without_jit  # maps a simulated recording
+def test_summary_json_says_scans_sent_over_not_send_over(mapped):
+    """Issue 42, item 10: summary.json's see-through check read "of scans send over 25 % of their rays"."""
+    result, odometry = mapped
+    (doc,) = [c["doc"] for c in assess(result, odometry).to_dict()["checks"] if c["name"] == "see_through"]
+    assert doc.startswith("of scans sent over ") and "send" not in doc
+
+
+@pytest.mark.slow_without_jit  # maps a simulated recording
 def test_without_a_graph_or_odometry_nothing_is_measured_and_the_verdict_is_ok(mapped):
     result, _ = mapped
 

@@ -5,6 +5,7 @@ import time
 import numpy as np
 import pytest
 
+from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.mapping import slam as slam_module
@@ -17,6 +18,8 @@ from carto_cli.sim import loop_building, loop_trajectory, simulate
 
 @pytest.fixture(scope="module")
 def simulation():
+    # The graph's warm-up adds nodes: run it before a test replaces PoseGraph.add_node, whichever test runs first.
+    kernels.warm_up(systems=("cartographer",))
     world = loop_building()
     return simulate(world, loop_trajectory(world), duration=15.0, beams=270, laser_pose=(0.15, 0.0, 0.0))
 
@@ -149,6 +152,25 @@ def test_an_error_in_the_graphs_process_reaches_the_caller(simulation, monkeypat
     with pytest.raises(RuntimeError, match="graph failed"):
         slam.finish()
     slam.close()  # nothing left running, nothing raised twice
+
+
+def test_an_interrupt_in_the_graphs_process_reaches_the_caller_as_one(simulation, monkeypatch):
+    """A SIGTERM of the child's own (`timeout` signals the whole group) lands in a kernel, which numba reports as a
+    SystemError around the KeyboardInterrupt; the pickle that carries it over would drop that cause."""
+    def interrupted(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise SystemError("CPUDispatcher(<function _match>) returned a result with an exception set") from e
+
+    monkeypatch.setattr(PoseGraph, "add_node", interrupted)  # before the fork: the child has it too
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
+    assert slam.graph_runs == "process"
+    with simulation.recording() as rec:
+        _feed(slam, rec.records(), limit=20)
+    with pytest.raises(KeyboardInterrupt):
+        slam.finish()
+    slam.close()
 
 
 def test_an_early_error_in_the_graphs_process_stops_mapping_with_that_error(simulation, monkeypatch):

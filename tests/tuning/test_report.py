@@ -77,3 +77,23 @@ def test_report_image(tmp_path):
     empty = cv2.imread(str(draw_report(tmp_path / "e.png", trials[2:], {}, title="t")))
     assert empty.shape == img.shape
     assert not math.isclose(float(np.mean(empty)), float(np.mean(img)))  # nothing to plot, and it shows
+
+
+def test_tune_report_option_names_are_distinct(tmp_path, monkeypatch):
+    """Issue 42, item 10: the importance bars of four real-time correlative matcher options all read
+    "real_time_correlative_scan_matcher" (the last two parts of each name, cut to the column's width)."""
+    matcher = "trajectory_builder_2d.real_time_correlative_scan_matcher"
+    names = [f"{matcher}.linear_search_window", f"{matcher}.angular_search_window",
+             f"{matcher}.translation_delta_cost_weight", f"{matcher}.rotation_delta_cost_weight",
+             "trajectory_builder_2d.ceres_scan_matcher.translation_weight",
+             "pose_graph.constraint_builder.ceres_scan_matcher.translation_weight",
+             "trajectory_builder_2d.submaps.num_range_data", KEY]
+    drawn: list[str] = []
+    put_text = cv2.putText
+    monkeypatch.setattr(cv2, "putText", lambda img, text, *a, **k: drawn.append(text) or put_text(img, text, *a, **k))
+    draw_report(tmp_path / "r.png", _numbered(_trials()), {n: 1.0 - 0.1 * i for i, n in enumerate(names)})
+    labels = drawn[drawn.index("parameter importance (fANOVA)") + 1::2]  # each bar: its label, then its value
+    assert len(labels) == len(names) and len(set(labels)) == len(names), labels
+    assert all(len(label) <= 34 for label in labels), labels
+    # Each label ends with the option's own name when that fits, so the bars still say which option they are.
+    assert [label.rsplit(".", 1)[-1] for label in labels[:4]] == [n.rsplit(".", 1)[-1] for n in names[:4]]
