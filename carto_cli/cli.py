@@ -196,6 +196,13 @@ def _root(
 ):
     state.debug = debug
     state.quiet = quiet
+    from carto_cli.core import kernels
+
+    kernels.on_compiling(None if quiet else _say_compiling)
+
+
+def _say_compiling(sentence: str) -> None:
+    typer.echo(f"carto: {sentence}", err=True)
 
 
 # One default everywhere: the options' trajectory_builder_2d.min_z / max_z (io.recording.ReadOptions keeps them)

@@ -169,8 +169,8 @@ def run_map(
 def summary_line(result: MapResult, timer=None, compiled: bool | None = None) -> str:
     """The run in one line. With the run's ``timer`` its wall time is the whole run's (reading, surveying, loading
     or compiling kernels, mapping, writing), and a first run says how much of it went to compiling (``compiled``:
-    see :func:`compile_note`); without, the mapping's alone (summary.json's ``wall_time_s``). scans/s is the
-    mapping's rate either way."""
+    see :func:`compile_note`); without, the mapping's alone (summary.json's ``wall_time_s``). The rate is the
+    mapping's either way, and says so: the whole run's wall divided into the scans would not give it."""
     s = result.stats
     if timer is None:
         wall = f"{s['wall_time_s']:.1f} s wall"
@@ -182,10 +182,10 @@ def summary_line(result: MapResult, timer=None, compiled: bool | None = None) ->
     if s.get("algorithm") == "gmapping":
         return (f"gmapping: {s['scans']} scans ({s['processed_scans']} processed), {s['particles']} particles, "
                 f"{s['resamplings']} resamplings, {s['map_memory_peak_bytes'] / 2**20:.0f} MB peak map, "
-                f"{wall}, {s['scans_per_s']:.0f} scans/s{peak}")
+                f"{wall}, {s['scans_per_s']:.0f} scans/s mapping{peak}")
     return (f"{s['scans']} scans, {s['nodes']} nodes, {s['submaps']} submaps, "
             f"{s.get('loop_closures', 0)} loop closures, "
-            f"{wall}, {s['scans_per_s']:.0f} scans/s{peak}")
+            f"{wall}, {s['scans_per_s']:.0f} scans/s mapping{peak}")
 
 
 def compile_note(timer, compiled: bool | None = None) -> str:

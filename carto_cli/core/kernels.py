@@ -23,6 +23,13 @@ HELPER_ENV = "CARTO_KERNEL_HELPER"  # set in a helper process: it must not start
 _registered: list[tuple[Callable[[], None], str | None]] = []
 _done: set[Callable[[], None]] = set()
 _compiled: list[str] = []  # the warm-ups that found their module's kernels not yet in the on-disk cache
+_notice: list[Callable[[str], None]] = []  # told before a warm-up compiles (the command line prints it)
+
+
+def on_compiling(fn: Callable[[str], None] | None) -> None:
+    """``fn`` hears one sentence before a warm-up starts compiling (None: nobody): a first run is otherwise
+    silent for up to a minute, which a CI log cannot tell from a hang."""
+    _notice[:] = [] if fn is None else [fn]
 
 
 def register_warm_up(fn: Callable[[], None] | None = None, *, system: str | None = None):
@@ -62,7 +69,12 @@ def warm_up(timer=None, systems: Collection[str] | None = None) -> None:
         return
     timer = timer or NullTimer()
     with timer.stage(STAGE):
-        _compiled.extend(_name(fn) for fn in wanted if _cold(fn))
+        cold = [_name(fn) for fn in wanted if _cold(fn)]
+        _compiled.extend(cold)
+        if cold:
+            for notice in _notice:
+                notice(f"compiling kernels ({len(cold)} of {len(wanted)} groups), once after installing: later runs "
+                       f"load them from {os.environ.get('NUMBA_CACHE_DIR') or 'the cache'}")
         claims = tempfile.mkdtemp(prefix="carto-jit-") if cold_cache(wanted) else None
         helpers = _start_helpers(wanted, claims) if claims is not None else []
         try:

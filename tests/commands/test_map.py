@@ -217,11 +217,11 @@ def test_summary_line_per_algorithm():
 
     carto = {"scans": 200, "nodes": 40, "submaps": 3, "loop_closures": 2, "wall_time_s": 4.0, "scans_per_s": 50.0}
     assert summary_line(SimpleNamespace(stats=carto)) == (
-        "200 scans, 40 nodes, 3 submaps, 2 loop closures, 4.0 s wall, 50 scans/s")
+        "200 scans, 40 nodes, 3 submaps, 2 loop closures, 4.0 s wall, 50 scans/s mapping")
     gm = dict(carto, algorithm="gmapping", processed_scans=83, particles=30, resamplings=7, loop_closures=0,
               map_memory_peak_bytes=12 * 2**20)
     assert summary_line(SimpleNamespace(stats=gm)) == (
-        "gmapping: 200 scans (83 processed), 30 particles, 7 resamplings, 12 MB peak map, 4.0 s wall, 50 scans/s")
+        "gmapping: 200 scans (83 processed), 30 particles, 7 resamplings, 12 MB peak map, 4.0 s wall, 50 scans/s mapping")
 
 
 def test_an_output_path_that_is_a_file_is_refused_before_mapping(tmp_path, sim_bag):
@@ -457,7 +457,7 @@ def test_summary_line_wall_includes_compile():
     stats = {"scans": 30, "nodes": 6, "submaps": 1, "loop_closures": 0, "wall_time_s": 0.6, "scans_per_s": 50.0}
     assert summary_line(SimpleNamespace(stats=stats), timer, compiled=True) == (
         "30 scans, 6 nodes, 1 submaps, 0 loop closures, 37.1 s wall (incl. 36 s compiling kernels: later runs load "
-        "them from the cache), 50 scans/s")
+        "them from the cache), 50 scans/s mapping")
     # A warm run: the run's wall, no note.
     assert summary_line(SimpleNamespace(stats=stats), timer, compiled=False) == (
-        "30 scans, 6 nodes, 1 submaps, 0 loop closures, 37.1 s wall, 50 scans/s")
+        "30 scans, 6 nodes, 1 submaps, 0 loop closures, 37.1 s wall, 50 scans/s mapping")

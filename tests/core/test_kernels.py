@@ -130,3 +130,32 @@ def test_an_interrupted_warm_up_leaves_no_helper_compiling(empty_registry, monke
     with pytest.raises(KeyboardInterrupt):
         kernels.warm_up()
     assert helpers and all(h.poll() is not None for h in helpers)
+
+
+def test_a_first_run_says_it_is_compiling_before_it_does(monkeypatch):
+    """Issue 42, item 6: a first run compiled for up to a minute without a word, which a CI log cannot tell from a
+    hang; the command line now hears one sentence before (and nothing when the kernels are cached, or with -q)."""
+    heard, ran = [], []
+
+    def warm():
+        ran.append(len(heard))
+
+    monkeypatch.setattr(kernels, "_registered", [(warm, None)])
+    monkeypatch.setattr(kernels, "_done", set())
+    monkeypatch.setattr(kernels, "_compiled", [])
+    monkeypatch.setattr(kernels, "cold_cache", lambda wanted: False)  # no helper processes here
+    kernels.on_compiling(heard.append)
+    try:
+        monkeypatch.setattr(kernels, "_cold", lambda fn: False)
+        kernels.warm_up()
+        assert ran == [0] and heard == []
+        monkeypatch.setattr(kernels, "_done", set())
+        monkeypatch.setattr(kernels, "_cold", lambda fn: True)
+        kernels.warm_up()
+        assert ran == [0, 1] and "compiling kernels (1 of 1 groups)" in heard[0]
+        kernels.on_compiling(None)
+        monkeypatch.setattr(kernels, "_done", set())
+        kernels.warm_up()
+        assert len(heard) == 1
+    finally:
+        kernels.on_compiling(None)
