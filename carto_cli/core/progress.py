@@ -7,10 +7,11 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from enum import Enum
 from typing import TextIO
 
-__all__ = ["LINE_EVERY_S", "LINE_MIN_GAP_S", "LINE_STEP", "LineProgress", "Progress", "TerminalBar", "progress",
-           "progress_mode"]
+__all__ = ["LINE_EVERY_S", "LINE_MIN_GAP_S", "LINE_STEP", "LineProgress", "Progress", "ProgressMode", "TerminalBar",
+           "progress", "progress_mode"]
 
 # A line at every tenth of the work, or after LINE_EVERY_S without one, whichever comes first: a short run says at
 # least once how fast it goes, a 7-minute one speaks every half minute. Lines are never closer than LINE_MIN_GAP_S
@@ -178,8 +179,13 @@ def _duration(seconds: float) -> str:
     return f"{s // 3600} h {s % 3600 // 60} min"
 
 
-def progress_mode(quiet: bool, stream: TextIO | None = None) -> str | None:
-    """'bar' on a terminal, 'lines' elsewhere, None with ``quiet``."""
+class ProgressMode(Enum):
+    BAR = "bar"  # a terminal: redrawn in place
+    LINES = "lines"  # a log, a pipe, nohup: a plain line now and then
+
+
+def progress_mode(quiet: bool, stream: TextIO | None = None) -> ProgressMode | None:
+    """How progress shows on ``stream`` (stderr by default); None with ``quiet``."""
     if quiet:
         return None
     stream = stream if stream is not None else sys.stderr
@@ -187,7 +193,7 @@ def progress_mode(quiet: bool, stream: TextIO | None = None) -> str | None:
         tty = stream.isatty()
     except (AttributeError, ValueError):  # a closed or odd stream: plain lines cannot hurt it more
         tty = False
-    return "bar" if tty else "lines"
+    return ProgressMode.BAR if tty else ProgressMode.LINES
 
 
 @contextmanager
@@ -195,9 +201,9 @@ def progress(description: str, total: int | None, quiet: bool = False, unit: str
     """Progress of ``total`` ``unit`` (None: not known yet, ``set_total`` may say later) on stderr."""
     mode = progress_mode(quiet)
     shown: Progress
-    if mode == "bar":
+    if mode is ProgressMode.BAR:
         shown = TerminalBar(description, total, sys.stderr)
-    elif mode == "lines":
+    elif mode is ProgressMode.LINES:
         shown = LineProgress(description, total, unit)
     else:
         shown = Progress()
