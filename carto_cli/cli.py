@@ -54,7 +54,9 @@ def _usage_pieces(pieces: list[str]) -> list[str]:
     return [re.sub(r"^\{(.+)\}(\.\.\.)?$", r"\1\2", piece) for piece in pieces]
 
 
-class _Command(TyperCommand):
+class _TidyHelp:
+    """For typer's command and group classes: help tidied once made (_tidy_help), and --help shown as a flag."""
+
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         _tidy_help(self)
@@ -65,20 +67,14 @@ class _Command(TyperCommand):
             option.metavar = ""
         return option
 
+
+class _Command(_TidyHelp, TyperCommand):
     def collect_usage_pieces(self, ctx):
         return _usage_pieces(super().collect_usage_pieces(ctx))
 
 
-class _Group(TyperGroup):
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        _tidy_help(self)
-
-    def get_help_option(self, ctx):
-        option = super().get_help_option(ctx)
-        if option is not None:
-            option.metavar = ""
-        return option
+class _Group(_TidyHelp, TyperGroup):
+    pass
 
 
 class _Typer(typer.Typer):

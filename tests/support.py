@@ -78,26 +78,37 @@ STATIC_TF = [Transform(parent="base_link", child="laser", translation=(0.2, 0.0,
                        rotation=(0.0, 0.0, math.sin(0.05), math.cos(0.05)))]
 
 
-def sim_carmen_log(path: Path, duration: float = 8.0, gz: bool = False) -> Path:
-    """A CARMEN log of the simulated loop that maps in a second: ODOM at 10 Hz, FLASER (181 beams, the robot's
-    odometry pose at the scan) at 5 Hz, one line per message in time order."""
+def write_carmen_log(sim, path: Path, *, robotlaser: bool = False, no_return: float = 80.0, gz: bool = False) -> Path:
+    """A simulation as a CARMEN log, one line per message in time order: ODOM, and each scan as FLASER (the
+    robot's odometry pose at the scan) or, with ``robotlaser``, ROBOTLASER1 with the lidar's own fan, as
+    bench-dense's logs are. A beam with no return reads ``no_return``."""
     import gzip
 
-    from carto_cli.sim import loop_building, loop_trajectory, simulate
-
-    world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=duration, beams=181, fov=math.pi, scan_rate=5.0,
-                   odom_rate=10.0, imu_rate=0.0, dropout=0.0)
-    odom = sim.odometry
+    lidar, odom = sim.lidar, sim.odometry
     lines = [(t, f"ODOM {x:.6f} {y:.6f} {yaw:.6f} {vx:.3f} {wz:.3f} 0 {t:.6f} host {t:.6f}")
              for t, x, y, yaw, vx, wz in odom]
     for t, ranges in zip(sim.scan_times, sim.scan_ranges()):
         pose = " ".join(f"{np.interp(t, odom[:, 0], odom[:, i]):.6f}" for i in (1, 2, 3))
-        beams = " ".join(f"{r:.3f}" if np.isfinite(r) else "80.000" for r in ranges)
-        lines.append((t, f"FLASER {len(ranges)} {beams} {pose} {pose} {t:.6f} host {t:.6f}"))
+        beams = " ".join(f"{r:.3f}" if np.isfinite(r) else f"{no_return:.3f}" for r in ranges)
+        if robotlaser:
+            head = (f"ROBOTLASER1 0 {-lidar.fov / 2:.6f} {lidar.fov:.6f} {lidar.angle_increment:.6f} "
+                    f"{lidar.max_range:.1f} 0.01 0 {len(ranges)}")
+            lines.append((t, f"{head} {beams} 0 {pose} {pose} 0 0 0.5 0.5 0 {t:.6f} host {t:.6f}"))
+        else:
+            lines.append((t, f"FLASER {len(ranges)} {beams} {pose} {pose} {t:.6f} host {t:.6f}"))
     text = "".join(line + "\n" for _, line in sorted(lines, key=lambda p: p[0]))
     if gz:
         path.write_bytes(gzip.compress(text.encode()))
     else:
         path.write_text(text)
     return path
+
+
+def sim_carmen_log(path: Path, duration: float = 8.0, gz: bool = False) -> Path:
+    """A CARMEN log of the simulated loop that maps in a second: ODOM at 10 Hz, FLASER (181 beams) at 5 Hz."""
+    from carto_cli.sim import loop_building, loop_trajectory, simulate
+
+    world = loop_building()
+    sim = simulate(world, loop_trajectory(world), duration=duration, beams=181, fov=math.pi, scan_rate=5.0,
+                   odom_rate=10.0, imu_rate=0.0, dropout=0.0)
+    return write_carmen_log(sim, path, gz=gz)

@@ -402,28 +402,15 @@ def _interrupt_log(path, *, dense: bool):
     scans (10 Hz, ROBOTLASER1 as in bench-dense, two laps; Cartographer)."""
     import math
 
-    import numpy as np
+    from support import write_carmen_log
 
     from carto_cli.sim import loop_building, loop_trajectory, simulate
 
     world = loop_building()
-    fov = 1.5 * math.pi if dense else math.pi
     sim = simulate(world, loop_trajectory(world, laps=2 if dense else 1), duration=None if dense else 40.0,
-                   beams=360 if dense else 181, fov=fov, scan_rate=10.0 if dense else 1.0, odom_rate=10.0,
-                   imu_rate=0.0, dropout=0.0)
-    odom = sim.odometry
-    lines = [(t, f"ODOM {x:.6f} {y:.6f} {yaw:.6f} {vx:.3f} {wz:.3f} 0 {t:.6f} host {t:.6f}")
-             for t, x, y, yaw, vx, wz in odom]
-    for t, ranges in zip(sim.scan_times, sim.scan_ranges()):
-        pose = " ".join(f"{np.interp(t, odom[:, 0], odom[:, i]):.6f}" for i in (1, 2, 3))
-        beams = " ".join(f"{r:.3f}" if np.isfinite(r) else "30.000" for r in ranges)
-        if dense:
-            head = f"ROBOTLASER1 0 {-fov / 2:.6f} {fov:.6f} {fov / (len(ranges) - 1):.6f} 30.0 0.01 0 {len(ranges)}"
-            lines.append((t, f"{head} {beams} 0 {pose} {pose} 0 0 0.5 0.5 0 {t:.6f} host {t:.6f}"))
-        else:
-            lines.append((t, f"FLASER {len(ranges)} {beams} {pose} {pose} {t:.6f} host {t:.6f}"))
-    path.write_text("".join(line + "\n" for _, line in sorted(lines, key=lambda p: p[0])))
-    return path
+                   beams=360 if dense else 181, fov=1.5 * math.pi if dense else math.pi,
+                   scan_rate=10.0 if dense else 1.0, odom_rate=10.0, imu_rate=0.0, dropout=0.0)
+    return write_carmen_log(sim, path, robotlaser=dense, no_return=30.0)
 
 
 def _interrupted_map(recording, outdir, sig, to_group: bool, delay: float):
