@@ -25,6 +25,11 @@ particle filter instead (``carto_cli.gmapping``); the document then says so in i
 adds the filter's own figures (particles, resamplings, processed scans, time, memory).
 
     bench/run [--cases intel,aces,dense,...] [--quick] [--set k=v ...] [--profile NAME] [--algorithm NAME]
+              [--peers lama]
+
+``--peers lama`` also runs IRIS LaMa's Slam2D and PF-SLAM on every CARMEN case, each right after carto's
+case and in a process of its own (built once by ``bench/lama.sh``), scores their trajectories with carto's
+relation error and adds a table of error, CPU time and peak RSS side by side.
 
 A case that fails (an exception, a crash, the per-case timeout) shows as
 "failed: <reason>" and the others go on. Raw results (one JSON per case, the
@@ -671,6 +676,8 @@ def run_in_subprocess(case: Case, args, results: Path) -> dict:
             reason = f"exit status {proc.returncode}" + (f": {last[:200]}" if last else "")
         res = {"status": "failed", "case": asdict(case), "algorithm": args.algorithm or "auto", "error": reason}
     res["process_wall_s"] = wall
+    # wait4 reports the child with its reaped children (RUSAGE_BOTH): the pose graph's process and every thread count
+    res["cpu_s"] = usage.ru_utime + usage.ru_stime
     # wait4's maxrss is the larger of the worker's and its pose graph process's (which counts the pages they share):
     # with a graph process, the worker's own peak or both together while the graph's ran (mapping.slam)
     res["peak_rss_mb"] = usage.ru_maxrss / 1024.0
@@ -680,6 +687,149 @@ def run_in_subprocess(case: Case, args, results: Path) -> dict:
     res["returncode"] = proc.returncode
     out.write_text(json.dumps(res, indent=1, default=_json_default))
     return res
+
+
+# --------------------------------------------------------------------------- peer systems run beside carto
+
+
+LAMA_SCRIPT = REPO / "bench" / "lama.sh"
+# (key, label, driver arguments, trajectory file): iris_lama_ros's defaults; PF-SLAM's seed fixed because its
+# error changes up to 2x between seeds (../shared/peers/lama/README.md), its threads as measured in PEERS.md.
+LAMA_RUNS = (("lama-slam2d", "LaMa Slam2D", ("slam2d",), ".scans.txt"),
+             ("lama-pf", "LaMa PF-SLAM", ("pf", "threads=2", "seed=1"), ".final_scans.txt"))
+PEER_SYSTEMS = {"lama": LAMA_RUNS}
+LASER_LINES = ("FLASER", "ROBOTLASER1")  # what the driver maps: one scan each
+
+
+def build_lama(log: Path) -> dict:
+    """``{"driver", "source"}`` from ``bench/lama.sh`` (a cached build after the first), or ``{"error"}``."""
+    with open(log, "w") as err:
+        p = subprocess.run(["bash", str(LAMA_SCRIPT)], stdout=subprocess.PIPE, stderr=err, text=True,
+                           cwd=str(REPO))
+    driver = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else ""
+    if p.returncode != 0 or not os.access(driver, os.X_OK):
+        lines = [l.strip() for l in Path(log).read_text(errors="replace").splitlines() if l.strip()]
+        return {"error": f"bench/lama.sh failed ({lines[-1][:200] if lines else f'exit status {p.returncode}'})"}
+    source = Path(driver).with_name("source.txt")
+    return {"driver": driver, "source": source.read_text().strip() if source.is_file() else "iris_lama"}
+
+
+def first_scans(log: str, n: int, dest: Path) -> Path:
+    """The CARMEN log cut after its ``n``-th scan, so that with --quick a peer maps the scans carto mapped."""
+    import gzip
+
+    with gzip.open(log, "rt", errors="replace") as f:
+        lines = f.readlines()
+    laser = [i for i, l in enumerate(lines) if l.startswith(LASER_LINES)]
+    end = laser[n - 1] + 1 if len(laser) > n else len(lines)
+    with gzip.open(dest, "wt") as f:
+        f.writelines(lines[:end])
+    return dest
+
+
+def score_peer_trajectory(path: Path, case: Case) -> dict:
+    """The accuracy figures run_case computes for carto, on a peer's ``t x y theta`` file."""
+    import numpy as np
+
+    from carto_cli.evaluation.metrics import ate, read_relations, relation_error
+    from carto_cli.io.trajectory import Trajectory, parse_table, read_trajectory
+
+    data, _ = parse_table(path, (4,), "trajectory")
+    # A log's repeated timestamps give repeated poses: keep the first, as for carto's odometry baseline.
+    t = data[:, 0]
+    keep = np.concatenate([[True], t[1:] > np.maximum.accumulate(t)[:-1]])
+    data = data[keep]
+    traj = Trajectory.from_arrays(data[:, 0], data[:, 1], data[:, 2], data[:, 3])
+    acc: dict = {"poses": len(traj), "dropped_poses": int((~keep).sum())}
+    if case.relations:
+        acc["relations"] = _relation_dict(relation_error(traj, read_relations(case.relations)))
+    if case.groundtruth:
+        a = ate(traj, read_trajectory(case.groundtruth), associate="trajectory")
+        acc["ate"] = {"trans_mean": a.translation.mean, "trans_rmse": a.translation.rmse,
+                      "rot_mean": a.rotation.mean, "used": a.used}
+    return acc
+
+
+# ru_maxrss also counts the memory a process had before its exec, and a child of this harness starts as a copy of
+# it (100+ MB with numpy and carto_cli loaded), more than LaMa's whole peak: the peer is started from a bare
+# interpreter (5 MB) instead, which writes the peer's own wait4 figures: exit code, user s, sys s, peak RSS KB.
+RUSAGE_LAUNCHER = """\
+import os, sys
+pid = os.fork()
+if pid == 0:
+    try:
+        os.execv(sys.argv[2], sys.argv[2:])
+    finally:
+        os._exit(127)
+_, status, ru = os.wait4(pid, 0)
+with open(sys.argv[1], "w") as f:
+    f.write(f"{os.waitstatus_to_exitcode(status)} {ru.ru_utime} {ru.ru_stime} {ru.ru_maxrss}")
+"""
+
+
+def run_peer(case: Case, run: tuple, driver: str, log: str, results: Path, timeout: float | None) -> dict:
+    """One peer run in its own process (CPU and peak RSS from its ``os.wait4``, as for carto), then its trajectory
+    scored as carto's is."""
+    key, label, argv, suffix = run
+    prefix = results / f"{case.name}.{key}"
+    traj, usage = Path(f"{prefix}{suffix}"), Path(f"{prefix}.rusage")
+    for stale in (traj, usage):  # an earlier run's files must not be read as this one's
+        stale.unlink(missing_ok=True)
+    cmd = [driver, argv[0], log, str(prefix), *argv[1:]]
+    res: dict = {"peer": key, "label": label, "command": shlex.join(cmd), "status": "ok"}
+    t0 = time.perf_counter()
+    with open(f"{prefix}.log", "w") as out:
+        proc = subprocess.Popen([sys.executable, "-I", "-S", "-c", RUSAGE_LAUNCHER, str(usage), *cmd], stdout=out,
+                                stderr=subprocess.STDOUT, cwd=str(results), start_new_session=True)
+    try:
+        proc.wait(timeout=timeout if timeout and timeout > 0 else None)
+    except BaseException as e:  # the timeout, or an interrupt: the peer goes too
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        if not isinstance(e, subprocess.TimeoutExpired):
+            raise
+        return {**res, "status": "failed", "error": f"timeout after {timeout:g} s"}
+    res["process_wall_s"] = time.perf_counter() - t0
+    try:
+        code, user, system, maxrss = usage.read_text().split()
+    except (OSError, ValueError):
+        return {**res, "status": "failed", "error": f"no figures from the launcher (exit status {proc.returncode})"}
+    res.update(returncode=int(code), cpu_s=float(user) + float(system), peak_rss_mb=int(maxrss) / 1024.0)
+    if res["returncode"] != 0:
+        lines = [l.strip() for l in Path(f"{prefix}.log").read_text(errors="replace").splitlines() if l.strip()]
+        return {**res, "status": "failed",
+                "error": f"exit status {res['returncode']}" + (f": {lines[-1][:200]}" if lines else "")}
+    try:
+        res["accuracy"] = score_peer_trajectory(traj, case)
+    except Exception as e:  # a peer's bad output is that peer's failure, not the run's
+        return {**res, "status": "failed", "error": f"{type(e).__name__}: {str(e).strip()[:200]}"}
+    return res
+
+
+def run_peers(case: Case, builds: dict, args, results: Path) -> dict:
+    """Every built peer system's runs on ``case``, keyed by run (``lama-slam2d``, ...)."""
+    out: dict = {}
+    for system, runs in PEER_SYSTEMS.items():
+        build = builds.get(system)
+        if build is None:
+            continue
+        if build.get("error"):
+            out.update({key: {"status": "skipped", "error": "not built"} for key, *_ in runs})
+            continue
+        if not (case.path or "").endswith((".clf", ".clf.gz")):
+            out.update({key: {"status": "skipped", "error": "its driver reads CARMEN logs only"} for key, *_ in runs})
+            continue
+        log = case.path
+        if args.quick and case.quick_scans:
+            log = str(first_scans(case.path, case.quick_scans, results / f"{case.name}.first-scans.clf.gz"))
+        for run in runs:
+            print(f"== {case.name}: {run[1]}", file=sys.stderr, flush=True)
+            out[run[0]] = r = run_peer(case, run, build["driver"], log, results, args.timeout)
+            rel = ((r.get("accuracy") or {}).get("relations") or {})
+            what = f"relation error {_rel_cell(rel)}, " if rel else ""
+            print(f"== {case.name}: {run[1]}: " + (f"{what}CPU {r['cpu_s']:.1f} s, {r['peak_rss_mb']:.0f} MB"
+                                                   if r["status"] == "ok" else _failed(r)), file=sys.stderr, flush=True)
+    return out
 
 
 # --------------------------------------------------------------------------- environment
@@ -959,6 +1109,60 @@ def performance_table(results: list[dict]) -> str:
     return _table(header, rows)
 
 
+def _peer_cell(r: dict | None, best: float | None) -> str:
+    """``error · CPU s · peak MB`` of carto's result or a peer run's (the same keys), the lowest error in bold."""
+    if not r:
+        return "—"
+    if r.get("status") != "ok":
+        return _failed(r) if r.get("status") == "failed" else f"not run: {r.get('error', '?')}"
+    err = ((r.get("accuracy") or {}).get("relations") or {}).get("trans_mean")
+    cell = _f(err)
+    if err is not None and err == best:
+        cell = f"**{cell}**"
+    return f"{cell} · {_f(r.get('cpu_s'), '.1f')} · {_f(r.get('peak_rss_mb'), '.0f')}"
+
+
+def peers_table(results: list[dict], builds: dict) -> str:
+    """carto beside each peer run of the same bench run, per case (``--peers``)."""
+    # A peer that was not built has no column: the section says why once.
+    runs = [run for system, runs in PEER_SYSTEMS.items() if "driver" in builds.get(system, {}) for run in runs]
+    header = ["case", "carto: error m · CPU s · peak MB"] + [f"{label}: error · CPU · MB" for _, label, *_ in runs]
+    rows = []
+    for res in results:
+        peers = res.get("peers") or {}
+        row = [res] + [peers.get(key) for key, *_ in runs]
+        errors = [((r.get("accuracy") or {}).get("relations") or {}).get("trans_mean")
+                  for r in row if r and r.get("status") == "ok"]
+        errors = [e for e in errors if e is not None]
+        best = min(errors) if len(errors) > 1 else None
+        rows.append([res["case"]["name"]] + [_peer_cell(r, best) for r in row])
+    return _table(header, rows)
+
+
+def peers_section(results: list[dict], builds: dict, quick: bool) -> str:
+    out = ["\n## Peers run beside carto\n\n"]
+    lama = builds.get("lama")
+    if lama is not None:
+        if lama.get("error"):
+            out.append(f"IRIS LaMa was not run: {lama['error']}.\n")
+        else:
+            out.append(
+                f"IRIS LaMa ({lama['source']}), built by `bench/lama.sh` with the driver of `../shared/peers/lama`, "
+                "run on the same `scans.clf.gz` right after each carto case, each run in its own process, with "
+                "iris_lama_ros's parameter defaults: *Slam2D* (scan-to-map matching, no loop closure; a pose at "
+                "every scan, the last processed one's composed with the odometry since) and *PF-SLAM* (30 "
+                "particles, 2 threads, seed 1; the final best particle's poses, scans between processed ones "
+                "placed by odometry). "
+                + ("With `--quick` they get the log cut after the scans carto mapped. " if quick else ""))
+    out.append("*error*: carto's relation error (`carto_cli.evaluation.metrics.relation_error`, the translational "
+               "mean in m, as in the tables above) of each system's trajectory, the lowest of the row in bold; "
+               "*CPU*: user + sys seconds of the whole process from `os.wait4` (carto's with its pose graph "
+               "process and every thread); *MB*: its peak RSS. The machine is shared, so compare CPU rather than "
+               "wall time (each run's wall time is in the per-case JSON).\n\n")
+    out.append(peers_table(results, builds))
+    return "".join(out)
+
+
 GMAPPING_METHOD = """\
 * **GMapping** (`--algorithm gmapping`, `carto_cli/gmapping/`): every case mapped by the Rao-Blackwellized
   particle filter with the `gmapping.*` options instead of Cartographer; the trajectory is the best particle's
@@ -1145,6 +1349,9 @@ def render_doc(results: list[dict], env: dict, argv_line: str, args, started: st
     if det:
         out.append("\nWhere the time goes (s; the sub-stages of local SLAM and of the constraint search):\n")
         out.append(det)
+    builds = env.get("peer_builds")
+    if builds:
+        out.append(peers_section(results, builds, args.quick))
     peers_note = ""
     if peers:
         peers_note = ("\nPeer figures are read from `PEERS.md` when this document is generated (translational "
@@ -1186,6 +1393,14 @@ def _changed_options(profile, overrides):
         return f"{type(e).__name__}: {e}"
 
 
+def _peer_list(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in PEER_SYSTEMS]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown peer {', '.join(unknown)} (choose from {', '.join(PEER_SYSTEMS)})")
+    return names
+
+
 def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
     from carto_cli.gmapping import ALGORITHMS
 
@@ -1206,6 +1421,9 @@ def parse_args(argv: list[str], prog: str) -> argparse.Namespace:
                    help="mapping system for every case: cartographer or gmapping (options gmapping.*, e.g. --set "
                         "gmapping.particles=30); default: what auto chooses per case (cartographer for a named "
                         "profile)")
+    p.add_argument("--peers", type=_peer_list, default=[],
+                   help=f"also run these peer systems on every CARMEN case, after carto's, and compare CPU, memory "
+                        f"and error ({', '.join(PEER_SYSTEMS)}; LaMa is built by bench/lama.sh from $LAMA_SRC once)")
     p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, help="seconds per case (0: none)")
     p.add_argument("--results", help="directory for raw results (default: a new one under $TMPDIR/carto-bench)")
     p.add_argument("--doc", help="where to write the Markdown report")
@@ -1254,6 +1472,15 @@ def main(argv: list[str] | None = None, prog: str = "bench/run") -> int:
     env["snapshot"] = args.snapshot_dir
     started = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     print(f"{argv_line}: {len(chosen)} case(s), results in {results_dir}", file=sys.stderr)
+    builds: dict = {}
+    if "lama" in args.peers:
+        print("building IRIS LaMa (bench/lama.sh; cached after the first time)", file=sys.stderr, flush=True)
+        builds["lama"] = build_lama(results_dir / "lama-build.log")
+        if builds["lama"].get("error"):
+            print(f"{prog}: going on without IRIS LaMa: {builds['lama']['error']} (log: {results_dir}/lama-build.log)",
+                  file=sys.stderr, flush=True)
+    if builds:
+        env["peer_builds"] = builds
 
     results = []
     for case in chosen:
@@ -1272,10 +1499,16 @@ def main(argv: list[str] | None = None, prog: str = "bench/run") -> int:
             what = (f"{st['particles']} particles, {st['resamplings']} resamplings, {st['processed_scans']} scans "
                     "processed" if st.get("algorithm") == "gmapping" else f"loop closures {_lc_cell(res)}")
             print(f"== {case.name}: {st['scans']} scans in {res['build_wall_s']:.1f} s "
-                  f"(process {res['process_wall_s']:.1f} s, {res['peak_rss_mb']:.0f} MB){err}, {what}",
+                  f"(process {res['process_wall_s']:.1f} s, CPU {res['cpu_s']:.1f} s, {res['peak_rss_mb']:.0f} MB)"
+                  f"{err}, {what}",
                   file=sys.stderr, flush=True)
         else:
             print(f"== {case.name}: {_failed(res)}", file=sys.stderr, flush=True)
+        if builds:
+            res["peers"] = run_peers(case, builds, args, results_dir)
+            json_path = results_dir / f"{case.name}.json"
+            if json_path.is_file():
+                json_path.write_text(json.dumps(res, indent=1, default=_json_default))
 
     finished = _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     peers = parse_peers(DATA / "PEERS.md")
