@@ -89,7 +89,12 @@ def _unshuffle(raw: bytes, itemsize: int) -> bytes:
     return np.frombuffer(raw, np.uint8).reshape(itemsize, -1).T.tobytes()
 
 
-def _candidates(raw: bytes, itemsize: int) -> list[tuple[str, bytes]]:
+def _raw_bytes(a: np.ndarray) -> memoryview:
+    """The bytes of a contiguous array without copying them (``tobytes`` would double a map's cells)."""
+    return memoryview(a.reshape(-1).view(np.uint8)) if a.size else memoryview(b"")
+
+
+def _candidates(raw: bytes | memoryview, itemsize: int) -> list[tuple[str, bytes]]:
     """What is tried on an array besides storing it: zstd, and zstd of the byte-shuffled array for wide items;
     the smallest is kept."""
     if len(raw) < _MIN_COMPRESS:
@@ -100,10 +105,20 @@ def _candidates(raw: bytes, itemsize: int) -> list[tuple[str, bytes]]:
     return candidates
 
 
-def _zstd(data: bytes) -> bytes:
+_ZSTD_CHUNK = 1 << 22  # bytes fed to the compressor at a time
+
+
+def _zstd(data: bytes | memoryview) -> bytes:
     import zstandard
 
-    return zstandard.ZstdCompressor(level=_ZSTD_LEVEL).compress(data)  # a compressor per call: not thread-safe
+    # Streamed, with the size declared up front (it goes into the frame, as a one-shot compress puts it): a
+    # one-shot compress reserves the worst case, the whole input again, before it shrinks to the result. A
+    # compressor per call: they are not thread-safe.
+    stream = zstandard.ZstdCompressor(level=_ZSTD_LEVEL).compressobj(size=len(data))
+    view = memoryview(data)
+    parts = [stream.compress(view[i:i + _ZSTD_CHUNK]) for i in range(0, len(view), _ZSTD_CHUNK)]
+    parts.append(stream.flush())
+    return b"".join(parts)
 
 
 def _smallest(raw: bytes, packed: list[tuple[str, bytes]]) -> tuple[str, bytes]:
@@ -120,24 +135,23 @@ def encode(fmt: ContainerFormat, fields: dict, arrays: dict[str, np.ndarray], jo
     depend on ``jobs``."""
     from carto_cli.core.parallel import map_ordered
 
-    raws = []
+    # One array at a time, its candidates compressed side by side and only the smallest blob kept: a map's
+    # cells are most of the file, and holding every array's raw bytes and every candidate at once made the
+    # save the peak of a whole mapping run (dense aces: 208 MB for a 9.5 MB file).
+    directory: dict[str, dict] = {}
+    blobs: list[bytes | memoryview] = []
+    offset = 0
     for name, array in arrays.items():
         a = np.asarray(array)
         le = a.dtype.newbyteorder("<") if a.dtype.byteorder not in ("|", "<") else a.dtype
         if le.str not in _DTYPES:
             raise TypeError(f"array {name}: dtype {a.dtype} cannot be stored in a {fmt.kind} file")
-        raws.append((name, a.shape, le, np.ascontiguousarray(a, dtype=le).tobytes()))
-    tried = [_candidates(raw, le.itemsize) for _, _, le, raw in raws]
-    # The largest first, so that the last to finish is a small one (a map's points and cells are most of it).
-    work = sorted(((i, j) for i, cands in enumerate(tried) for j in range(len(cands))),
-                  key=lambda ij: -len(tried[ij[0]][ij[1]][1]))
-    packed = dict(zip(work, map_ordered(lambda ij: _zstd(tried[ij[0]][ij[1]][1]), work, jobs)))
-    directory: dict[str, dict] = {}
-    blobs: list[bytes] = []
-    offset = 0
-    for i, (name, shape, le, raw) in enumerate(raws):
-        codec, blob = _smallest(raw, [(c, packed[i, j]) for j, (c, _) in enumerate(tried[i])])
-        directory[name] = {"dtype": le.str, "shape": list(shape), "codec": codec,
+        raw = _raw_bytes(np.ascontiguousarray(a, dtype=le))
+        candidates = _candidates(raw, le.itemsize)
+        packed = map_ordered(lambda cand: _zstd(cand[1]), candidates, jobs)
+        codec, blob = _smallest(raw, [(c, b) for (c, _), b in zip(candidates, packed)])
+        del candidates, packed
+        directory[name] = {"dtype": le.str, "shape": list(a.shape), "codec": codec,
                            "offset": offset, "length": len(blob), "raw_length": len(raw)}
         blobs.append(blob)
         offset += len(blob)

@@ -300,7 +300,14 @@ def _submap_arrays(state: PoseGraphState) -> dict[str, np.ndarray]:
     entries = state.submaps
     m = len(entries)
     crops = [_crop_box(e.submap.grid) for e in entries]
-    cells = [e.submap.grid.cells[y0:y1, x0:x1].reshape(-1) for e, (x0, y0, x1, y1) in zip(entries, crops)]
+    sizes = [(x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in crops]
+    cells_offset = _offsets(sizes)
+    # One array filled a submap at a time: a packed grid's cells are unpacked for the copy only (through the
+    # grids' shared LRU), where a list of crops would hold every submap unpacked at once (dense aces: 36
+    # submaps, the save's peak 208 MB of arrays against the 53 MB it writes).
+    all_cells = np.empty(int(cells_offset[-1]), np.uint16)
+    for e, (x0, y0, x1, y1), start, stop in zip(entries, crops, cells_offset[:-1], cells_offset[1:]):
+        all_cells[start:stop] = e.submap.grid.cells[y0:y1, x0:x1].reshape(-1)
     nodes = [np.asarray(e.nodes, dtype=np.int64).reshape(-1) for e in entries]
     return {
         "submap_trajectory": np.array([e.trajectory for e in entries], dtype=np.int64).reshape(m),
@@ -315,8 +322,8 @@ def _submap_arrays(state: PoseGraphState) -> dict[str, np.ndarray]:
         "submap_known_box": np.array([e.submap.grid.known_box for e in entries], dtype=np.int64).reshape(m, 4),
         "submap_grid_version": np.array([e.submap.grid.version for e in entries], dtype=np.int64).reshape(m),
         "submap_crop": np.array(crops, dtype=np.int64).reshape(m, 4),
-        "submap_cells_offset": _offsets([len(c) for c in cells]),
-        "submap_cells": np.concatenate(cells).astype(np.uint16, copy=False) if cells else np.zeros(0, np.uint16),
+        "submap_cells_offset": cells_offset,
+        "submap_cells": all_cells,
         "submap_nodes_offset": _offsets([len(v) for v in nodes]),
         "submap_nodes": np.concatenate(nodes) if nodes else np.zeros(0, np.int64),
     }
