@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from reference.gmapping import crossed_cells, map_counts, ray_counts
 
-from carto_cli.gmapping.maps import FULLNESS, SEEN, TILE, UNKNOWN, WALL, TiledMaps, traverse
+from carto_cli.gmapping.maps import CELL_BYTES, COUNT_MAX, FULLNESS, SEEN, TILE, UNKNOWN, WALL, TiledMaps, traverse
 
 RES = 0.05
 
@@ -202,7 +202,7 @@ def test_reindex_frees_the_tiles_no_particle_keeps():
 def test_pool_and_memory_figures_are_consistent():
     rng = np.random.default_rng(8)
     maps = TiledMaps(4, RES, capacity=2)
-    per_tile = TILE * TILE * (4 + 4 + 8)
+    per_tile = TILE * TILE * CELL_BYTES
     assert maps.tiles_in_use == 0 and maps.memory_bytes >= 2 * per_tile
     small = maps.memory_bytes
     ends, hit = _bundle(rng, 200, reach=4.0)
@@ -213,10 +213,11 @@ def test_pool_and_memory_figures_are_consistent():
     assert maps.tiles_in_use <= maps.capacity and maps.peak_tiles >= maps.tiles_in_use
     assert maps.capacity * per_tile <= maps.memory_bytes < maps.capacity * per_tile + 1_000_000
     assert maps.memory_bytes > small
-    # Every tile a particle holds has a visit in it; 8 m of rays do not need more than 9 x 9 tiles each.
+    # Every tile a particle holds has a visit in it; rays of 4 m around a pose stay within an 8 m square of tiles.
+    side = int(np.ceil(8.0 / (TILE * RES))) + 1
     for p in range(4):
         own = maps.table[p][maps.table[p] >= 0]
-        assert all(maps.visits[t].any() for t in own) and len(own) <= 81
+        assert all(maps.visits[t].any() for t in own) and len(own) <= side * side
 
 
 def test_moving_far_away_grows_the_table_and_keeps_what_was_there():
@@ -274,3 +275,20 @@ def test_entropy_is_one_bit_when_every_known_cell_is_as_often_hit_as_crossed():
     maps.insert(pose, np.zeros(2), np.array([[0.0, 0.0], [0.0, 0.0]]), np.array([True, False]))
     assert len(map_counts(maps, 0)) == 1
     assert maps.entropy(0) == pytest.approx(1.0)
+
+
+def test_counts_near_their_limit_are_halved_together_not_wrapped():
+    # Two bytes per count: a cell crossed 65535 times must keep its occupancy, not wrap to an empty cell.
+    rng = np.random.default_rng(10)
+    maps = TiledMaps(1, RES)
+    ends, hit = _bundle(rng, 100, reach=2.0)
+    pose = np.zeros((1, 3))
+    maps.insert(pose, np.zeros(2), ends, hit)
+    known = maps.visits > 0
+    maps.visits[known] = COUNT_MAX
+    maps.hits[known] = np.where(maps.hits[known] > 0, 30000, 0)
+    ratio = np.where(known, maps.hits / np.maximum(maps.visits, 1), 0.0)
+    maps.insert(pose, np.zeros(2), ends, hit)
+    assert maps.visits.max() <= COUNT_MAX and maps.visits[known].min() >= COUNT_MAX // 2
+    after = np.where(known, maps.hits / np.maximum(maps.visits, 1), 0.0)
+    assert np.abs(after - ratio)[known].max() < 0.01  # halved, then one more ray: the occupancy barely moves
