@@ -119,7 +119,7 @@ def _subpixel(points, ox, oy, sub):
 
 
 @njit(cache=True, nogil=True)
-def _cast_rays(ox, oy, resolution, sensor_x, sensor_y, returns, misses, insert_free_space):
+def cast_rays(ox, oy, resolution, sensor_x, sensor_y, returns, misses, insert_free_space):
     """Ray-casting pass: the cells to update, on the lattice of cells ``resolution`` wide from (ox, oy).
 
     Returns ``(hits, free, box)``: (n, 2) int32 cell indices of the returns; (m, 2)
@@ -258,7 +258,7 @@ class ProbabilityGridRangeDataInserter:
                     off = (round(sx), round(sy))
             if off is None:
                 with timer.stage("ray casting"):
-                    hits, free, box = _cast_rays(gx, gy, res, origin[0], origin[1], returns, misses,
+                    hits, free, box = cast_rays(gx, gy, res, origin[0], origin[1], returns, misses,
                                                  self.insert_free_space)
                     cast = (gx, gy, res, hits, free, box, box.tolist())
                 off = (0, 0)
