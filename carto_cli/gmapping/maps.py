@@ -1,6 +1,6 @@
 """Every particle's occupancy map, shared copy-on-write in tiles.
 
-A particle's map is a table of tile ids into one pool of 16 x 16-cell tiles. Resampling copies
+A particle's map is a table of tile ids into one pool of 32 x 32-cell tiles. Resampling copies
 tables, not cells: a child shares every tile with its parent until it writes one, and only then
 gets its own copy (OpenSLAM GMapping shares reference-counted patches the same way). What the
 particles hold apart is what they saw since they last had a common ancestor, so memory follows the
@@ -28,14 +28,15 @@ from numba import njit, prange
 
 from carto_cli.core.kernels import register_warm_up
 
-# 16 x 16 cells (3.3 KB, 0.8 m at the default delta): a particle copies a tile it writes while sharing it, and a
-# ray writes a few cells of each tile it crosses; with 32 x 32 tiles the copies were 16-19 % more of the pool
-# (orebro 566 -> 447 MB, edmonton 1345 -> 1132 MB at 100 particles, the same maps and poses).
-TILE_BITS = 4
+TILE_BITS = 5
+# 32 x 32 cells, 13 KB, 1.6 m at the default delta. 16 x 16 tiles copy less when a particle first writes a shared
+# tile (orebro at 100 particles: peak RSS 865 -> 710 MB, the same poses) but cost 17 % more CPU (the per-scan
+# passes over every particle's table of tile ids grow 4x; docs/gmapping.md).
 TILE = 1 << TILE_BITS  # cells per tile side
 TILE_MASK = TILE - 1  # cell >> TILE_BITS and cell & TILE_MASK: floor division and modulo, negatives too
 _GROW_MARGIN = 8  # tiles added on each side when the table grows
-CELL_BYTES = 2 + 2 + 8 + 1  # hits, visits (uint16, halved together before they overflow), mean endpoint (2 x float32), state
+# hits, visits (uint16, halved together before they overflow), mean endpoint (2 x float32), state
+CELL_BYTES = 2 + 2 + 8 + 1
 COUNT_MAX = 65535
 FULLNESS = 0.1  # a cell hit on more than this share of the rays reaching it is a wall
 UNKNOWN, SEEN, WALL = 0, 1, 2  # a cell's state

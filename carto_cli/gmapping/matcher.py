@@ -470,11 +470,11 @@ def _toy_map():
     process compiling the matcher's warm-up need not compile those too), and a scan that sees it."""
     maps = TiledMaps(2, 0.05, capacity=1)
     maps.table = np.zeros((2, 1, 1), np.int32)
-    maps.state[0, 12, :] = WALL
-    maps.state[0, :12, :] = SEEN
-    maps.mean[0, 12, :, 0] = (np.arange(TILE) + 0.5) * 0.05
-    maps.mean[0, 12, :, 1] = 12.5 * 0.05
-    points = np.stack([(np.arange(8) + 4.5) * 0.05, np.full(8, 12.5 * 0.05)], axis=1)
+    maps.state[0, 20, :] = WALL
+    maps.state[0, :20, :] = SEEN
+    maps.mean[0, 20, :, 0] = (np.arange(TILE) + 0.5) * 0.05
+    maps.mean[0, 20, :, 1] = 20.5 * 0.05
+    points = np.stack([(np.arange(8) + 4.5) * 0.05, np.full(8, 20.5 * 0.05)], axis=1)
     return maps, points
 
 
