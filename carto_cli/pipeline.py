@@ -16,7 +16,7 @@ from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
-from carto_cli.gmapping import ALGORITHMS
+from carto_cli.gmapping import ALGORITHMS, GMAPPING_PIPELINE
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
@@ -242,7 +242,7 @@ def build(
     wall0 = _time.perf_counter()
     if algorithm not in ALGORITHMS:
         raise CartoError(f"unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
-    if algorithm == "gmapping" and graph is not None:
+    if algorithm in GMAPPING_PIPELINE and graph is not None:
         raise CartoError("gmapping cannot continue a saved map (--load-state is for cartographer)", recording.path)
     selection = selection or select_topics(recording)
     scan_frame = first_scan_frame(recording, selection.scan)
@@ -256,6 +256,10 @@ def build(
         from carto_cli.gmapping.filter import GMappingSlam  # a Cartographer run never loads it (0.4 s)
 
         slam = GMappingSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)
+    elif algorithm == "scan-to-map":
+        from carto_cli.gmapping.front_end import ScanToMapSlam
+
+        slam = ScanToMapSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)
     else:
         slam = Slam(options, laser_pose=mount, timer=timer, loop_closure=loop_closure, graph=graph,
                     trajectory_id=trajectory_id, started=wall0, jobs=jobs)
@@ -263,7 +267,7 @@ def build(
     topics = [selection.scan]
     if use_odometry and selection.odometry:
         topics.append(selection.odometry)
-    if use_imu and selection.imu and tb.use_imu_data and algorithm != "gmapping":
+    if use_imu and selection.imu and tb.use_imu_data and algorithm not in GMAPPING_PIPELINE:
         topics.append(selection.imu)
 
     content = ContentCheck()

@@ -26,6 +26,7 @@ import numpy as np
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Scan
+from carto_cli.gmapping import GMAPPING_PIPELINE
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import Recording
@@ -251,7 +252,7 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
         else:
             algorithm = "cartographer"
     rt = "trajectory_builder_2d.real_time_correlative_scan_matcher"
-    if regime.sparse and algorithm == "gmapping":
+    if regime.sparse and algorithm in GMAPPING_PIPELINE:
         # The sparse profile still sets the submaps map.carto is written with; its matcher settings do nothing.
         profile = "sparse"
     elif regime.sparse:
@@ -281,7 +282,8 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
     if regime.no_return is not None and regime.no_return <= base_max_range + 0.05:
         settings.append(f"trajectory_builder_2d.max_range={max(regime.no_return - 0.1, 0.1):.3f}")
         reasons.append(f"'no return' is reported as {regime.no_return:.4g} m: readings there become misses")
-    if algorithm == "gmapping" and regime.no_return is not None and regime.no_return <= gmapping_max_range + 0.05:
+    if (algorithm in GMAPPING_PIPELINE and regime.no_return is not None
+            and regime.no_return <= gmapping_max_range + 0.05):
         # GMapping skips beams beyond maxRange; a fixed 'no return' reading inside it would draw phantom walls
         # on a circle around every pose (aces: 50 m readings, 0.36 m error before this).
         settings.append(f"gmapping.maxRange={max(regime.no_return - 0.1, 0.1):.3f}")

@@ -207,7 +207,7 @@ def test_unknown_algorithm_is_a_one_line_error(tmp_path, command):
     result = run(command, SAMPLE_BAG, "--algorithm", "bogus", *extra)
     assert result.exit_code == 2
     (line,) = result.stderr.strip().splitlines()
-    assert line == "carto: error: --algorithm: unknown algorithm 'bogus' (choose from cartographer, gmapping)"
+    assert line == "carto: error: --algorithm: unknown algorithm 'bogus' (choose from cartographer, gmapping, scan-to-map)"
     assert "Traceback" not in result.output and list(tmp_path.iterdir()) == []
 
 

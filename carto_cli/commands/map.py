@@ -11,6 +11,7 @@ from pathlib import Path
 from carto_cli.commands.common import check_algorithm, compiling_note
 from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
+from carto_cli.gmapping import GMAPPING_PIPELINE
 from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.read_ahead import RecordStream
@@ -119,7 +120,7 @@ def run_map(
         check_algorithm(algorithm)
     elif load_state is not None:
         algorithm = "cartographer"  # continuing a map.carto's pose graph is Cartographer's
-    if load_state is not None and algorithm == "gmapping":
+    if load_state is not None and algorithm in GMAPPING_PIPELINE:
         # Before the recording is surveyed and the state loaded: build would refuse only after both.
         raise CartoError("--load-state continues a Cartographer pose graph; gmapping starts every map afresh "
                          "(drop --load-state or use --algorithm cartographer)", load_state)
@@ -179,6 +180,11 @@ def summary_line(result: MapResult, timer=None, compiled: bool | None = None) ->
         # says it does.
         wall = f"{timer.snapshot().wall_ns / 1e9:.1f} s wall{compile_note(timer, compiled)}"
     peak = f", {s['peak_memory_mb']:.0f} MB peak memory" if s.get("peak_memory_mb") else ""
+    if s.get("algorithm") == "scan-to-map":
+        return (f"scan-to-map: {s['scans']} scans ({s['processed_scans']} processed), "
+                f"{s.get('loop_closures', 0)} loop closures between passes, "
+                f"{s['map_memory_peak_bytes'] / 2**20:.0f} MB distance map, {wall}, {s['scans_per_s']:.0f} scans/s "
+                f"mapping{peak}")
     if s.get("algorithm") == "gmapping":
         return (f"gmapping: {s['scans']} scans ({s['processed_scans']} processed), {s['particles']} particles, "
                 f"{s['resamplings']} resamplings, {s['map_memory_peak_bytes'] / 2**20:.0f} MB peak map, "

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from carto_cli.gmapping import GMAPPING_PIPELINE
 from carto_cli.tuning.space import default_space_path, spaces_dir
 from carto_cli.tuning.study import TuneResult, tune
 
@@ -36,7 +37,7 @@ def run_tune(
     maps with ``algorithm``."""
     if space is not None:
         space_path = space
-    elif algorithm == "gmapping":
+    elif algorithm in GMAPPING_PIPELINE:
         # A profile's space varies Cartographer's options, which a gmapping trial would not use.
         space_path = spaces_dir() / "gmapping.yaml"
     else:

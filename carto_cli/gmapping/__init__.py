@@ -6,6 +6,9 @@
 naming the algorithms costs nothing (the CLI checks ``--algorithm`` against ``ALGORITHMS``).
 """
 
-ALGORITHMS = ("cartographer", "gmapping")
+ALGORITHMS = ("cartographer", "gmapping", "scan-to-map")
+# The systems that run GMapping's processed-scan pipeline and take its options (``gmapping.*``): the particle
+# filter, and one pose matched on a distance map (``front_end.ScanToMapSlam``).
+GMAPPING_PIPELINE = frozenset({"gmapping", "scan-to-map"})
 
-__all__ = ["ALGORITHMS"]
+__all__ = ["ALGORITHMS", "GMAPPING_PIPELINE"]

@@ -76,7 +76,7 @@ class ContainerFormat:
 # ---------------------------------------------------------------------------------------- writing
 
 
-def _shuffle(raw: bytes, itemsize: int) -> bytes:
+def _shuffle(raw: bytes | memoryview, itemsize: int) -> bytes | memoryview:
     """Byte planes: all first bytes, then all second bytes, ... (HDF5's and Blosc's shuffle filter)."""
     if itemsize == 1:
         return raw
@@ -91,10 +91,10 @@ def _unshuffle(raw: bytes, itemsize: int) -> bytes:
 
 def _raw_bytes(a: np.ndarray) -> memoryview:
     """The bytes of a contiguous array without copying them (``tobytes`` would double a map's cells)."""
-    return memoryview(a.reshape(-1).view(np.uint8)) if a.size else memoryview(b"")
+    return a.reshape(-1).view(np.uint8).data if a.size else memoryview(b"")
 
 
-def _candidates(raw: bytes | memoryview, itemsize: int) -> list[tuple[str, bytes]]:
+def _candidates(raw: bytes | memoryview, itemsize: int) -> list[tuple[str, bytes | memoryview]]:
     """What is tried on an array besides storing it: zstd, and zstd of the byte-shuffled array for wide items;
     the smallest is kept."""
     if len(raw) < _MIN_COMPRESS:
@@ -121,8 +121,8 @@ def _zstd(data: bytes | memoryview) -> bytes:
     return b"".join(parts)
 
 
-def _smallest(raw: bytes, packed: list[tuple[str, bytes]]) -> tuple[str, bytes]:
-    best = ("none", raw)
+def _smallest(raw: bytes | memoryview, packed: list[tuple[str, bytes]]) -> tuple[str, bytes | memoryview]:
+    best: tuple[str, bytes | memoryview] = ("none", raw)
     for codec, blob in packed:
         if len(blob) < len(best[1]):
             best = (codec, blob)

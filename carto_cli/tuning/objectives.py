@@ -54,6 +54,7 @@ import numpy as np
 
 from carto_cli.core.errors import CartoError
 from carto_cli.evaluation.metrics import Relations, align_se2, ate, interpolate_poses, read_relations, relation_error
+from carto_cli.gmapping import GMAPPING_PIPELINE
 from carto_cli.io.trajectory import Trajectory, read_trajectory
 from carto_cli.options import Options
 
@@ -161,14 +162,14 @@ def resolve_objective(objective: str, cases: Sequence[Case]) -> str:
 def check_space(objective: str, names: Sequence[str], algorithm: str = "cartographer") -> None:
     """CartoError when the objective cannot judge some of the options a space varies, or the algorithm
     does not use them (a study over them would only measure noise)."""
-    if algorithm == "gmapping" and objective != "relocalization":
+    if algorithm in GMAPPING_PIPELINE and objective != "relocalization":
         # Relocalization searches map.carto's submaps, built with Cartographer's submap and relocalization
         # options; every other objective scores only the particle filter's trajectory and map.
         unused = [name for name in names if not name.startswith(GMAPPING_PREFIX)]
         if unused:
-            raise CartoError(f"gmapping does not use {', '.join(unused)}: vary gmapping.* options "
+            raise CartoError(f"{algorithm} does not use {', '.join(unused)}: vary gmapping.* options "
                              "(e.g. the packaged spaces/gmapping.yaml, the default with --algorithm gmapping)")
-    elif algorithm != "gmapping":
+    elif algorithm not in GMAPPING_PIPELINE:
         unused = [name for name in names if name.startswith(GMAPPING_PREFIX)]
         if unused:
             raise CartoError(f"{algorithm} does not use {', '.join(unused)}: tune them with --algorithm gmapping")

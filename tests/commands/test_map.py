@@ -167,6 +167,20 @@ def test_gmapping_writes_every_output_and_names_itself(tmp_path, sim_bag):
     assert len(load_map(out / "map.carto").submaps) > 0
 
 
+def test_scan_to_map_writes_every_output_and_names_itself(tmp_path, sim_bag):
+    bag, sim = sim_bag
+    out = tmp_path / "s2m"
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--algorithm", "scan-to-map"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["algorithm"] == "scan-to-map" and summary["stats"]["particles"] == 0
+    assert r.stdout.startswith(f"scan-to-map: {sim.counts()['/scan']} scans (")
+    assert "MB distance map" in r.stdout and "particles" not in r.stdout
+    assert "auto: " in r.stderr and "algorithm scan-to-map" in r.stderr
+    assert len(read_trajectory(out / "trajectory.tum")) == sim.counts()["/scan"]
+    assert len(load_map(out / "map.carto").submaps) > 0
+
+
 def test_cartographer_summary_names_its_algorithm(tmp_path, sim_bag):
     bag, _ = sim_bag
     out = tmp_path / "c"
