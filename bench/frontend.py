@@ -50,7 +50,7 @@ def run_case(log: Path, out: Path, args) -> dict:
     from carto_cli.core.records import Odometry, Scan
     from carto_cli.io.sources.open import open_recording
     from carto_cli.io.trajectory import Trajectory, write_trajectory
-    from carto_cli.mapping.scan_to_map import ScanToMapOptions, ScanToMapSlam
+    from carto_cli.mapping.scan_to_map import Slam2D, Slam2DOptions
 
     t_start = time.process_time()
     kernels.warm_up()
@@ -62,7 +62,7 @@ def run_case(log: Path, out: Path, args) -> dict:
             mount = np.array(tf.pose2d())
     topics = {t.name for t in recording.topics()}
     odom_topic = "/odom_laser" if "/odom_laser" in topics else "/odom"
-    slam = ScanToMapSlam(ScanToMapOptions(
+    slam = Slam2D(Slam2DOptions(
         resolution=args.resolution, max_distance=args.l2_max, d_thresh=args.d_thresh, a_thresh=args.a_thresh,
         loss_scale=args.loss, max_iterations=args.max_iterations, multires=args.multires,
         translation_weight=args.prior_t, rotation_weight=args.prior_r))

@@ -19,7 +19,7 @@ from carto_cli.matching import distance_matcher
 
 
 @dataclass
-class ScanToMapOptions:
+class Slam2DOptions:
     resolution: float = 0.05
     max_distance: float = 0.5  # truncation of the distance field (LaMa's l2_max)
     d_thresh: float = 0.01  # m of odometry motion before a scan is processed (iris_lama_ros default)
@@ -35,15 +35,15 @@ class ScanToMapOptions:
 
 
 @dataclass
-class ScanToMapResult:
+class Slam2DResult:
     pose: np.ndarray  # tracking frame in the map
     processed: bool  # matched (when the map had something) and inserted
     match: distance_matcher.DistanceMatchResult | None
 
 
-class ScanToMapSlam:
-    def __init__(self, options: ScanToMapOptions | None = None, initial_pose=(0.0, 0.0, 0.0)):
-        self.options = o = options or ScanToMapOptions()
+class Slam2D:
+    def __init__(self, options: Slam2DOptions | None = None, initial_pose=(0.0, 0.0, 0.0)):
+        self.options = o = options or Slam2DOptions()
         self.maps = [DistanceMap(o.resolution, o.max_distance, o.occupied_fraction)]
         if o.multires:
             self.maps.insert(0, DistanceMap(4 * o.resolution, 4 * o.max_distance, o.occupied_fraction))
@@ -64,12 +64,12 @@ class ScanToMapSlam:
         moved = math.hypot(delta[0], delta[1]) > self.options.d_thresh or abs(delta[2]) > self.options.a_thresh
         return transform.compose(self.pose, delta), moved
 
-    def add_scan(self, odometry, points, sensor_origin=(0.0, 0.0)) -> ScanToMapResult:
+    def add_scan(self, odometry, points, sensor_origin=(0.0, 0.0)) -> Slam2DResult:
         """``points`` (n, 2) returns in the tracking frame, ``odometry`` the odometry pose at the scan."""
         o = self.options
         prediction, moved = self.predict(odometry)
         if not moved:
-            return ScanToMapResult(prediction, False, None)
+            return Slam2DResult(prediction, False, None)
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         result = None
         pose = prediction
@@ -87,7 +87,7 @@ class ScanToMapSlam:
         self.pose = pose
         self._odom = transform.as_pose(odometry)
         self.processed += 1
-        return ScanToMapResult(pose.copy(), True, result)
+        return Slam2DResult(pose.copy(), True, result)
 
     @property
     def memory_bytes(self) -> int:
