@@ -4,12 +4,13 @@ from carto_cli.sim.lidar import Lidar, cast
 from carto_cli.sim.odometry import ImuModel, OdometryModel
 from carto_cli.sim.recording import SimulatedRecording, Simulation, simulate
 from carto_cli.sim.trajectory import Limits, Trajectory, follow_route, loop_trajectory
-from carto_cli.sim.world import World, corridor, loop_building, office, room
+from carto_cli.sim.world import Material, World, corridor, courtyard, glass_office, loop_building, office, room
 
 __all__ = [
     "ImuModel",
     "Lidar",
     "Limits",
+    "Material",
     "OdometryModel",
     "SimulatedRecording",
     "Simulation",
@@ -17,7 +18,9 @@ __all__ = [
     "World",
     "cast",
     "corridor",
+    "courtyard",
     "follow_route",
+    "glass_office",
     "loop_building",
     "loop_trajectory",
     "office",

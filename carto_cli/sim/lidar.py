@@ -5,6 +5,14 @@ real drivers: nothing within ``max_range`` -> ``+inf``; a dropout (no echo
 from a dark or glancing surface) is also "no return" -> ``+inf`` by default
 (``dropout_value`` can make it ``nan`` or ``max_range``, as some drivers do);
 a hit closer than ``min_range`` -> ``-inf``.
+
+Segments may be partly transparent (``World.material``, one row per segment): a ray crossing one is
+returned by it with probability ``opacity``, and only if it meets it within ``incidence`` of its normal
+(glass reflects near the normal only) and within ``reach`` of the scanner (a hedge or a car body lower
+than the scan plane, which a plane tilted a little up passes over from afar); otherwise the ray passes on
+to the next segment. The draw is a hash of (a key drawn from the scan's generator, scan, beam, segment),
+so it does not depend on the order the segments are tested in; a world whose segments are all opaque
+draws nothing more than before.
 """
 from __future__ import annotations
 
@@ -49,14 +57,68 @@ def _cast(poses, angles, segments, max_range):
     return out
 
 
-def cast(poses, angles, segments, max_range: float = np.inf) -> np.ndarray:
+@numba.njit(cache=True, nogil=True)
+def _uniform(key, p, b, s):
+    """A uniform draw in [0, 1) from (key, scan, beam, segment): splitmix64 of their mix."""
+    z = np.uint64(key) ^ (np.uint64(p) * np.uint64(0x9E3779B97F4A7C15))
+    z = z ^ (np.uint64(b) * np.uint64(0xC2B2AE3D27D4EB4F)) ^ (np.uint64(s) * np.uint64(0x165667B19E3779F9))
+    z = z + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    z = z ^ (z >> np.uint64(31))
+    return float(z >> np.uint64(11)) / 9007199254740992.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _cast_partial(poses, angles, segments, material, ids, max_range, key):
+    """``_cast`` where segment ``s`` returns a crossing ray met at |cos(incidence)| >= ``material[s, 1]``
+    and at most ``material[s, 2]`` away with probability ``material[s, 0]`` (drawn by
+    ``_uniform(key, scan, beam, ids[s])``), and lets it pass otherwise."""
+    m, n, k = poses.shape[0], angles.shape[0], segments.shape[0]
+    out = np.empty((m, n), dtype=np.float64)
+    for p in range(m):
+        ox, oy, oyaw = poses[p, 0], poses[p, 1], poses[p, 2]
+        for b in range(n):
+            a = oyaw + angles[b]
+            dx, dy = math.cos(a), math.sin(a)
+            best = np.inf
+            for s in range(k):
+                ax, ay = segments[s, 0], segments[s, 1]
+                ex, ey = segments[s, 2] - ax, segments[s, 3] - ay
+                den = dx * ey - dy * ex
+                if den == 0.0:
+                    continue
+                rx, ry = ax - ox, ay - oy
+                t = (rx * ey - ry * ex) / den
+                if t < 0.0 or t >= best:
+                    continue
+                u = (rx * dy - ry * dx) / den
+                if u < 0.0 or u > 1.0 or t > material[s, 2]:
+                    continue
+                if material[s, 1] > 0.0 and abs(den) < material[s, 1] * math.sqrt(ex * ex + ey * ey):
+                    continue  # met too far from its normal: |d x e| / |e| is the cosine of the incidence
+                if material[s, 0] >= 1.0 or _uniform(key, p, b, ids[s]) < material[s, 0]:
+                    best = t
+            out[p, b] = best if best <= max_range else np.inf
+    return out
+
+
+def cast(poses, angles, segments, max_range: float = np.inf, *, material=None, key: int = 0) -> np.ndarray:
     """Exact ranges from sensor ``poses`` ((m, 3) x y yaw, or one (3,)) along ``angles`` (sensor frame).
 
     Returns (m, n) float64 (or (n,) for one pose); ``inf`` where no wall lies within ``max_range``.
+    ``material`` (k, 3), per segment: the probability that it returns a ray crossing it, the least
+    |cos| of the angle between ray and normal at which it can, and the most range at which it can (None:
+    every segment returns every ray); ``key`` seeds the draws.
     """
     p = np.ascontiguousarray(poses, dtype=np.float64)
     single = p.ndim == 1
     seg = np.ascontiguousarray(segments, dtype=np.float64).reshape(-1, 4)
+    ids = np.arange(len(seg), dtype=np.int64)
+    if material is not None:
+        material = np.asarray(material, np.float64).reshape(-1, 3)
+        if len(material) != len(seg):
+            raise ValueError(f"material has {len(material)} rows for {len(seg)} segments")
     if math.isfinite(max_range) and len(seg) > CULL_ABOVE:
         # A large world (a campus): only walls within max_range of some pose can be hit. Keeping their order
         # keeps every range exactly what the whole list gives.
@@ -65,7 +127,12 @@ def cast(poses, angles, segments, max_range: float = np.inf) -> np.ndarray:
         near = ((np.minimum(seg[:, 0], seg[:, 2]) <= hi[0]) & (np.maximum(seg[:, 0], seg[:, 2]) >= lo[0])
                 & (np.minimum(seg[:, 1], seg[:, 3]) <= hi[1]) & (np.maximum(seg[:, 1], seg[:, 3]) >= lo[1]))
         seg = np.ascontiguousarray(seg[near])
-    out = _cast(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64), seg, float(max_range))
+        ids = ids[near]
+    if material is None:
+        out = _cast(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64), seg, float(max_range))
+    else:
+        out = _cast_partial(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64), seg,
+                            np.ascontiguousarray(material[ids]), ids, float(max_range), int(key))
     return out[0] if single else out
 
 
@@ -94,9 +161,14 @@ class Lidar:
     def angles(self) -> np.ndarray:
         return self.angle_min + self.angle_increment * np.arange(self.beams)
 
-    def measure(self, poses, segments, rng: np.random.Generator) -> np.ndarray:
-        """Noisy float32 ranges (m, n) from sensor ``poses`` (m, 3)."""
-        true = cast(np.atleast_2d(poses), self.angles(), segments, self.max_range)
+    def measure(self, poses, segments, rng: np.random.Generator, material=None) -> np.ndarray:
+        """Noisy float32 ranges (m, n) from sensor ``poses`` (m, 3); ``material`` as for ``cast`` (its
+        draws take one key from ``rng`` first; without it ``rng`` is used exactly as before)."""
+        if material is None:
+            true = cast(np.atleast_2d(poses), self.angles(), segments, self.max_range)
+        else:
+            key = int(rng.integers(0, 2**62))
+            true = cast(np.atleast_2d(poses), self.angles(), segments, self.max_range, material=material, key=key)
         sigma = self.noise + self.noise_per_metre * np.where(np.isfinite(true), true, 0.0)
         noisy = true + sigma * rng.standard_normal(true.shape)
         noisy[noisy > self.max_range] = np.inf

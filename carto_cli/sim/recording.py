@@ -89,7 +89,8 @@ class Simulation:
         """Noisy ranges of every scan, (n,) float32 each, in scan order."""
         rng = np.random.default_rng(np.random.SeedSequence(self.seed).spawn(3)[0])
         for i in range(0, len(self.scan_times), _CHUNK):
-            chunk = self.lidar.measure(self.laser_poses(self.scan_times[i:i + _CHUNK]), self.world.segments, rng)
+            chunk = self.lidar.measure(self.laser_poses(self.scan_times[i:i + _CHUNK]), self.world.segments, rng,
+                                       self.world.materials)
             for row in chunk:
                 yield row.copy()  # a record owns its array, not a view into the chunk
 

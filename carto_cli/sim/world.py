@@ -3,9 +3,18 @@
 A world is a ``(k, 4)`` float64 array of segments ``x1 y1 x2 y2`` (metres) and,
 for the builders that have an obvious one, a route: waypoints ``(m, 2)`` along
 which a robot can drive without touching a wall (see ``trajectory.follow``).
+
+A segment may be partly transparent to the laser (``World.materials``, one ``Material`` row per
+segment; the lidar lets the rays it does not return pass on): glass, returning some of the rays that
+meet it near its normal; a hedge, a bush or a parked car's body, returning some rays and, being lower
+than a scan plane tilted a little up, none from afar. ``glass_office`` and ``courtyard`` are built of
+such things on purpose, with walls one line thick seen from both sides and doors, for judging a map's
+walls (``mapping/quality.py``); the other builders have opaque walls only (``materials`` None), and their
+recordings are what they always were.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -19,12 +28,18 @@ class World:
     closed: bool = False  # the route returns to its first waypoint
     name: str = ""
     meta: dict = field(default_factory=dict)
+    materials: np.ndarray | None = None  # (k, 3) ``Material.row`` per segment; None: every one opaque
 
     def __post_init__(self):
         seg = np.ascontiguousarray(self.segments, dtype=np.float64).reshape(-1, 4)
         object.__setattr__(self, "segments", seg)
         if self.route is not None:
             object.__setattr__(self, "route", np.asarray(self.route, dtype=np.float64).reshape(-1, 2))
+        if self.materials is not None:
+            rows = np.ascontiguousarray(self.materials, dtype=np.float64).reshape(-1, 3)
+            if len(rows) != len(seg) or not np.all((rows[:, 0] > 0) & (rows[:, 0] <= 1)):
+                raise ValueError("materials need one row per segment, with an opacity in (0, 1]")
+            object.__setattr__(self, "materials", rows)
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -78,6 +93,56 @@ def wall(p0: Sequence[float], p1: Sequence[float], gaps: Iterable[tuple[float, f
 
 def merge(*parts: np.ndarray) -> np.ndarray:
     return np.vstack([np.asarray(p, float).reshape(-1, 4) for p in parts])
+
+
+@dataclass(frozen=True)
+class Material:
+    """How a segment returns a laser ray that crosses it: with probability ``opacity``, and only if the ray
+    meets it within ``incidence`` degrees of its normal and at most ``reach`` metres from the scanner."""
+
+    opacity: float = 1.0
+    incidence: float = 90.0
+    reach: float = math.inf
+
+    @property
+    def row(self) -> tuple[float, float, float]:
+        """(opacity, least |cos| of the incidence, reach): the lidar's row for it."""
+        return (float(self.opacity), math.cos(math.radians(self.incidence)) if self.incidence < 90 else 0.0,
+                float(self.reach))
+
+
+OPAQUE = Material()
+
+
+def merge_partial(parts: Iterable[tuple[np.ndarray, Material]]) -> tuple[np.ndarray, np.ndarray]:
+    """Segments and their materials' rows (for ``World``) from ``(segments, material)`` pairs."""
+    parts = [(np.asarray(p, float).reshape(-1, 4), m) for p, m in parts]
+    rows = np.concatenate([np.tile(np.array(m.row), (len(p), 1)) for p, m in parts]) if parts else np.zeros((0, 3))
+    return merge(*(p for p, _ in parts)), rows
+
+
+def blob(cx: float, cy: float, w: float, h: float, rng: np.random.Generator, leaves: int = 3,
+         sides: int = 8) -> np.ndarray:
+    """A bush or a stretch of hedge: a ragged ellipse ``w`` x ``h`` around (cx, cy) (``sides`` segments,
+    radii jittered by up to 20 %) and ``leaves`` short segments inside it. Give it an opacity below 1."""
+    a = np.sort(rng.uniform(0, 2 * np.pi, sides))
+    r = rng.uniform(0.8, 1.0, sides)
+    outline = polyline(np.column_stack([cx + r * w / 2 * np.cos(a), cy + r * h / 2 * np.sin(a)]).tolist(), closed=True)
+    centre = np.column_stack([cx + rng.uniform(-0.35, 0.35, leaves) * w, cy + rng.uniform(-0.35, 0.35, leaves) * h])
+    turn = rng.uniform(0, np.pi, leaves)
+    half = 0.25 * min(w, h) * np.column_stack([np.cos(turn), np.sin(turn)])
+    return merge(outline, np.hstack([centre - half, centre + half]))
+
+
+def car(cx: float, cy: float, along_x: bool = True, length: float = 4.4, width: float = 1.8
+        ) -> tuple[np.ndarray, np.ndarray]:
+    """A parked car at scanner height: (its four wheels, its body's outline). The laser sees the wheels and
+    only partly the body (the gap under the sills, the bumpers): give the outline an opacity below 1."""
+    lx, ly = (length, width) if along_x else (width, length)
+    wx, wy = (0.6, 0.25) if along_x else (0.25, 0.6)
+    ox, oy = (lx / 2 - 0.8, ly / 2 - 0.2) if along_x else (lx / 2 - 0.2, ly / 2 - 0.8)
+    wheels = merge(*(box(cx + sx * ox, cy + sy * oy, wx, wy) for sx in (-1, 1) for sy in (-1, 1)))
+    return wheels, box(cx, cy, lx, ly)
 
 
 # ---------------------------------------------------------------- builders
@@ -301,3 +366,163 @@ def campus(spacing: float = 340.0, corridor_width: float = 4.0, hall: float = 24
     size = 3 * spacing + hall
     return World(merge(*segs), route=route, closed=False, name="campus",
                  meta={"area_km2": size * size / 1e6, "spacing": spacing, "corridor_width": c})
+
+
+def glass_office(width: float = 20.0, height: float = 14.0, corridor_width: float = 2.0, door_width: float = 1.0,
+                 glass: Material = Material(0.3), plants: Material = Material(0.5), seed: int = 0) -> World:
+    """A ring corridor around six rooms with glass fronts, walls one line thick, doors and plants.
+
+    The core (inside the ring) is split by partitions into three rooms along the bottom and three along the
+    top, at different widths; each room has a door onto the corridor, the middle rooms a door between them.
+    Every wall is a single line, so a partition is seen from both its rooms and a core wall from the corridor
+    and its room. A room's front onto the corridor is glass (``glass``) but for a door and a post at each end;
+    the core's left wall and one partition hold a pane, and a glass panel in the outer wall opens onto a yard
+    fenced 4 m out. Potted plants (``plants``) stand in the corridor's corners and in two rooms, a desk in two.
+    The route drives the ring counter-clockwise, in and out of four rooms on the way; drive it twice (``laps``)
+    to revisit everything."""
+    rng = np.random.default_rng(seed)
+    W, H, c = width, height, corridor_width
+    mid = H / 2
+    x0, x1 = c, W - c
+    cw = x1 - x0
+    bottom_cuts = [x0 + f * cw for f in (0.3, 0.62)]
+    top_cuts = [x0 + f * cw for f in (0.4, 0.75)]
+    parts: list[tuple[np.ndarray, Material]] = []
+
+    def rooms(cuts):
+        edges = [x0, *cuts, x1]
+        return [(a, b) for a, b in zip(edges[:-1], edges[1:])]
+
+    bottom_rooms, top_rooms = rooms(bottom_cuts), rooms(top_cuts)
+    bottom_doors = [a + 0.3 * (b - a) + 0.4 for a, b in bottom_rooms]
+    top_doors = [a + 0.7 * (b - a) - 0.4 for a, b in top_rooms]
+
+    def front(y, room_list, doors):
+        """The core's wall at height y: per room a door, a 0.4 m post at each end and by the door, glass between."""
+        for (a, b), d in zip(room_list, doors):
+            da, db = d - door_width / 2, d + door_width / 2
+            for p, q in ((a, a + 0.4), (da - 0.3, da), (db, db + 0.3), (b - 0.4, b)):
+                parts.append((polyline([(p, y), (q, y)]), OPAQUE))
+            for p, q in ((a + 0.4, da - 0.3), (db + 0.3, b - 0.4)):
+                if q - p > 0.2:
+                    parts.append((polyline([(p, y), (q, y)]), glass))
+
+    # Outer walls: a glass panel in the right one, onto a yard closed by a fence 4 m out.
+    pane = (0.35 * H, 0.65 * H)
+    parts.append((polyline([(W, pane[1]), (W, H), (0, H), (0, 0), (W, 0), (W, pane[0])]), OPAQUE))
+    parts.append((polyline([(W, pane[0]), (W, pane[1])]), glass))
+    parts.append((polyline([(W, pane[0] - 1.0), (W + 4.0, pane[0] - 1.0), (W + 4.0, pane[1] + 1.0),
+                            (W, pane[1] + 1.0)]), OPAQUE))
+    front(c, bottom_rooms, bottom_doors)
+    front(H - c, top_rooms, top_doors)
+    # The core's left wall (a pane in it) and right wall.
+    parts.append((wall((x0, c), (x0, H - c), [(mid - c + 2.0, 1.2)]), OPAQUE))
+    parts.append((polyline([(x0, mid + 1.4), (x0, mid + 2.6)]), glass))
+    parts.append((polyline([(x1, c), (x1, H - c)]), OPAQUE))
+    # Partitions: between the two rows (a door between the middle rooms), and between rooms of a row.
+    (b0, _), (m0, m1), _ = bottom_rooms
+    (t0, _), _, (_, r1) = top_rooms
+    parts.append((wall((x0, mid), (x1, mid), [(0.5 * (m0 + m1) - x0, door_width)]), OPAQUE))
+    parts.append((wall((bottom_cuts[0], c), (bottom_cuts[0], mid), [(0.7 * (mid - c), 1.6)]), OPAQUE))
+    parts.append((polyline([(bottom_cuts[0], c + 0.7 * (mid - c) - 0.8),
+                            (bottom_cuts[0], c + 0.7 * (mid - c) + 0.8)]), glass))
+    parts.append((polyline([(bottom_cuts[1], c), (bottom_cuts[1], mid)]), OPAQUE))
+    for x in top_cuts:
+        parts.append((polyline([(x, mid), (x, H - c)]), OPAQUE))
+    # Plants: one in three corridor corners, two in rooms; a desk in two rooms.
+    for x, y, size in ((0.4, 0.4, 0.5), (W - 0.4, H - 0.4, 0.5), (0.4, H - 0.4, 0.5), (b0 + 0.7, mid - 0.7, 0.7),
+                       (r1 - 0.7, H - c - 0.7, 0.7)):
+        parts.append((blob(x, y, size, size, rng), plants))
+    parts.append((box(0.5 * (m0 + m1) + 1.0, c + 1.0, 1.2, 0.6), OPAQUE))
+    parts.append((box(t0 + 1.2, H - c - 0.5, 1.4, 0.6), OPAQUE))
+
+    h = c / 2
+    route = [(h, h)]
+    for x in bottom_doors[:2]:
+        route += [(x, h), (x, (c + mid) / 2), (x, h)]
+    route += [(W - h, h), (W - h, H - h)]
+    for x in top_doors[::-1][:2]:
+        route += [(x, H - h), (x, (H - c + mid) / 2), (x, H - h)]
+    route += [(h, H - h)]
+    segments, materials = merge_partial(parts)
+    return World(segments, route=np.array(route), closed=True, name="glass office", materials=materials,
+                 meta={"corridor_width": c, "glass": glass, "plants": plants})
+
+
+def courtyard(width: float = 40.0, height: float = 30.0, hedges: Material = Material(0.7, reach=6.0),
+              glass: Material = Material(0.6, incidence=25.0), cars: Material = Material(0.7, reach=8.0),
+              seed: int = 0) -> World:
+    """An outdoor yard between buildings: two lawns edged with hedges, bushes and tree trunks on them,
+    cars parked along two facades, glass in the facades.
+
+    Hedges are rows of ragged blobs (``blob``) of ``hedges``, with a gap in each row; bushes are of the same;
+    trunks are opaque. A car's wheels are opaque, its body is of ``cars``. Facades are single lines with
+    glass windows (``glass``) onto rooms 3-5 m deep. By default a hedge returns 70 % of the rays within 6 m
+    and none from further (a scan plane tilted up by 2 degrees is 20 cm higher 6 m out: it passes over it),
+    a car's body 70 % within 8 m, glass 60 % of the rays within 25 degrees of its normal. The route (not
+    closed) drives round the yard, along the path between the lawns, back along the bottom, up the left, along
+    the top and back through the middle: each hedge is seen from both sides, from two passes."""
+    if width < 26.0 or height < 22.0:
+        raise ValueError("a courtyard needs at least 26 m x 22 m for its paths and lawns")
+    rng = np.random.default_rng(seed)
+    W, H = width, height
+    parts: list[tuple[np.ndarray, Material]] = []
+    # Facades: windows at random along each, with a room behind each window.
+    corners = [(0.0, 0.0), (W, 0.0), (W, H), (0.0, H)]
+    for k in range(4):
+        p0, p1 = np.array(corners[k]), np.array(corners[(k + 1) % 4])
+        length = float(np.hypot(*(p1 - p0)))
+        d = (p1 - p0) / length
+        n = np.array([d[1], -d[0]])  # outward
+        windows, s = [], rng.uniform(2.0, 5.0)
+        while s < length - 4.0:
+            w = rng.uniform(1.5, 3.0)
+            windows.append((s + w / 2, w))
+            s += w + rng.uniform(3.0, 7.0)
+        parts.append((wall(tuple(p0), tuple(p1), windows), OPAQUE))
+        for centre, w in windows:
+            a, b = p0 + (centre - w / 2) * d, p0 + (centre + w / 2) * d
+            parts.append((polyline([a, b]), glass))
+            depth = rng.uniform(3.0, 5.0)
+            parts.append((polyline([a, a + n * depth, b + n * depth, b]), OPAQUE))
+    # Lawns, one above the other, between the paths at y = 3.5, H / 2 and H - 3.5 and x = 4 and W - 4.
+    lawns = [(8.0, W - 8.0, 6.5, H / 2 - 2.5), (8.0, W - 8.0, H / 2 + 2.5, H - 6.5)]
+    for xa, xb, ya, yb in lawns:
+        # Hedges along the long sides (a gap in each), bushes along the short ones.
+        for y in (ya, yb):
+            gap = rng.uniform(xa + 4.0, xb - 4.0)
+            x = xa
+            while x < xb:
+                if abs(x - gap) > 1.0:
+                    parts.append((blob(x, y + rng.uniform(-0.1, 0.1), rng.uniform(0.6, 0.9), rng.uniform(0.7, 0.9),
+                                       rng), hedges))
+                x += rng.uniform(0.6, 0.8)
+        for x in (xa, xb):
+            for y in np.arange(ya + 1.5, yb - 1.0, rng.uniform(1.8, 2.6)):
+                size = rng.uniform(0.6, 1.2)
+                parts.append((blob(x, y, size, size, rng), hedges))
+        # Trees on the lawn: opaque trunks, a bush here and there.
+        for _ in range(5):
+            x, y = rng.uniform(xa + 2.0, xb - 2.0), rng.uniform(ya + 1.0, yb - 1.0)
+            r = rng.uniform(0.2, 0.4)
+            parts.append((box(x, y, r, r), OPAQUE))
+            if rng.random() < 0.5:
+                parts.append((blob(x + rng.uniform(-1.5, 1.5), y + rng.uniform(-0.8, 0.8), 1.0, 1.0, rng), hedges))
+    # Cars parked along the top facade, nose to tail with gaps, and two along the right one.
+    spots = []
+    x = 6.0
+    while x < W - 8.0:
+        if rng.random() < 0.75:
+            spots.append((x, H - 1.3, True))
+        x += rng.uniform(5.0, 6.5)
+    spots += [(W - 1.3, 8.0, False), (W - 1.3, 20.0, False)]
+    for x, y, along_x in spots:
+        wheels, body = car(x, y, along_x)
+        parts += [(wheels, OPAQUE), (body, cars)]
+
+    lo, mid, hi, left, right = 3.5, H / 2, H - 3.6, 4.0, W - 4.0
+    route = [(left, mid), (left, lo), (right, lo), (right, hi), (left, hi), (left, mid), (right, mid),
+             (right, lo), (left, lo), (left, hi), (right, hi), (right, mid), (left, mid)]
+    segments, materials = merge_partial(parts)
+    return World(segments, route=np.array(route), closed=False, name="courtyard", materials=materials,
+                 meta={"hedges": hedges, "glass": glass, "cars": cars})

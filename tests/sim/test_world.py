@@ -7,9 +7,23 @@ import numpy as np
 import pytest
 
 from carto_cli.sim.lidar import cast
-from carto_cli.sim.world import World, box, corridor, loop_building, office, polyline, room, wall
+from carto_cli.sim.world import (
+    OPAQUE,
+    Material,
+    World,
+    box,
+    corridor,
+    courtyard,
+    glass_office,
+    loop_building,
+    merge_partial,
+    office,
+    polyline,
+    room,
+    wall,
+)
 
-BUILDERS = [room, corridor, loop_building, office]
+BUILDERS = [room, corridor, loop_building, office, glass_office, courtyard]
 
 
 def route_points(world: World, step: float = 0.5, with_directions: bool = False):
@@ -98,3 +112,48 @@ def test_loop_building_is_well_posed_for_matching_but_a_corridor_is_not():
     # In the middle of a long corridor nothing does.
     mid = scan_change_when_moving(corridor(40, 2), 8.0)
     assert (mid == 0).sum() >= 10
+
+
+# ---------------------------------------------------------------- partly transparent worlds (issue 43)
+
+
+def test_worlds_of_opaque_walls_have_no_materials():
+    for build in (room, corridor, loop_building, office):
+        assert build().materials is None
+
+
+def test_materials_rows_and_checks():
+    segments, rows = merge_partial([(box(0, 0, 2, 2), OPAQUE), (polyline([(0, 0), (1, 0)]), Material(0.3, 25.0, 6.0))])
+    assert segments.shape == (5, 4) and rows.shape == (5, 3)
+    np.testing.assert_allclose(rows[0], [1.0, 0.0, math.inf])
+    np.testing.assert_allclose(rows[4], [0.3, math.cos(math.radians(25.0)), 6.0])
+    with pytest.raises(ValueError, match="materials"):
+        World(segments, materials=rows[:3])
+    with pytest.raises(ValueError, match="opacity"):
+        World(segments, materials=np.zeros((5, 3)))
+
+
+@pytest.mark.parametrize("build", [glass_office, courtyard])
+def test_buildings_with_glass_and_clutter(build):
+    w = build()
+    assert w.materials.shape == (len(w.segments), 3)
+    partial = w.materials[:, 0] < 1
+    assert 0 < partial.sum() < len(w.segments)
+    assert build().segments.tobytes() == w.segments.tobytes()  # seeded: the same world every time
+    assert build(seed=1).segments.tobytes() != w.segments.tobytes() or build is glass_office
+
+
+def test_glass_office_walls_are_one_line_seen_from_both_sides():
+    """The partition between the bottom rooms is a single line: visited rooms on both sides of it see it at
+    the same x, from opposite directions."""
+    w = glass_office(width=20.0, corridor_width=2.0)
+    x = w.route[1, 0]  # the first room's door
+    cut = 2.0 + 0.3 * 16.0  # 30 % across the core
+    left = cast(np.array([x, 4.0, 0.0]), np.array([0.0]), w.segments)[0]
+    right = cast(np.array([w.route[4, 0], 4.0, math.pi]), np.array([0.0]), w.segments)[0]
+    assert x + left == pytest.approx(cut) and w.route[4, 0] - right == pytest.approx(cut)
+
+
+def test_courtyard_needs_room_for_its_lawns():
+    with pytest.raises(ValueError, match="26 m"):
+        courtyard(width=20.0, height=30.0)
