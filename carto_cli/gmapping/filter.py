@@ -59,7 +59,7 @@ def warm_up() -> None:
 
 
 @dataclass
-class _Beams:
+class Beams:
     """One scan's rays in the tracking frame."""
 
     origin: np.ndarray  # (2,) the sensor
@@ -100,7 +100,7 @@ class GMappingSlam:
         self._step_parents: list[np.ndarray] = []
         self._step_odometry: list[np.ndarray | None] = []
         self._step_times: list[float] = []
-        self._step_beams: list[_Beams] = []  # for the submaps, the refinement and redrawing the map at the end
+        self._step_beams: list[Beams] = []  # for the submaps, the refinement and redrawing the map at the end
         # Every scan: its time, odometry, and the processed step at or before it.
         self._scan_times: list[float] = []
         self._scan_odometry: list[np.ndarray | None] = []
@@ -161,7 +161,7 @@ class GMappingSlam:
                 return _interpolate(t0, p0, t1, p1, t)
         return p1.copy()
 
-    def _beams(self, scan: Scan) -> _Beams:
+    def _beams(self, scan: Scan) -> Beams:
         g = self.g
         max_range = g.maxRange
         if math.isfinite(scan.range_max) and scan.range_max > 0:
@@ -184,7 +184,7 @@ class GMappingSlam:
         # way out; loop step and re-matching on grids ten times the returns' area), for free space GMapping's own
         # map does not have. Relation errors moved by -0.9 to +2.3 mm a run, means by -0.3 to +0.8 (docs/gmapping.md).
         data = RangeData(data.origin, data.returns, np.empty((0, 2)))
-        return _Beams(origin, np.ascontiguousarray(ends), hit, np.ascontiguousarray(data.returns[usable]), data)
+        return Beams(origin, np.ascontiguousarray(ends), hit, np.ascontiguousarray(data.returns[usable]), data)
 
     def add_scan(self, scan: Scan) -> bool:
         """Feed one scan; True when it was processed (the others are placed by odometry at the end)."""
@@ -218,7 +218,7 @@ class GMappingSlam:
 
     # ------------------------------------------------------------------ the filter
 
-    def _process(self, t: float, odometry: np.ndarray | None, beams: _Beams) -> None:
+    def _process(self, t: float, odometry: np.ndarray | None, beams: Beams) -> None:
         g, timer, maps = self.g, self.timer, self.maps
         n = self.poses.shape[0]
         parents = np.arange(n)
@@ -286,7 +286,7 @@ class GMappingSlam:
             self._entropy_cache = (step, self.maps.entropy(self.best_particle()))
         return self._entropy_cache[1]
 
-    def _record(self, t, odometry, beams: _Beams, parents: np.ndarray) -> None:
+    def _record(self, t, odometry, beams: Beams, parents: np.ndarray) -> None:
         self._step_poses.append(self.poses.copy())
         self._step_parents.append(np.asarray(parents, np.int32))
         self._step_odometry.append(odometry)

@@ -19,7 +19,7 @@ import numpy as np
 
 from carto_cli.core import kernels, transform
 from carto_cli.gmapping import motion
-from carto_cli.gmapping.filter import GMappingSlam, _Beams
+from carto_cli.gmapping.filter import Beams, GMappingSlam
 from carto_cli.grid.distance_map import DistanceMap
 from carto_cli.matching import distance_matcher
 
@@ -45,7 +45,7 @@ class ScanToMapSlam(GMappingSlam):
         self.lineage = np.zeros(1)
         self.unconverged = 0
 
-    def _process(self, t: float, odometry: np.ndarray | None, beams: _Beams) -> None:
+    def _process(self, t: float, odometry: np.ndarray | None, beams: Beams) -> None:
         pose = self.poses[0]
         if self._step_poses:
             previous = self._step_odometry[-1]
