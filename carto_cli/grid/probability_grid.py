@@ -52,8 +52,10 @@ VALUE_TO_PROBABILITY.flags.writeable = False
 
 
 # Packed grids (finished submaps) are unpacked on access and the unpacked cells kept, least recently used
-# dropped first, up to this many bytes in all: the submaps searched around the robot stay unpacked.
-UNPACKED_BUDGET = 64 * 2**20
+# dropped first, up to this many bytes in all: the submaps searched around the robot stay unpacked. 16 MB (8 of
+# dense aces's submaps): 64 MB held dense aces / intel at 456 / 455 MB peak RSS, 16 MB at 421 / 434, CPU within
+# the noise (10.0-10.1 s against 10.1-10.5 s, 20.2-21.1 s against 18.5-21.4 s, runs interleaved), the same maps.
+UNPACKED_BUDGET = 16 * 2**20
 
 
 class UnpackedCells:
