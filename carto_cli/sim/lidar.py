@@ -22,39 +22,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from carto_cli.sim.world import Material
+
 CULL_ABOVE = 256  # segments; beyond this, walls out of every pose's reach are left out before casting
-
-
-@numba.njit(cache=True, nogil=True)
-def _cast(poses, angles, segments, max_range):
-    """(m, n) distance along each beam to the nearest segment, inf beyond ``max_range``.
-
-    Ray o + t d against segment a + u e: with r = a - o,
-    t = (r x e) / (d x e) and u = (r x d) / (d x e).
-    """
-    m, n, k = poses.shape[0], angles.shape[0], segments.shape[0]
-    out = np.empty((m, n), dtype=np.float64)
-    for p in range(m):
-        ox, oy, oyaw = poses[p, 0], poses[p, 1], poses[p, 2]
-        for b in range(n):
-            a = oyaw + angles[b]
-            dx, dy = math.cos(a), math.sin(a)
-            best = np.inf
-            for s in range(k):
-                ax, ay = segments[s, 0], segments[s, 1]
-                ex, ey = segments[s, 2] - ax, segments[s, 3] - ay
-                den = dx * ey - dy * ex
-                if den == 0.0:
-                    continue  # parallel: a grazing ray does not hit
-                rx, ry = ax - ox, ay - oy
-                t = (rx * ey - ry * ex) / den
-                if t < 0.0 or t >= best:
-                    continue
-                u = (rx * dy - ry * dx) / den
-                if 0.0 <= u <= 1.0:
-                    best = t
-            out[p, b] = best if best <= max_range else np.inf
-    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -70,10 +40,13 @@ def _uniform(key, p, b, s):
 
 
 @numba.njit(cache=True, nogil=True)
-def _cast_partial(poses, angles, segments, material, ids, max_range, key):
-    """``_cast`` where segment ``s`` returns a crossing ray met at |cos(incidence)| >= ``material[s, 1]``
-    and at most ``material[s, 2]`` away with probability ``material[s, 0]`` (drawn by
-    ``_uniform(key, scan, beam, ids[s])``), and lets it pass otherwise."""
+def _cast(poses, angles, segments, material, ids, max_range, key):
+    """(m, n) distance along each beam to the nearest segment that returns it, inf beyond ``max_range``.
+
+    Ray o + t d against segment a + u e: with r = a - o, t = (r x e) / (d x e) and u = (r x d) / (d x e).
+    Segment ``s`` returns a crossing ray met at |cos(incidence)| >= ``material[s, 1]`` and at most
+    ``material[s, 2]`` away with probability ``material[s, 0]`` (drawn by ``_uniform(key, scan, beam, ids[s])``
+    unless it is 1: an opaque wall draws nothing), and lets it pass otherwise."""
     m, n, k = poses.shape[0], angles.shape[0], segments.shape[0]
     out = np.empty((m, n), dtype=np.float64)
     for p in range(m):
@@ -87,7 +60,7 @@ def _cast_partial(poses, angles, segments, material, ids, max_range, key):
                 ex, ey = segments[s, 2] - ax, segments[s, 3] - ay
                 den = dx * ey - dy * ex
                 if den == 0.0:
-                    continue
+                    continue  # parallel: a grazing ray does not hit
                 rx, ry = ax - ox, ay - oy
                 t = (rx * ey - ry * ex) / den
                 if t < 0.0 or t >= best:
@@ -115,10 +88,11 @@ def cast(poses, angles, segments, max_range: float = np.inf, *, material=None, k
     single = p.ndim == 1
     seg = np.ascontiguousarray(segments, dtype=np.float64).reshape(-1, 4)
     ids = np.arange(len(seg), dtype=np.int64)
-    if material is not None:
-        material = np.asarray(material, np.float64).reshape(-1, 3)
-        if len(material) != len(seg):
-            raise ValueError(f"material has {len(material)} rows for {len(seg)} segments")
+    if material is None:
+        material = np.tile(Material().row, (len(seg), 1))  # every wall opaque
+    material = np.asarray(material, np.float64).reshape(-1, 3)
+    if len(material) != len(seg):
+        raise ValueError(f"material has {len(material)} rows for {len(seg)} segments")
     if math.isfinite(max_range) and len(seg) > CULL_ABOVE:
         # A large world (a campus): only walls within max_range of some pose can be hit. Keeping their order
         # keeps every range exactly what the whole list gives.
@@ -128,11 +102,8 @@ def cast(poses, angles, segments, max_range: float = np.inf, *, material=None, k
                 & (np.minimum(seg[:, 1], seg[:, 3]) <= hi[1]) & (np.maximum(seg[:, 1], seg[:, 3]) >= lo[1]))
         seg = np.ascontiguousarray(seg[near])
         ids = ids[near]
-    if material is None:
-        out = _cast(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64), seg, float(max_range))
-    else:
-        out = _cast_partial(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64), seg,
-                            np.ascontiguousarray(material[ids]), ids, float(max_range), int(key))
+    out = _cast(p.reshape(-1, 3), np.ascontiguousarray(angles, dtype=np.float64), seg,
+                np.ascontiguousarray(material[ids]), ids, float(max_range), int(key))
     return out[0] if single else out
 
 
