@@ -30,6 +30,7 @@ from numba import njit
 
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.grid.distance_map import DistanceMap, distance_and_gradient
+from carto_cli.matching.kernels import solve3
 
 DEFAULT_LOSS_SCALE = 0.15  # m: LaMa's Slam2D Cauchy scale
 
@@ -97,25 +98,6 @@ def _evaluate(table, tx0, ty0, sqdist, lut, inv_res, points, x, y, th, inv_c2, c
 
 
 @njit(cache=True, nogil=True)
-def _solve3(a, b, out):
-    """Cramer's rule for the 3x3 system; False when it is singular."""
-    m00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
-    m01 = a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0]
-    m02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
-    det = a[0, 0] * m00 - a[0, 1] * m01 + a[0, 2] * m02
-    scale = abs(a[0, 0] * a[1, 1] * a[2, 2]) + 1e-300
-    if not abs(det) > 1e-14 * scale:
-        return False
-    out[0] = (b[0] * m00 - a[0, 1] * (b[1] * a[2, 2] - a[1, 2] * b[2])
-              + a[0, 2] * (b[1] * a[2, 1] - a[1, 1] * b[2])) / det
-    out[1] = (a[0, 0] * (b[1] * a[2, 2] - a[1, 2] * b[2]) - b[0] * m01
-              + a[0, 2] * (a[1, 0] * b[2] - b[1] * a[2, 0])) / det
-    out[2] = (a[0, 0] * (a[1, 1] * b[2] - b[1] * a[2, 1]) - a[0, 1] * (a[1, 0] * b[2] - b[1] * a[2, 0])
-              + b[0] * m02) / det
-    return True
-
-
-@njit(cache=True, nogil=True)
 def _solve(table, tx0, ty0, sqdist, lut, inv_res, points, x0, y0, th0, loss_scale, px0, py0, pth0, w_t, w_r,
            max_iterations, translation_tolerance, rotation_tolerance):
     c2 = loss_scale * loss_scale
@@ -140,7 +122,7 @@ def _solve(table, tx0, ty0, sqdist, lut, inv_res, points, x0, y0, th0, loss_scal
                 a[k, m] = h[k, m]
             a[k, k] += lam * (h[k, k] + 1e-9)
             b[k] = -g[k]
-        if not _solve3(a, b, d):
+        if not solve3(a, b, d):
             if lam == 0.0:
                 lam = 1e-3
                 continue

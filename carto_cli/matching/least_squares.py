@@ -25,6 +25,7 @@ from numba import njit
 from carto_cli.core.transform import wrap_angle_scalar
 from carto_cli.grid.probability_grid import VALUE_TO_CORRESPONDENCE_COST
 from carto_cli.matching.interpolation import cost_and_gradient
+from carto_cli.matching.kernels import solve3
 
 
 class LeastSquaresResult(NamedTuple):
@@ -77,23 +78,6 @@ def _evaluate(cells, table, ox, oy, inv_res, points, x, y, th, tx, ty, th0, s_oc
         g[1] = g1 + w_t * ry
         g[2] = g2 + w_r * rt
     return 0.5 * total
-
-
-@njit(cache=True, nogil=True)
-def _solve3(a, b):
-    """Cramer's rule; ``a`` is symmetric positive definite here (damped normal equations)."""
-    m00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
-    m01 = a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0]
-    m02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
-    det = a[0, 0] * m00 - a[0, 1] * m01 + a[0, 2] * m02
-    x = np.empty(3)
-    x[0] = (b[0] * m00 - a[0, 1] * (b[1] * a[2, 2] - a[1, 2] * b[2])
-            + a[0, 2] * (b[1] * a[2, 1] - a[1, 1] * b[2])) / det
-    x[1] = (a[0, 0] * (b[1] * a[2, 2] - a[1, 2] * b[2]) - b[0] * m01
-            + a[0, 2] * (a[1, 0] * b[2] - b[1] * a[2, 0])) / det
-    x[2] = (a[0, 0] * (a[1, 1] * b[2] - b[1] * a[2, 1]) - a[0, 1] * (a[1, 0] * b[2] - b[1] * a[2, 0])
-            + b[0] * m02) / det
-    return x
 
 
 @njit(cache=True, nogil=True)
@@ -154,7 +138,7 @@ def _levenberg_marquardt(cells, table, ox, oy, inv_res, points, x0, y0, th_init,
                 a[k, m] = h[k, m]
             a[k, k] += min(max(h[k, k], 1e-6), 1e32) / radius
             minus_g[k] = -g[k]
-        delta[:] = _solve3(a, minus_g)
+        solve3(a, minus_g, delta)  # damped normal equations: positive definite, never singular
         iterations += 1
         step_norm = math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
         pose_norm = math.sqrt(pose[0] ** 2 + pose[1] ** 2 + pose[2] ** 2)
