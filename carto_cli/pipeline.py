@@ -243,7 +243,7 @@ def build(
     if algorithm not in ALGORITHMS:
         raise CartoError(f"unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
     if algorithm in GMAPPING_PIPELINE and graph is not None:
-        raise CartoError("gmapping cannot continue a saved map (--load-state is for cartographer)", recording.path)
+        raise CartoError(f"{algorithm} cannot continue a saved map (--load-state is for cartographer)", recording.path)
     selection = selection or select_topics(recording)
     scan_frame = first_scan_frame(recording, selection.scan)
     if scan_frame is None:

@@ -122,7 +122,7 @@ def run_map(
         algorithm = "cartographer"  # continuing a map.carto's pose graph is Cartographer's
     if load_state is not None and algorithm in GMAPPING_PIPELINE:
         # Before the recording is surveyed and the state loaded: build would refuse only after both.
-        raise CartoError("--load-state continues a Cartographer pose graph; gmapping starts every map afresh "
+        raise CartoError(f"--load-state continues a Cartographer pose graph; {algorithm} starts every map afresh "
                          "(drop --load-state or use --algorithm cartographer)", load_state)
     if outdir is None:
         outdir = default_outdir(recording_path)
