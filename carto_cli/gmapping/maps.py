@@ -8,7 +8,11 @@ divergence of the filter, not particles x building.
 
 A cell keeps GMapping's counts: rays that ended in it (hits), rays that reached it (visits) and the
 mean of the endpoints that fell in it; its occupancy is hits / visits and its wall sits at the mean
-endpoint, which is what the scan matcher measures distances to (sub-cell precision at any delta). What
+endpoint, which is what the scan matcher measures distances to (sub-cell precision at any delta). Seven
+bytes a cell, as the maps of 100 particles are most of a key-scan log's memory: the counts one byte each,
+halved together before they overflow (the occupancy is their ratio), and the mean as its place inside the
+cell in 1/65536ths of a cell on each axis (0.8 um at 0.05 m: the float32 world coordinates it replaced
+were no finer 100 m from the origin). What
 the matcher asks of a cell (never seen, seen, or a wall) is also kept as one byte, updated with the
 counts: the matcher reads a 3 x 3 neighbourhood per endpoint some hundred times per particle and scan,
 and one byte per cell and the means of the walls touch a fraction of the memory the counts would
@@ -29,15 +33,16 @@ from numba import njit, prange
 from carto_cli.core.kernels import register_warm_up
 
 TILE_BITS = 5
-# 32 x 32 cells, 13 KB, 1.6 m at the default delta. 16 x 16 tiles copy less when a particle first writes a shared
+# 32 x 32 cells, 7 KB, 1.6 m at the default delta. 16 x 16 tiles copy less when a particle first writes a shared
 # tile (orebro at 100 particles: peak RSS 865 -> 710 MB, the same poses) but cost 17 % more CPU (the per-scan
 # passes over every particle's table of tile ids grow 4x; docs/gmapping.md).
 TILE = 1 << TILE_BITS  # cells per tile side
 TILE_MASK = TILE - 1  # cell >> TILE_BITS and cell & TILE_MASK: floor division and modulo, negatives too
 _GROW_MARGIN = 8  # tiles added on each side when the table grows
-# hits, visits (uint16, halved together before they overflow), mean endpoint (2 x float32), state
-CELL_BYTES = 2 + 2 + 8 + 1
-COUNT_MAX = 65535
+# hits, visits (uint8, halved together before they overflow), mean endpoint (2 x uint16 in the cell), state
+CELL_BYTES = 1 + 1 + 4 + 1
+COUNT_MAX = 255
+MEAN_SCALE = 65536.0  # a stored mean m lies at (cell + m / MEAN_SCALE) * resolution
 FULLNESS = 0.1  # a cell hit on more than this share of the rays reaching it is a wall
 UNKNOWN, SEEN, WALL = 0, 1, 2  # a cell's state
 
@@ -48,9 +53,9 @@ class TiledMaps:
 
     def __init__(self, particles: int, resolution: float, capacity: int = 64):
         self.resolution = float(resolution)
-        self.hits = np.zeros((capacity, TILE, TILE), np.uint16)
-        self.visits = np.zeros((capacity, TILE, TILE), np.uint16)
-        self.mean = np.zeros((capacity, TILE, TILE, 2), np.float32)
+        self.hits = np.zeros((capacity, TILE, TILE), np.uint8)
+        self.visits = np.zeros((capacity, TILE, TILE), np.uint8)
+        self.mean = np.zeros((capacity, TILE, TILE, 2), np.uint16)
         self.state = np.zeros((capacity, TILE, TILE), np.uint8)
         self.refs = np.zeros(capacity, np.int32)
         self.table = np.full((particles, 0, 0), -1, np.int32)  # covers nothing until the first insert
@@ -348,8 +353,8 @@ def _fill_tiles(sources, targets, hits, visits, mean, state):
             for c in range(cells):
                 hits[to + c] = 0
                 visits[to + c] = 0
-                mean[2 * (to + c)] = 0.0
-                mean[2 * (to + c) + 1] = 0.0
+                mean[2 * (to + c)] = 0
+                mean[2 * (to + c) + 1] = 0
                 state[to + c] = UNKNOWN
         else:
             fr = t * cells
@@ -362,20 +367,22 @@ def _fill_tiles(sources, targets, hits, visits, mean, state):
 
 
 @njit(cache=True, inline="always")
-def _touch(hits, visits, mean, state, q, last_hit, ex, ey):
+def _touch(hits, visits, mean, state, q, last_hit, fx, fy):
     """One cell of a ray (flat index ``q`` into the pool): crossed, or (``last_hit``) the wall the ray ended in at
-    (ex, ey)."""
+    (fx, fy), its place in the cell in cells (0..1 on each axis)."""
     if visits[q] == COUNT_MAX:
-        # A cell crossed 65535 times (hours at 10 Hz beside the robot's path): both counts halved keep its
-        # occupancy, and the mean endpoint weighs the next hits a little more. Two bytes each instead of four.
+        # One byte a count: a cell crossed 255 times (a few minutes beside the robot's path) has both counts
+        # halved, which keeps its occupancy; the mean endpoint then weighs the next hits a little more.
         visits[q] >>= 1
         hits[q] >>= 1
     visits[q] += 1
     if last_hit:
         m = hits[q] + 1
         hits[q] = m
-        mean[2 * q] += (ex - mean[2 * q]) / m
-        mean[2 * q + 1] += (ey - mean[2 * q + 1]) / m
+        mx = mean[2 * q] + (min(max(fx, 0.0), 1.0) * MEAN_SCALE - mean[2 * q]) / m
+        my = mean[2 * q + 1] + (min(max(fy, 0.0), 1.0) * MEAN_SCALE - mean[2 * q + 1]) / m
+        mean[2 * q] = min(round(mx), 65535)
+        mean[2 * q + 1] = min(round(my), 65535)
         state[q] = WALL if m > FULLNESS * visits[q] else SEEN
     else:
         s = state[q]
@@ -417,7 +424,7 @@ def _update_cells(table, marks, fh, fv, fm, fs, poses, lx, ly, ends, hit, res, o
             base = _own_tile(table, marks, p, h, w, (ix >> TILE_BITS) - ox, (iy >> TILE_BITS) - oy)
             while n < limit and (ix != ex or iy != ey):
                 if base >= 0:
-                    _touch(fh, fv, fm, fs, base + (v << TILE_BITS) + u, False, x1, y1)
+                    _touch(fh, fv, fm, fs, base + (v << TILE_BITS) + u, False, 0.0, 0.0)
                 if t_max_x < t_max_y:
                     t_max_x += t_delta_x
                     ix += step_x
@@ -436,7 +443,8 @@ def _update_cells(table, marks, fh, fv, fm, fs, poses, lx, ly, ends, hit, res, o
             # the walk's last cell is the end cell, whatever rounding left it at
             last = _own_tile(table, marks, p, h, w, (ex >> TILE_BITS) - ox, (ey >> TILE_BITS) - oy)
             if last >= 0:
-                _touch(fh, fv, fm, fs, last + ((ey & TILE_MASK) << TILE_BITS) + (ex & TILE_MASK), hit[i], x1, y1)
+                _touch(fh, fv, fm, fs, last + ((ey & TILE_MASK) << TILE_BITS) + (ex & TILE_MASK), hit[i],
+                       x1 / res - ex, y1 / res - ey)
         for ty in range(h):
             for tx in range(w):
                 marks[p, ty, tx] = 0

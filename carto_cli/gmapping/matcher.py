@@ -19,8 +19,9 @@ from numba import njit, prange
 
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.transform import wrap_angle_kernel
-from carto_cli.gmapping.maps import SEEN, TILE, TILE_BITS, TILE_MASK, UNKNOWN, WALL, TiledMaps
+from carto_cli.gmapping.maps import MEAN_SCALE, SEEN, TILE, TILE_BITS, TILE_MASK, UNKNOWN, WALL, TiledMaps
 
+INV_MEAN_SCALE = 1.0 / MEAN_SCALE  # a wall cell's mean endpoint: (cell + stored * this) * res
 FREE_STEP = math.sqrt(2.0)  # cells back along the beam to the cell that must not be a wall
 NULL_LIKELIHOOD = -0.5  # an endpoint with no wall near it, before dividing by lsigma
 MAX_CLIMBS_PER_LEVEL = 10  # bounds a slow drift at one step size; a level normally stops after a few
@@ -137,8 +138,8 @@ def _score(table, p, state, flat_state, flat_mean, ox, oy, res, points, back, x,
                             continue
                     elif _state(table, p, h, w, state, ix + offs_x[k] + bx, iy + offs_y[k] + by, ox, oy)[0] == WALL:
                         continue
-                    mx = flat_mean[2 * q]
-                    my = flat_mean[2 * q + 1]
+                    mx = (ix + offs_x[k] + flat_mean[2 * q] * INV_MEAN_SCALE) * res
+                    my = (iy + offs_y[k] + flat_mean[2 * q + 1] * INV_MEAN_SCALE) * res
                     d2 = (px - mx) * (px - mx) + (py - my) * (py - my)
                     if d2 < best:
                         best = d2
@@ -150,8 +151,8 @@ def _score(table, p, state, flat_state, flat_mean, ox, oy, res, points, back, x,
                 if sc != WALL or _state(table, p, h, w, state, cx + bx, cy + by, ox, oy)[0] == WALL:
                     continue
                 q = (t << (2 * TILE_BITS)) + ((cy & TILE_MASK) << TILE_BITS) + (cx & TILE_MASK)
-                mx = flat_mean[2 * q]
-                my = flat_mean[2 * q + 1]
+                mx = (cx + flat_mean[2 * q] * INV_MEAN_SCALE) * res
+                my = (cy + flat_mean[2 * q + 1] * INV_MEAN_SCALE) * res
                 d2 = (px - mx) * (px - mx) + (py - my) * (py - my)
                 if d2 < best:
                     best = d2
@@ -161,7 +162,8 @@ def _score(table, p, state, flat_state, flat_mean, ox, oy, res, points, back, x,
 
 
 @njit(cache=True, inline="always")
-def _walls(table, p, h, w, state, flat_state, flat_mean, ox, oy, ix, iy, bx, by, offs, offs_x, offs_y, kernel, out):
+def _walls(table, p, h, w, state, flat_state, flat_mean, ox, oy, res, ix, iy, bx, by, offs, offs_x, offs_y, kernel,
+           out):
     """The walls an endpoint in cell (ix, iy) may be measured to: the cells within the kernel that are walls seen
     from free space (the cell (bx, by) from each, towards the sensor, is no wall). Their mean endpoints are
     written to ``out`` in the kernel's order; returns (how many, whether cell (ix, iy) was ever observed)."""
@@ -192,8 +194,8 @@ def _walls(table, p, h, w, state, flat_state, flat_mean, ox, oy, ix, iy, bx, by,
                         continue
                 elif _state(table, p, h, w, state, ix + offs_x[k] + bx, iy + offs_y[k] + by, ox, oy)[0] == WALL:
                     continue
-                out[count, 0] = flat_mean[2 * q]
-                out[count, 1] = flat_mean[2 * q + 1]
+                out[count, 0] = (ix + offs_x[k] + flat_mean[2 * q] * INV_MEAN_SCALE) * res
+                out[count, 1] = (iy + offs_y[k] + flat_mean[2 * q + 1] * INV_MEAN_SCALE) * res
                 count += 1
     else:
         # Near a tile's edge: every cell looked up in its own tile.
@@ -205,8 +207,8 @@ def _walls(table, p, h, w, state, flat_state, flat_mean, ox, oy, ix, iy, bx, by,
             if sc != WALL or _state(table, p, h, w, state, cx + bx, cy + by, ox, oy)[0] == WALL:
                 continue
             q = (t << (2 * TILE_BITS)) + ((cy & TILE_MASK) << TILE_BITS) + (cx & TILE_MASK)
-            out[count, 0] = flat_mean[2 * q]
-            out[count, 1] = flat_mean[2 * q + 1]
+            out[count, 0] = (cx + flat_mean[2 * q] * INV_MEAN_SCALE) * res
+            out[count, 1] = (cy + flat_mean[2 * q + 1] * INV_MEAN_SCALE) * res
             count += 1
     return count, known
 
@@ -364,7 +366,7 @@ def _lattice(table, p, state, flat_state, flat_mean, ox, oy, res, points, back, 
                         slot = n_keys
                         n_keys += 1
                         keys[slot, 0], keys[slot, 1], keys[slot, 2], keys[slot, 3] = ix, iy, bx, by
-                        counts[slot], knowns[slot] = _walls(table, p, h, w, state, flat_state, flat_mean, ox, oy,
+                        counts[slot], knowns[slot] = _walls(table, p, h, w, state, flat_state, flat_mean, ox, oy, res,
                                                             ix, iy, bx, by, offs, offs_x, offs_y, kernel,
                                                             found[slot])
                     best = 1e300

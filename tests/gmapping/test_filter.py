@@ -115,7 +115,8 @@ def test_walls_above_slam_gmappings_threshold_are_occupied_in_map_yaml_terms(cli
     assert gmapping_filter.OCCUPIED_THRESH == OCCUPIED_THRESH
     sim, records = clip
     # Without the final refinement the image is the best particle's own map, which the scaling is checked on.
-    slam = GMappingSlam(load_options(None, FAST + ["gmapping.particles=6", "gmapping.refineIterations=0"]),
+    slam = GMappingSlam(load_options(None, FAST + ["gmapping.particles=6", "gmapping.refineIterations=0",
+                                                  "gmapping.refineLoops=false"]),
                         laser_pose=sim.laser_pose)
     for record in records:
         if isinstance(record, Scan):
@@ -129,3 +130,21 @@ def test_walls_above_slam_gmappings_threshold_are_occupied_in_map_yaml_terms(cli
     walls = raw[known] > 0.25
     assert walls.sum() > 100
     assert np.array_equal(image[known] >= OCCUPIED_THRESH, raw[known] >= 0.25)
+
+
+def test_the_particles_maps_are_released_before_the_refinement_draws_its_own(clip):
+    """With the final refinement the map is drawn again from the refined poses, so the particles' maps (most of a
+    key-scan log's memory) are let go first rather than held beside the refinement's grids."""
+    sim, records = clip
+    slam = GMappingSlam(load_options(None, FAST + ["gmapping.particles=6", "gmapping.refineIterations=1"]),
+                        laser_pose=sim.laser_pose)
+    for record in records:
+        if isinstance(record, Scan):
+            slam.add_scan(record)
+        elif isinstance(record, Odometry):
+            slam.add_odometry(record)
+    held = slam.maps.tiles_in_use
+    result = slam.finish()
+    assert held > 0 and slam.maps.tiles_in_use == 0
+    assert result.stats["map_tiles_peak"] >= held
+    assert np.isfinite(result.image.probability).sum() > 100  # the map itself is drawn all the same

@@ -12,7 +12,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from carto_cli.gmapping.maps import TILE, TILE_BITS, UNKNOWN, WALL
+from carto_cli.gmapping.maps import MEAN_SCALE, TILE, TILE_BITS, UNKNOWN, WALL
 
 
 def crossed_cells(x0, y0, x1, y1, size):
@@ -76,9 +76,15 @@ def map_counts(maps, particle):
         for v, u in np.argwhere(maps.visits[t] > 0):
             cell = (int((ox + tx) * TILE + u), int((oy + ty) * TILE + v))
             n = int(maps.hits[t, v, u])
-            out[cell] = [n, int(maps.visits[t, v, u]), n * float(maps.mean[t, v, u, 0]),
-                         n * float(maps.mean[t, v, u, 1])]
+            mx, my = mean_endpoint(maps, t, *cell)
+            out[cell] = [n, int(maps.visits[t, v, u]), n * mx, n * my]
     return out
+
+
+def mean_endpoint(maps, tile, cx, cy):
+    """World (x, y) of the mean endpoint kept by cell (cx, cy), which lies in pool tile ``tile``."""
+    m = maps.mean[tile, cy & (TILE - 1), cx & (TILE - 1)]
+    return ((cx + float(m[0]) / MEAN_SCALE) * maps.resolution, (cy + float(m[1]) / MEAN_SCALE) * maps.resolution)
 
 
 def _state_at(maps, particle, cx, cy):
@@ -119,8 +125,8 @@ def nearest_wall(maps, particle, point, sensor, pose, kernel):
             state, t = _state_at(maps, particle, ix + kx, iy + ky)
             if state != WALL or _state_at(maps, particle, ix + kx + bx, iy + ky + by)[0] == WALL:
                 continue
-            mx, my = maps.mean[t, (iy + ky) & (TILE - 1), (ix + kx) & (TILE - 1)]
-            d2 = (px - float(mx)) * (px - float(mx)) + (py - float(my)) * (py - float(my))
+            mx, my = mean_endpoint(maps, t, ix + kx, iy + ky)
+            d2 = (px - mx) * (px - mx) + (py - my) * (py - my)
             best = d2 if best is None else min(best, d2)
     return best, _state_at(maps, particle, ix, iy)[0] != UNKNOWN
 
