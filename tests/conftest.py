@@ -4,7 +4,10 @@ from support import STATIC_TF, synthetic_records
 
 
 def pytest_collection_finish(session):
-    """Start the checks that run beside the other tests (tests/background.py) once the tests are chosen."""
+    """Start the checks that run beside the other tests (tests/background.py) once the tests are chosen; not when
+    the tests are only listed (``--collect-only``), where nothing would wait for them."""
+    if session.config.option.collectonly:
+        return
     for name in dict.fromkeys(m.args[0] for item in session.items for m in item.iter_markers("background")):
         background.start(name)
 
