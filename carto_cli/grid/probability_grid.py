@@ -244,10 +244,6 @@ class ProbabilityGrid:
     def is_known(self, cells) -> np.ndarray:
         return self._values(cells) != UNKNOWN_VALUE
 
-    def correspondence_cost(self, cells) -> np.ndarray:
-        """1 - p per cell; unknown and outside cells read 0.9 as in Cartographer."""
-        return VALUE_TO_CORRESPONDENCE_COST[self._values(cells)]
-
     def probability(self, cells, unknown: float = np.nan) -> np.ndarray:
         """p per cell; ``unknown`` for cells never observed or outside the grid.
 

@@ -674,24 +674,6 @@ def match_multilevel(stack: PrecomputationGridStack, points, initial_pose_estima
     raise AssertionError("unreachable")
 
 
-class FastCorrelativeScanMatcher2D:
-    """One submap's stack plus the ``fast_correlative_scan_matcher`` options, as Cartographer bundles them."""
-
-    def __init__(self, grid, options=None):
-        from carto_cli.options import FastCorrelativeScanMatcher
-
-        self.options = options if options is not None else FastCorrelativeScanMatcher()
-        self.stack = PrecomputationGridStack.from_options(grid, self.options)
-
-    def match(self, points, initial_pose_estimate, min_score: float) -> MatchResult:
-        return match(self.stack, points, initial_pose_estimate,
-                     linear_search_window=self.options.linear_search_window,
-                     angular_search_window=self.options.angular_search_window, min_score=min_score)
-
-    def match_full_submap(self, points, min_score: float) -> MatchResult:
-        return match_full_submap(self.stack, points, min_score=min_score)
-
-
 @register_warm_up
 def warm_up() -> None:
     """The loop-closure search kernels (windowed, multilevel, whole-submap) on a toy room."""

@@ -1,7 +1,9 @@
 """Relocalization: a scan's pose in a saved map, from a prior pose or from nothing.
 
-``relocalizer`` holds the search (an ordered list of stages), ``cache`` the LRU of precomputation
-stacks, ``queries`` the query files and scan selection, ``result`` what a query or a batch answers.
+``relocalizer`` holds the search (an ordered list of stages), ``following`` the staged policy for a scan that
+follows a known pose, ``tracking`` a whole recording followed through the map, ``auto`` the search settings
+chosen from the map, ``queries`` the query files and scan selection, ``result`` what a query or a batch
+answers. The LRU of precomputation stacks is ``carto_cli.matching.stack_cache.StackCache``.
 """
 from carto_cli.matching.stack_cache import StackCache
 from carto_cli.relocalization.following import ScanContext

@@ -201,17 +201,6 @@ def test_single_level_multilevel_is_the_plain_search(building):
         bnb.match_multilevel(stack, pts, initial, levels=[(1.0, 7), (0.1, 0)])
 
 
-def test_matcher_object_uses_the_options():
-    from carto_cli.options import FastCorrelativeScanMatcher
-
-    grid = ProbabilityGrid(0.05, (0, 0), (40, 40))
-    grid.set_probability([[20, 20], [21, 20]], 0.9)
-    matcher = bnb.FastCorrelativeScanMatcher2D(grid, FastCorrelativeScanMatcher(branch_and_bound_depth=3))
-    assert matcher.stack.depth == 3
-    result = matcher.match([[0.0, 0.0]], (0.9, 1.1, 0.0), min_score=0.5)
-    assert result.found and result.score == pytest.approx(0.9, abs=0.01)
-
-
 @pytest.mark.slow_without_jit
 def test_peaks_answers_the_same_on_any_number_of_threads(building, monkeypatch):
     """Each coarse stage's angles dealt to threads: the kernel orders leaves totally, so the best of the shares'
