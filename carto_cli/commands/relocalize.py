@@ -19,7 +19,8 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.progress import progress
 from carto_cli.core.records import Scan
 from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
-from carto_cli.io.map_file import LoadedMap, load_map
+from carto_cli.io.loaded_map import LoadedMap
+from carto_cli.io.map_file import load_map
 from carto_cli.io.map_server import is_map_server_yaml, load_map_server
 from carto_cli.io.recording import ReadOptions
 from carto_cli.io.sources.open import open_recording

@@ -11,7 +11,8 @@ from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.grid.occupancy_image import AssembledImage, OccupancyImage
 from carto_cli.io.atomic import existing_outputs, output_set
-from carto_cli.io.map_file import LoadedMap, load_map
+from carto_cli.io.loaded_map import LoadedMap
+from carto_cli.io.map_file import load_map
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.pbstream import save_pbstream
 

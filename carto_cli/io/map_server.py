@@ -32,7 +32,7 @@ import yaml
 from carto_cli.core import transform
 from carto_cli.core.errors import FormatError
 from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY, ProbabilityGrid, probability_to_value
-from carto_cli.io.map_file import LoadedMap, MapMetadata
+from carto_cli.io.loaded_map import LoadedMap, MapMetadata
 from carto_cli.mapping.constraints import ConstraintSet
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options

@@ -1,4 +1,4 @@
-"""Cartographer's ``.pbstream``: its saved state, read into a :class:`~carto_cli.io.map_file.LoadedMap` and written
+"""Cartographer's ``.pbstream``: its saved state, read into a :class:`~carto_cli.io.loaded_map.LoadedMap` and written
 from one, so a Cartographer map can be relocalized in, re-exported or continued by carto, and a carto map handed
 back to Cartographer (``cartographer_pbstream_to_ros_map``, ``--load_state_filename``).
 
@@ -308,7 +308,7 @@ def load_pbstream(path: str | Path, options=None):
 
 
 def _load(path: Path, options):
-    from carto_cli.io.map_file import LoadedMap, MapMetadata
+    from carto_cli.io.loaded_map import LoadedMap, MapMetadata
     from carto_cli.io.trajectory import Trajectory
     from carto_cli.mapping.constraints import ConstraintSet
     from carto_cli.mapping.submaps import Submap

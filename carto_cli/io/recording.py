@@ -128,10 +128,9 @@ class Recording(ABC):
 
     def independent(self) -> Recording:
         """In a forked child: the same recording read through handles of its own, while the parent goes on
-        using this one (a file offset shared across fork would move under both)."""
-        from carto_cli.io.sources.open import open_recording  # the sources import this module
-
-        return open_recording(self.path, self.options)
+        using this one (a file offset shared across fork would move under both). The file readers (the ones
+        with ``read_ahead``) are opened again by their own class, from the same path and options."""
+        return type(self)(self.path, self.options)
 
     def preferred_topic(self, kind: str) -> str | None:
         """The topic a format designates for ``kind`` when it has several (the chooser's own convention,

@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 from carto_cli import __version__
 from carto_cli.core.errors import CartoError, FormatError
 from carto_cli.io.container import decode
-from carto_cli.io.map_file import FORMAT_VERSION, MAGIC, MAP_FORMAT, LoadedMap, load_map, save_map
+from carto_cli.io.loaded_map import LoadedMap
+from carto_cli.io.map_file import FORMAT_VERSION, MAGIC, MAP_FORMAT, load_map, save_map
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.constraints import ConstraintKind
 from carto_cli.mapping.pose_graph import PoseGraph

@@ -264,3 +264,18 @@ def test_an_interrupted_child_reads_as_an_interrupt_here():
         with pytest.raises(KeyboardInterrupt):
             for _ in stream.records(selection.topics):
                 pass
+
+
+@pytest.mark.parametrize("fmt, name", [("ros1", "rec.bag"), ("ros1", "rec.bag.active"), ("ros2-sqlite3", "rec_db3"),
+                                       ("ros2-mcap", "rec_mcap"), ("mcap", "rec.mcap")])
+def test_a_reader_opened_again_is_the_same_reader_with_the_same_records(tmp_path, fmt, name):
+    """What a forked child reads through: ``independent`` opens the file again with the reader's own class (a
+    .bag.active is the salvaging reader's), the parent's reader left where it was."""
+    bag = tmp_path / name
+    write_recording(memory_records(8), bag, fmt)
+    with open_recording(bag) as rec:
+        first = key(next(rec.records()))
+        with rec.independent() as again:
+            assert type(again) is type(rec) and again is not rec and again.path == rec.path
+            assert keys(again.records()) == keys(rec.records())
+        assert key(next(rec.records())) == first
