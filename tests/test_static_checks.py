@@ -149,3 +149,98 @@ def test_angle_wrapping_has_one_home():
 def test_every_package_says_its_job(package):
     doc = ast.get_docstring(ast.parse((PACKAGE / package / "__init__.py").read_text()))
     assert doc, f"carto_cli/{package}/__init__.py has no docstring"
+
+
+# Import cycles between modules still to be broken, each named in full (issue 44: relocalization's split). A cycle
+# not listed here fails, and so does a listed one that is gone (remove it from the list).
+KNOWN_CYCLES = [
+    {"carto_cli.relocalization.following", "carto_cli.relocalization.queries", "carto_cli.relocalization.relocalizer",
+     "carto_cli.relocalization.result"},
+]
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Module -> the carto_cli modules it imports, at the top or inside a function (a lazy import is still a
+    dependency); a package's ``__init__`` (re-exports) is neither a source nor a target."""
+    files = {_module_name(p): p for p in _python_files("carto_cli")}
+    modules = {m for m, p in files.items() if p.name != "__init__.py"}
+
+    def resolve(name: str) -> str | None:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name if name in modules else None
+
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for m in modules:
+        package = m.rpartition(".")[0].split(".")
+        for node in ast.walk(ast.parse(files[m].read_text(), str(files[m]))):
+            names: list[str] = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = ".".join(package[:len(package) - node.level + 1] + [node.module or ""]).strip(".") \
+                    if node.level else node.module or ""
+                names = [f"{base}.{a.name}" for a in node.names] + [base]
+            graph[m] |= {t for t in map(resolve, names) if t and t != m}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[set[str]]:
+    """The strongly connected components of more than one module (Tarjan, iteratively)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, children = work[-1]
+            w = next(children, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = len(index)
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                component = set()
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    component.add(w)
+                    if w == v:
+                        break
+                if len(component) > 1:
+                    found.append(component)
+    return found
+
+
+def test_no_import_cycle_between_modules():
+    cycles = _cycles(_import_graph())
+    new = [sorted(c) for c in cycles if c not in KNOWN_CYCLES]
+    gone = [sorted(c) for c in KNOWN_CYCLES if c not in cycles]
+    assert not new, "modules that import each other (directly or around a loop):\n" + "\n".join(map(str, new))
+    assert not gone, "cycles listed in KNOWN_CYCLES that are gone: remove them from the list\n" + "\n".join(map(str, gone))
+
+
+def test_the_cycle_finder_finds_a_cycle_and_nothing_else():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set(), "e": {"d"}}
+    assert _cycles(graph) == [{"a", "b", "c"}]
+    assert _cycles({"a": {"b"}, "b": set()}) == []

@@ -1,18 +1,12 @@
 """carto's options: the typed schema, loading it from YAML profiles and --set, the packaged profiles.
 
 ``from carto_cli.options import Options, load_options, ...`` is the public face; the
-modules are ``schema`` (dataclasses and introspection), ``loader`` (YAML, layering,
-checks) and ``profiles`` (the packaged profile files).
+modules are ``schema`` (dataclasses and introspection), ``layering`` (YAML and --set values onto the schema,
+checked), ``loader`` (the defaults, a profile and --set, stacked), ``cartographer_lua`` (a Cartographer
+configuration's values) and ``profiles`` (the packaged profile files).
 """
-from carto_cli.options.loader import (
-    Layer,
-    apply_overrides,
-    apply_values,
-    dump_options_yaml,
-    load_options,
-    read_yaml,
-    validate_options,
-)
+from carto_cli.options.layering import Layer, apply_overrides, apply_values, read_yaml, validate_options
+from carto_cli.options.loader import dump_options_yaml, load_options
 from carto_cli.options.profiles import list_profiles, profiles_dir, resolve_profile
 from carto_cli.options.schema import (
     CeresSolverOptions,

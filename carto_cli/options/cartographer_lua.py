@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from carto_cli.core.errors import CartoError
+from carto_cli.options.layering import Layer, apply_values, packaged_defaults, validate_options
 from carto_cli.options.schema import Options, hints, is_section, options_to_dict
 
 __all__ = ["LuaImport", "import_lua", "stock_lua"]
@@ -234,13 +235,12 @@ def import_lua(path: str | Path) -> LuaImport:
 
 
 def _import(path: Path) -> LuaImport:
-    from carto_cli.options import load_options
     try:
         from lupa import LuaError, LuaRuntime
     except ImportError as e:  # pragma: no cover - a dependency of carto
         raise CartoError("reading Lua configurations needs the 'lupa' package (pip install lupa)", path) from e
 
-    defaults = load_options(None)
+    defaults = validate_options(packaged_defaults())
     stock = stock_lua(defaults)
     lua = LuaRuntime(unpack_returned_tuples=True, register_eval=False, register_builtins=False)
     lua.execute(_PRELUDE)
@@ -327,8 +327,6 @@ def _import(path: Path) -> LuaImport:
     order = {k: i for i, k in enumerate(types)}  # the schema's order, not the Lua tables' hash order
     overrides = dict(sorted(overrides.items(), key=lambda kv: order[kv[0]]))
     result = LuaImport(path, overrides, dict(sorted(unused.items())))
-    from carto_cli.options.loader import Layer, apply_values, validate_options
-
     options = apply_values(defaults, result.nested(), Layer(path))  # types and bounds, errors naming the key
     validate_options(options, path)
     return result

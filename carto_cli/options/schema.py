@@ -12,7 +12,7 @@ Deviations from the Lua defaults, and why:
 
 Every leaf carries its one-line doc, unit and bounds in its field metadata; lengths are
 metres, times seconds and angles radians. Reading values into this schema is
-``options.loader``'s job.
+``options.layering``'s job.
 """
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ from carto_cli.options import (
     profiles_dir,
     read_yaml,
 )
-from carto_cli.options.loader import YamlLoader
+from carto_cli.options.layering import YamlLoader
 
 
 def _flatten(d, prefix=""):
