@@ -62,7 +62,7 @@ class _TidyHelp:
         _tidy_help(self)
 
     def get_help_option(self, ctx):
-        option = super().get_help_option(ctx)
+        option = super().get_help_option(ctx)  # type: ignore[misc]  # a mixin: click's Command is next in the MRO
         if option is not None:
             option.metavar = ""
         return option

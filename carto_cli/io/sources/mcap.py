@@ -4,8 +4,9 @@ from __future__ import annotations
 import contextlib
 import heapq
 import io
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
 from carto_cli.core.records import Record, Transform
@@ -158,8 +159,8 @@ class _CutFile:
 
         assert not log_time_order  # _in_log_time_order sorts an unindexed file itself
         wanted = None if topics is None else set(topics)
-        schemas: dict[int, object] = {}
-        channels: dict[int, object] = {}
+        schemas: dict[int, Any] = {}  # mcap.records.Schema, Channel
+        channels: dict[int, Any] = {}
 
         def inner(records):
             for record in records:
@@ -287,7 +288,7 @@ class _Decoders:
 
     def __init__(self):
         self._factories = _decoder_factories()
-        self._by_channel: dict[int, object] = {}
+        self._by_channel: dict[int, Callable[[bytes], Any]] = {}
 
     def __call__(self, schema, channel, message):
         decoder = self._by_channel.get(channel.id)
