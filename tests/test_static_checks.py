@@ -5,6 +5,7 @@ Each runs the real tool over the real tree (configured in pyproject.toml) and fa
 from __future__ import annotations
 
 import ast
+import json
 import os
 import re
 import subprocess
@@ -244,3 +245,51 @@ def test_the_cycle_finder_finds_a_cycle_and_nothing_else():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set(), "e": {"d"}}
     assert _cycles(graph) == [{"a", "b", "c"}]
     assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+# Functions over ruff's complexity limits (mccabe 10, pylint's 12 branches and 50 statements) on the day the rules
+# came in, one "path::function rule" a line: a ratchet. Listing them by function, not ignoring the rules per file,
+# keeps a file that has one from taking a second (issue 44).
+COMPLEXITY_RULES = "C901,PLR0912,PLR0915"
+COMPLEXITY_LIST = ROOT / "tests" / "complexity_offenders.txt"
+
+
+def _def_names(path: Path) -> dict[int, str]:
+    """Line of each def -> its qualified name (Class.method, outer.inner)."""
+    names: dict[int, str] = {}
+
+    def walk(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                name = prefix + child.name
+                if not isinstance(child, ast.ClassDef):
+                    names[child.lineno] = name
+                walk(child, name + ".")
+            else:
+                walk(child, prefix)
+
+    walk(ast.parse(path.read_text(), str(path)), "")
+    return names
+
+
+def complexity_offenders() -> set[str]:
+    proc = _run(sys.executable, "-m", "ruff", "check", "--select", COMPLEXITY_RULES, "--output-format", "json",
+                "--exit-zero", "carto_cli", "bench")
+    _ok(proc)
+    found = set()
+    names: dict[Path, dict[int, str]] = {}
+    for d in json.loads(proc.stdout):
+        path = Path(d["filename"])
+        if path not in names:
+            names[path] = _def_names(path)
+        found.add(f"{path.relative_to(ROOT)}::{names[path][d['location']['row']]} {d['code']}")
+    return found
+
+
+def test_no_function_grows_past_the_complexity_limits():
+    listed = {line.strip() for line in COMPLEXITY_LIST.read_text().splitlines() if line.strip()
+              and not line.startswith("#")}
+    found = complexity_offenders()
+    new, fixed = sorted(found - listed), sorted(listed - found)
+    assert not new, f"over ruff's complexity limits ({COMPLEXITY_RULES}); split them:\n" + "\n".join(new)
+    assert not fixed, f"no longer over the limits: remove from {COMPLEXITY_LIST.name}\n" + "\n".join(fixed)
