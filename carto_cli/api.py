@@ -68,7 +68,7 @@ class MapRun:
 
     @property
     def quality(self) -> str | None:
-        """'ok', 'suspect' or 'failed' (the map's own verdict)."""
+        """'ok', 'suspect' or 'failed' (the map's own verdict: a ``MapVerdict``, which is that string)."""
         return None if self.result.quality is None else self.result.quality.verdict
 
     def write(self, outdir: str | Path, *, force: bool = False, state: bool = True) -> MapOutputs:

@@ -447,8 +447,8 @@ def map_(
         typer.echo(report_tree_text(timer))
     typer.echo(f"{summary_line(result, timer)} -> {outputs.yaml.parent}")
     if result.quality is not None:
-        typer.echo(result.quality.line(), err=result.quality.verdict != "ok")
-        if result.quality.verdict == "failed" or (strict and result.quality.verdict == "suspect"):
+        typer.echo(result.quality.line(), err=not result.quality.ok)
+        if result.quality.fails(strict=strict):
             raise typer.Exit(EXIT_CHECK_FAILED)
 
 

@@ -16,7 +16,7 @@ from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
-from carto_cli.gmapping import ALGORITHMS, GMAPPING_PIPELINE
+from carto_cli.gmapping import ALGORITHMS, GMAPPING_PIPELINE, Algorithm
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
@@ -48,7 +48,7 @@ class MapResult(SlamResult):
         chose."""
         return {
             "schema": "carto.map-summary v1",
-            "algorithm": self.stats.get("algorithm", "cartographer"),  # Slam's stats do not name it
+            "algorithm": self.stats.get("algorithm", Algorithm.CARTOGRAPHER),  # Slam's stats do not name it
             "quality": self.quality.to_dict() if self.quality is not None else None,
             "stats": {k: (v.item() if isinstance(v, np.generic) else v) for k, v in self.stats.items()},
             "auto": None if self.auto is None or self.regime is None else {
@@ -74,7 +74,7 @@ class Configured:
     options: Options
     regime: Regime | None = None
     auto: AutoChoice | None = None
-    algorithm: str = "cartographer"  # what maps: the caller's choice, else auto's, else Cartographer
+    algorithm: str = Algorithm.CARTOGRAPHER  # what maps: the caller's choice, else auto's, else Cartographer
 
 
 def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection,
@@ -85,9 +85,9 @@ def configure(spec: Options | Auto, recording: Recording, selection: TopicSelect
     the user's mount (None: the recording's), for the survey's odometry check; ``timer``: its kernels' warm-up;
     ``stream``: the records mapping will read (the survey looks at their start)."""
     if isinstance(spec, Options):
-        return Configured(spec, algorithm=algorithm or "cartographer")
+        return Configured(spec, algorithm=algorithm or Algorithm.CARTOGRAPHER)
     # The odometry check sizes the particle filter's motion model: a Cartographer run does not need it
-    check = algorithm in (None, "gmapping")
+    check = algorithm in (None, Algorithm.GMAPPING)
     mount = survey_mount(recording, selection, laser_pose) if check else None
     return configure_regime(survey(recording, selection, check_odometry=check, laser_pose=mount, timer=timer,
                                    stream=stream), spec, algorithm)
@@ -125,13 +125,13 @@ def build_configured(recording: Recording, configured: Configured, spec: Options
     started = _time.perf_counter()
     result = build(recording, configured.options, algorithm=configured.algorithm, **kwargs)
     auto = configured.auto
-    if (not isinstance(spec, Auto) or auto is None or not auto.chose_algorithm or auto.algorithm != "gmapping"
-            or configured.regime is None or result.quality is None or result.quality.verdict == "ok"):
+    if (not isinstance(spec, Auto) or auto is None or not auto.chose_algorithm or auto.algorithm != Algorithm.GMAPPING
+            or configured.regime is None or result.quality is None or result.quality.ok):
         return result, configured
-    other = configure_regime(configured.regime, spec, "cartographer")
+    other = configure_regime(configured.regime, spec, Algorithm.CARTOGRAPHER)
     assert other.auto is not None
     first_wall = float(result.stats.get("wall_time_s", float("nan")))
-    again = build(recording, other.options, algorithm="cartographer", **kwargs)
+    again = build(recording, other.options, algorithm=Algorithm.CARTOGRAPHER, **kwargs)
     wall = _time.perf_counter() - started
     for r in (result, again):
         r.stats.update(wall_time_s=wall, first_pass_wall_time_s=first_wall,
@@ -228,7 +228,7 @@ def build(
     graph: PoseGraph | None = None,
     trajectory_id: int = 0,
     judge: bool = True,
-    algorithm: str = "cartographer",
+    algorithm: str = Algorithm.CARTOGRAPHER,
     jobs: int | None = None,
     stream: RecordStream | None = None,
 ) -> MapResult:
@@ -252,11 +252,11 @@ def build(
                                              selection.tf_odometry.fixed if selection.tf_odometry else ())
     tb = options.trajectory_builder_2d
     slam: Slam | GMappingSlam
-    if algorithm == "gmapping":
+    if algorithm == Algorithm.GMAPPING:
         from carto_cli.gmapping.filter import GMappingSlam  # a Cartographer run never loads it (0.4 s)
 
         slam = GMappingSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)
-    elif algorithm == "scan-to-map":
+    elif algorithm == Algorithm.SCAN_TO_MAP:
         from carto_cli.gmapping.front_end import ScanToMapSlam
 
         slam = ScanToMapSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)

@@ -26,7 +26,7 @@ import numpy as np
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Scan
-from carto_cli.gmapping import GMAPPING_PIPELINE
+from carto_cli.gmapping import GMAPPING_PIPELINE, Algorithm
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import Recording
@@ -105,13 +105,13 @@ class AutoChoice:
     profile: str  # packaged base profile
     settings: list[str] = field(default_factory=list)  # "key=value", applied before the user's --set
     reasons: list[str] = field(default_factory=list)
-    algorithm: str = "cartographer"  # the mapping system (carto_cli.gmapping.ALGORITHMS)
+    algorithm: str = Algorithm.CARTOGRAPHER  # the mapping system (an Algorithm, or its name)
     chose_algorithm: bool = False  # auto chose it (not the user's --algorithm): it may fall back
     note: str = ""  # what happened after the choice (a fallback)
 
     def describe(self) -> str:
         extra = f" + {len(self.settings)} derived settings" if self.settings else ""
-        system = "" if self.algorithm == "cartographer" else f", algorithm {self.algorithm}"
+        system = "" if self.algorithm == Algorithm.CARTOGRAPHER else f", algorithm {self.algorithm}"
         note = f" ({self.note})" if self.note else ""
         return f"profile {self.profile}{extra}{system}{note}"
 
@@ -246,11 +246,11 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
     chose = algorithm is None
     if algorithm is None:
         if regime.sparse and regime.odometry:
-            algorithm = "gmapping"
+            algorithm = Algorithm.GMAPPING
             reasons.append("key scans with odometry: GMapping's particle filter (measured better than Cartographer "
                            "on such recordings)")
         else:
-            algorithm = "cartographer"
+            algorithm = Algorithm.CARTOGRAPHER
     rt = "trajectory_builder_2d.real_time_correlative_scan_matcher"
     if regime.sparse and algorithm in GMAPPING_PIPELINE:
         # The sparse profile still sets the submaps map.carto is written with; its matcher settings do nothing.
@@ -288,7 +288,7 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
         # on a circle around every pose (aces: 50 m readings, 0.36 m error before this).
         settings.append(f"gmapping.maxRange={max(regime.no_return - 0.1, 0.1):.3f}")
         reasons.append(f"'no return' is reported as {regime.no_return:.4g} m: gmapping skips those beams")
-    if algorithm == "gmapping" and regime.odometry_error is not None and gmapping_noise[0] > 0:
+    if algorithm == Algorithm.GMAPPING and regime.odometry_error is not None and gmapping_noise[0] > 0:
         lo, hi = MOTION_NOISE_SCALE
         scale = MOTION_NOISE_MARGIN * regime.odometry_error / RAYLEIGH_MEDIAN / gmapping_noise[0]
         scale = min(max(scale, lo), hi)

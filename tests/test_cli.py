@@ -169,12 +169,12 @@ def test_map_with_no_profile_says_what_auto_chose_and_judges_the_map(tmp_path):
 
 def _judged(monkeypatch, verdict):
     from carto_cli import pipeline
-    from carto_cli.mapping.quality import MapQuality, QualityCheck
+    from carto_cli.mapping.quality import MapQuality, MapVerdict, QualityCheck
 
     limit = {"ok": 0.0, "suspect": 20.0, "failed": 60.0}[verdict]
     check = QualityCheck("see_through", limit, 10.0, 50.0, "%", "of scans cross walls")
     monkeypatch.setattr(pipeline, "assess", lambda result, odometry=None: MapQuality(
-        verdict, [] if verdict == "ok" else [check.reason()], [check]))
+        MapVerdict(verdict), [] if verdict == "ok" else [check.reason()], [check]))
 
 
 def test_a_failed_map_exits_3_with_its_outputs_written(tmp_path, monkeypatch):

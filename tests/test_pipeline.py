@@ -54,9 +54,11 @@ def test_laser_pose_from_the_command_line_then_static_tf_then_identity(sim_bag):
 def _fake_build(verdicts, calls):
     from types import SimpleNamespace
 
+    from carto_cli.mapping.quality import MapQuality, MapVerdict
+
     def build(recording, options, *, algorithm, **kwargs):
         calls.append(algorithm)
-        return SimpleNamespace(quality=SimpleNamespace(verdict=verdicts[algorithm]), algorithm=algorithm,
+        return SimpleNamespace(quality=MapQuality(MapVerdict(verdicts[algorithm]), [], []), algorithm=algorithm,
                                stats={"scans": 10, "wall_time_s": 0.0})
     return build
 

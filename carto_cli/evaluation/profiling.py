@@ -35,6 +35,7 @@ from carto_cli import __version__
 from carto_cli.core import kernels
 from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.timing import StageTimer, report_json
+from carto_cli.gmapping import Algorithm
 from carto_cli.options import Options, changed_options
 
 SCHEMA = "carto.profile"
@@ -142,7 +143,7 @@ def build_report(result, timer: StageTimer, options: Options, recording: str | P
         "calibration": calibration,
         "timing": timing,
     }
-    if algorithm == "gmapping":
+    if algorithm == Algorithm.GMAPPING:
         # mean_neff is NaN when only the first scan was processed: null keeps the report strict JSON.
         report["gmapping"] = {k: _finite_or_none(result.stats[k]) for k in GMAPPING_STATS}
     return report

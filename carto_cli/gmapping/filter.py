@@ -27,7 +27,7 @@ from carto_cli.core import kernels, transform
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
-from carto_cli.gmapping import loops, matcher, motion, refine, resampling
+from carto_cli.gmapping import Algorithm, loops, matcher, motion, refine, resampling
 from carto_cli.gmapping.maps import CELL_BYTES, TILE, TiledMaps
 from carto_cli.grid.occupancy_image import OccupancyImage
 from carto_cli.mapping.pose_graph import PoseGraph
@@ -354,7 +354,7 @@ class GMappingSlam:
             graph, submaps, node_scans = self._submaps(steps)
         wall = _time.perf_counter() - self._started
         stats = {
-            "algorithm": "gmapping",
+            "algorithm": Algorithm.GMAPPING,
             "scans": self.num_scans,
             "poses": len(self._scan_times),
             "nodes": len(self._step_poses),

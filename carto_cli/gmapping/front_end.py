@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from carto_cli.core import kernels, transform
-from carto_cli.gmapping import motion
+from carto_cli.gmapping import Algorithm, motion
 from carto_cli.gmapping.filter import Beams, GMappingSlam
 from carto_cli.grid.distance_map import DistanceMap
 from carto_cli.matching import distance_matcher
@@ -67,7 +67,7 @@ class ScanToMapSlam(GMappingSlam):
 
     def finish(self):
         result = super().finish()
-        result.stats.update(algorithm="scan-to-map", particles=0, resamplings=0, mean_neff=None,
+        result.stats.update(algorithm=Algorithm.SCAN_TO_MAP, particles=0, resamplings=0, mean_neff=None,
                             unconverged_matches=self.unconverged,
                             map_memory_peak_bytes=int(self.distance_map.memory_bytes))
         return result

@@ -152,6 +152,7 @@ map is held to). Per-scan match scores (a possible fourth signal) are not in ``S
 """
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -166,11 +167,26 @@ if TYPE_CHECKING:
     from carto_cli.mapping.pose_graph import PoseGraph
     from carto_cli.mapping.slam import SlamResult
 
-__all__ = ["LEVELS", "MapQuality", "QualityCheck", "ReturnIndex", "assess", "loop_closure_check", "node_see_through",
-           "node_travel", "odometry_check", "odometry_disagreement", "rays_through_walls", "see_through_check",
-           "wall_solidity"]
+__all__ = ["LEVELS", "MapQuality", "MapVerdict", "QualityCheck", "ReturnIndex", "assess", "loop_closure_check",
+           "node_see_through", "node_travel", "odometry_check", "odometry_disagreement", "rays_through_walls",
+           "see_through_check", "wall_solidity"]
 
-LEVELS = ("ok", "suspect", "failed")
+class MapVerdict(str, enum.Enum):
+    """A map's verdict, and each check's level, from best to worst. A ``str`` with its value, as the JSON reports and
+    the printed lines have always written it."""
+
+    OK = "ok"
+    SUSPECT = "suspect"
+    FAILED = "failed"
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
+LEVELS = tuple(MapVerdict)  # best to worst: a verdict's index is its severity
 
 # see_through (the module docstring says why; bench/quality_calibration.py measures)
 CELL_M = 0.1  # walls
@@ -219,12 +235,12 @@ class QualityCheck:
     doc: str
 
     @property
-    def level(self) -> str:
+    def level(self) -> MapVerdict:
         if self.value > self.failed_above:
-            return "failed"
+            return MapVerdict.FAILED
         if self.value > self.suspect_above:
-            return "suspect"
-        return "ok"
+            return MapVerdict.SUSPECT
+        return MapVerdict.OK
 
     def reason(self) -> str:
         return (f"{_fmt(self.value, self.unit)} {self.doc} (suspect above {_fmt(self.suspect_above, self.unit)}, "
@@ -238,7 +254,7 @@ class QualityCheck:
 
 @dataclass(frozen=True)
 class MapQuality:
-    verdict: str  # the worst level of the checks; 'ok' when none could be computed
+    verdict: MapVerdict  # the worst level of the checks; OK when none could be computed
     reasons: list[str]  # one sentence per check that is not ok
     checks: list[QualityCheck]
 
@@ -246,7 +262,15 @@ class MapQuality:
     def of(cls, checks: list[QualityCheck]) -> MapQuality:
         """The worst level of ``checks`` ('ok' without any) and a reason for each one that is not ok."""
         verdict = LEVELS[max((LEVELS.index(c.level) for c in checks), default=0)]
-        return cls(verdict, [c.reason() for c in checks if c.level != "ok"], list(checks))
+        return cls(verdict, [c.reason() for c in checks if c.level != MapVerdict.OK], list(checks))
+
+    @property
+    def ok(self) -> bool:
+        return self.verdict == MapVerdict.OK
+
+    def fails(self, *, strict: bool = False) -> bool:
+        """Whether the map fails a check that gates on it: FAILED, or with ``strict`` (--strict) SUSPECT too."""
+        return self.verdict == MapVerdict.FAILED or (strict and self.verdict == MapVerdict.SUSPECT)
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "reasons": list(self.reasons), "checks": [c.to_dict() for c in self.checks]}

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from carto_cli.gmapping import Algorithm
 from carto_cli.io.atomic import atomic_output
 from carto_cli.io.map_image import write_png
 from carto_cli.options import Options, changed_options, load_options
@@ -50,7 +51,7 @@ def write_profile(path: Path, options: Options, *, best=None, objective: str = "
     if best is not None:
         lines.append(f"# best value: {best.value:.6g} (trial {best.number} of {n_trials})"
                      + (f"; base options scored {baseline:.6g}" if baseline is not None else ""))
-    if algorithm != "cartographer":
+    if algorithm != Algorithm.CARTOGRAPHER:
         # A profile does not choose the mapping system: the tuned values take effect only with the flag.
         lines.append(f"# algorithm: {algorithm} (map with --algorithm {algorithm} --profile {path.name})")
     if max_scans:
