@@ -142,6 +142,7 @@ class ConstraintBuilder:
     def __init__(self, options: Options, timer=None, seed: int = 0, jobs: int | None = 1):
         """``jobs``: threads for ``search_many`` (None: every available core; 1: the caller's thread)."""
         self.cb = options.pose_graph.constraint_builder
+        self.ceres = least_squares.CeresScanMatcher.from_options(self.cb.ceres_scan_matcher)
         self.global_sampling_ratio = options.pose_graph.global_sampling_ratio
         self.timer = timer or NullTimer()
         self._samplers: dict[int, FixedRatioSampler] = {}
@@ -279,11 +280,7 @@ class ConstraintBuilder:
             return SearchOutcome(node, submap, global_search, outcome="drift", ns=ns)
         if not global_search and self._on_window_edge(result.pose, estimate):
             return SearchOutcome(node, submap, global_search, outcome="window edge", ns=ns)
-        c = self.cb.ceres_scan_matcher
-        ls = least_squares.match(grid, points, result.pose, target_translation=result.pose[:2],
-                                 occupied_space_weight=c.occupied_space_weight,
-                                 translation_weight=c.translation_weight, rotation_weight=c.rotation_weight,
-                                 max_num_iterations=c.ceres_solver_options.max_num_iterations)
+        ls = self.ceres.match(grid, points, result.pose, target_translation=result.pose[:2])
         moved = transform.relative(result.pose, ls.pose)
         min_score = self.cb.global_localization_min_score if global_search else self.cb.min_score
         refined = not (np.hypot(moved[0], moved[1]) > MAX_REFINEMENT_TRANSLATION

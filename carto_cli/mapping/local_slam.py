@@ -89,6 +89,7 @@ class LocalSlam:
         self.laser_pose = transform.as_pose(laser_pose)
         self.timer = timer or NullTimer()
         kernels.warm_up(self.timer, systems=("cartographer",))
+        self.ceres = least_squares.CeresScanMatcher.from_options(options.ceres_scan_matcher)
         o = options
         self.extrapolator = PoseExtrapolator(
             pose_queue_duration=o.pose_extrapolator.constant_velocity.pose_queue_duration,
@@ -201,14 +202,7 @@ class LocalSlam:
                         initial = result.pose
                         score = result.score
                 with timer.stage("least squares"):
-                    ceres = o.ceres_scan_matcher
-                    ls = least_squares.match(
-                        matching.grid, points, initial, target_translation=prediction[:2],
-                        occupied_space_weight=ceres.occupied_space_weight,
-                        translation_weight=ceres.translation_weight,
-                        rotation_weight=ceres.rotation_weight,
-                        max_num_iterations=ceres.ceres_solver_options.max_num_iterations,
-                    )
+                    ls = self.ceres.match(matching.grid, points, initial, target_translation=prediction[:2])
                     pose = ls.pose
                     ls_cost = ls.cost
                     self.stats.ls_iterations += ls.iterations

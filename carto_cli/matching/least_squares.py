@@ -17,6 +17,7 @@ Cost is reported as Ceres does: 0.5 * sum of squared residuals.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -34,6 +35,31 @@ class LeastSquaresResult(NamedTuple):
     iterations: int  # LM steps tried (accepted or not)
     converged: bool  # a tolerance was met before max_num_iterations
     initial_cost: float
+
+
+@dataclass(frozen=True, slots=True)
+class CeresScanMatcher:
+    """The matcher with one component's weights and iteration limit (Cartographer's CeresScanMatcher2D), built once
+    from that component's options section (local SLAM's, the constraint builder's) rather than unpacked at each
+    call."""
+
+    occupied_space_weight: float
+    translation_weight: float
+    rotation_weight: float
+    max_num_iterations: int
+
+    @classmethod
+    def from_options(cls, options) -> CeresScanMatcher:
+        """``options``: a ``ceres_scan_matcher`` section (``carto_cli.options`` Local/ConstraintCeresScanMatcher)."""
+        return cls(float(options.occupied_space_weight), float(options.translation_weight),
+                   float(options.rotation_weight), int(options.ceres_solver_options.max_num_iterations))
+
+    def match(self, grid, points, initial_pose, target_translation=None) -> LeastSquaresResult:
+        """:func:`match` with these weights: ``points`` refined from ``initial_pose``, the translation pulled
+        towards ``target_translation`` (default: the initial pose's)."""
+        return match(grid, points, initial_pose, target_translation, occupied_space_weight=self.occupied_space_weight,
+                     translation_weight=self.translation_weight, rotation_weight=self.rotation_weight,
+                     max_num_iterations=self.max_num_iterations)
 
 
 @njit(cache=True, nogil=True)

@@ -29,7 +29,7 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.records import Odometry, Record, Scan
-from carto_cli.matching import correlative, least_squares
+from carto_cli.matching import correlative
 
 if TYPE_CHECKING:
     from carto_cli.relocalization.relocalizer import Fit, Relocalizer
@@ -90,11 +90,7 @@ def follow(reloc: Relocalizer, scan: Scan, predicted: np.ndarray, mount: np.ndar
     if correlate and len(search):
         start = correlative.match(grid, search, start, linear_search_window=CORRELATIVE_WINDOW_M,
                                   angular_search_window=CORRELATIVE_WINDOW_RAD).pose
-    c = reloc.options.pose_graph.constraint_builder.ceres_scan_matcher
-    grid_pose = least_squares.match(grid, fine, start, target_translation=start[:2],
-                                    occupied_space_weight=c.occupied_space_weight,
-                                    translation_weight=c.translation_weight, rotation_weight=c.rotation_weight,
-                                    max_num_iterations=c.ceres_solver_options.max_num_iterations).pose
+    grid_pose = reloc.ceres.match(grid, fine, start, target_translation=start[:2]).pose
     found = transform.compose(reloc.grid_to_map[submap], grid_pose)
     lap("refinement")
     fit = reloc.judge(submap, fine, grid_pose, min_score, known_ok=True, sensor=mount[:2])

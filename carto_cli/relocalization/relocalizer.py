@@ -214,6 +214,9 @@ class Relocalizer:
         self.map = loaded_map
         self.options = loaded_map.options if options is None else options
         self.ro = self.options.relocalization
+        # the refinement is the loop-closure search's (the constraint builder's section)
+        self.ceres = least_squares.CeresScanMatcher.from_options(
+            self.options.pose_graph.constraint_builder.ceres_scan_matcher)
         if loaded_map.num_submaps == 0:
             raise CartoError("the map has no submaps to relocalize in", getattr(loaded_map, "path", None))
         budget = int(self.ro.cache_budget_mb * 1e6) if cache_budget_bytes is None else int(cache_budget_bytes)
@@ -607,11 +610,7 @@ class Relocalizer:
         'not ok' with that reason. ``sensor``: the laser's position in the tracking frame."""
         t = time.perf_counter()
         grid = self.grids[cand.submap]
-        c = self.options.pose_graph.constraint_builder.ceres_scan_matcher
-        ls = least_squares.match(grid, fine_points, cand.grid_pose, target_translation=cand.grid_pose[:2],
-                                 occupied_space_weight=c.occupied_space_weight,
-                                 translation_weight=c.translation_weight, rotation_weight=c.rotation_weight,
-                                 max_num_iterations=c.ceres_solver_options.max_num_iterations)
+        ls = self.ceres.match(grid, fine_points, cand.grid_pose, target_translation=cand.grid_pose[:2])
         moved = transform.relative(cand.grid_pose, ls.pose)
         consistent = (math.hypot(moved[0], moved[1]) <= self.ro.max_refinement_translation
                       and abs(moved[2]) <= self.ro.max_refinement_rotation)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from room_sim import build_room_grid, scan_points
 
-from carto_cli.matching.least_squares import evaluate, match
+from carto_cli.matching.least_squares import CeresScanMatcher, evaluate, match
 
 TRUTH = np.array([3.0, 2.8, 0.3])
 
@@ -35,6 +35,25 @@ def test_default_weights_with_a_good_prediction(room):
     assert result.converged
     assert np.hypot(*(result.pose[:2] - TRUTH[:2])) < 0.01
     assert abs(math.degrees(result.pose[2] - TRUTH[2])) < 0.2
+
+
+def test_a_component_s_matcher_uses_its_own_section(room):
+    """Built once from an options section, it solves with that section's weights and iteration limit."""
+    from carto_cli.options import load_options
+
+    grid, pts = room
+    section = load_options(None).pose_graph.constraint_builder.ceres_scan_matcher
+    matcher = CeresScanMatcher.from_options(section)
+    assert (matcher.occupied_space_weight, matcher.translation_weight, matcher.rotation_weight,
+            matcher.max_num_iterations) == (20.0, 10.0, 1.0, 10)
+    start = TRUTH + np.array([0.05, -0.04, 0.02])
+    got = matcher.match(grid, pts, start, target_translation=TRUTH[:2])
+    want = match(grid, pts, start, TRUTH[:2], occupied_space_weight=20.0, translation_weight=10.0,
+                 rotation_weight=1.0, max_num_iterations=10)
+    np.testing.assert_array_equal(got.pose, want.pose)
+    assert got.iterations == want.iterations
+    default = match(grid, pts, start, TRUTH[:2])  # local SLAM's defaults: another answer
+    assert not np.array_equal(default.pose, got.pose)
 
 
 def test_priors_alone_pull_to_target_and_initial_angle(room):
