@@ -44,6 +44,7 @@ from carto_cli.relocalization import (
 )
 from carto_cli.relocalization.auto import AutoRelocalization, choose_for_map, choose_for_scans
 from carto_cli.relocalization.following import CONTEXT_SECONDS
+from carto_cli.relocalization.result import PoseVerdict
 from carto_cli.relocalization.tracking import TRACK_COLUMNS, TrackedScan, Tracker, TrackSummary, summarize_track
 
 __all__ = ["TRACK_OUTPUTS", "RelocalizeRun", "TrackRun", "apply_map_auto", "default_track_dir",
@@ -343,7 +344,7 @@ def run_track(
     if not scans:
         raise CartoError(f"no scans on {selection.scan}", recording)
     summary = summarize_track(scans, time.perf_counter() - t0, tracker.relocalizations, tracker.timings)
-    ok = [s for s in scans if s.verdict == "ok" and s.pose is not None]
+    ok = [s for s in scans if s.verdict == PoseVerdict.OK and s.pose is not None]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(TRACK_COLUMNS), lineterminator="\n")
     writer.writeheader()

@@ -6,21 +6,15 @@
 naming the algorithms costs nothing (the CLI checks ``--algorithm`` against ``ALGORITHMS``).
 """
 
-import enum
+from carto_cli.core.enums import TextEnum
 
 
-class Algorithm(str, enum.Enum):
-    """carto's mapping systems, by the names ``--algorithm`` takes (a ``str`` with its value, as reports write it)."""
+class Algorithm(TextEnum):
+    """carto's mapping systems, by the names ``--algorithm`` takes."""
 
     CARTOGRAPHER = "cartographer"
     GMAPPING = "gmapping"
     SCAN_TO_MAP = "scan-to-map"
-
-    def __str__(self) -> str:
-        return self.value
-
-    def __format__(self, spec: str) -> str:
-        return format(self.value, spec)
 
 
 ALGORITHMS = tuple(a.value for a in Algorithm)  # the names, for choices and messages

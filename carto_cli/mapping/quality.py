@@ -152,7 +152,6 @@ map is held to). Per-scan match scores (a possible fourth signal) are not in ``S
 """
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -161,6 +160,7 @@ import numpy as np
 from numba import njit
 
 from carto_cli.core import transform
+from carto_cli.core.enums import TextEnum
 from carto_cli.core.kernels import register_warm_up
 
 if TYPE_CHECKING:
@@ -171,19 +171,12 @@ __all__ = ["LEVELS", "MapQuality", "MapVerdict", "QualityCheck", "ReturnIndex", 
            "node_see_through", "node_travel", "odometry_check", "odometry_disagreement", "rays_through_walls",
            "see_through_check", "wall_solidity"]
 
-class MapVerdict(str, enum.Enum):
-    """A map's verdict, and each check's level, from best to worst. A ``str`` with its value, as the JSON reports and
-    the printed lines have always written it."""
+class MapVerdict(TextEnum):
+    """A map's verdict, and each check's level, from best to worst."""
 
     OK = "ok"
     SUSPECT = "suspect"
     FAILED = "failed"
-
-    def __str__(self) -> str:
-        return self.value
-
-    def __format__(self, spec: str) -> str:
-        return format(self.value, spec)
 
 
 LEVELS = tuple(MapVerdict)  # best to worst: a verdict's index is its severity

@@ -26,16 +26,19 @@ from carto_cli.relocalization.result import (
     VERDICTS,
     BatchSummary,
     Latency,
+    PoseVerdict,
     QueryResult,
     RelocalizationResult,
+    SearchPath,
     Timings,
     summarize,
     write_results_csv,
 )
 
 __all__ = [
-    "CSV_COLUMNS", "PATHS", "TIMING_BUCKETS", "VERDICTS", "BatchSummary", "Candidate", "Latency", "Query",
-    "QueryResult", "RelocalizationResult", "Relocalizer", "ScanContext", "StackCache", "Timings", "context_at",
+    "CSV_COLUMNS", "PATHS", "TIMING_BUCKETS", "VERDICTS", "BatchSummary", "Candidate", "Latency", "PoseVerdict",
+    "Query", "QueryResult", "RelocalizationResult", "Relocalizer", "ScanContext", "SearchPath", "StackCache",
+    "Timings", "context_at",
     "contexts_for", "iter_scans", "parse_pose",
     "read_queries", "relocalize_many", "scan_at", "scans_for_queries", "select_scan_topic", "summarize",
     "write_results_csv",

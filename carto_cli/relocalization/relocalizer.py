@@ -91,7 +91,15 @@ from carto_cli.matching.stack_cache import StackCache
 from carto_cli.options import Options
 from carto_cli.relocalization.following import CONTEXT_SECONDS, ScanContext, check_context
 from carto_cli.relocalization.queries import Query, contexts_for, scans_for_queries
-from carto_cli.relocalization.result import BatchSummary, QueryResult, RelocalizationResult, Timings, summarize
+from carto_cli.relocalization.result import (
+    BatchSummary,
+    PoseVerdict,
+    QueryResult,
+    RelocalizationResult,
+    SearchPath,
+    Timings,
+    summarize,
+)
 from carto_cli.sensor.range_filter import crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
 
@@ -669,14 +677,14 @@ class Relocalizer:
         for stage in stages:
             result = stage(s)
             if result is not None:
-                if result.verdict == "lost" and result.submap is None and s.failed is not None:
+                if result.verdict == PoseVerdict.LOST and result.submap is None and s.failed is not None:
                     # Nothing at all in the last stage: what an earlier one found and doubted says more.
                     failed = s.failed
                     failed.reason = "; ".join(s.reasons)
                     failed.timings, failed.total_ms = s.tm.finish()
                     failed.submaps_considered = s.considered
                     return failed
-                if context is not None and result.verdict == "ok" and result.path != "windowed":
+                if context is not None and result.verdict == PoseVerdict.OK and result.path != SearchPath.WINDOWED:
                     self._check_context(result, context, mount)
                 return result
         raise AssertionError("the last stage always answers")
@@ -691,7 +699,7 @@ class Relocalizer:
                               ro.context_max_through_walls)
         result.context_checked, result.context_through_walls = check.checked, check.through_walls
         if check.vetoes(ro.context_max_through_walls):
-            result.verdict, result.success = "lost", False
+            result.verdict, result.success = PoseVerdict.LOST, False
             why = (f"{check.through_walls} of {check.checked} scans around it, followed by odometry, see through walls "
                    f"of the map (more than relocalization.context_max_through_walls = "
                    f"{ro.context_max_through_walls}): the robot's path does not fit here")
@@ -737,9 +745,10 @@ class Relocalizer:
         cand = s.windowed_best = self._windowed(s.search_pts, s.prior, s.nearest, s.lin, s.ang, s.floor, s.tm)
         edge = cand is not None and self._at_edge(cand, s.lin, s.ang)
         if cand is not None and not edge:
-            res = self._finish(s, cand, "windowed", ro.min_score, s.prior, label="windowed search", known_ok=True)
+            res = self._finish(s, cand, SearchPath.WINDOWED, ro.min_score, s.prior, label="windowed search",
+                               known_ok=True)
             # Two places fit inside the prior's own window: no wider search can tell them apart.
-            if res.success or res.verdict == "ambiguous":
+            if res.success or res.verdict == PoseVerdict.AMBIGUOUS:
                 return res
         elif cand is not None:
             s.reasons.append(f"windowed search's best ({cand.score:.3f}) is at the edge of its window")
@@ -764,7 +773,7 @@ class Relocalizer:
         # Four times the area and twice the headings: more room for a chance fit, so the stricter
         # score of the whole-submap searches (on bench/intel, sparse, the wide pass at min_score
         # added 5 answers 0.6-1 m off, all scoring below global_min_score).
-        res = self._finish(s, cand, "windowed-wide", max(ro.min_score, ro.global_min_score), s.prior,
+        res = self._finish(s, cand, SearchPath.WINDOWED_WIDE, max(ro.min_score, ro.global_min_score), s.prior,
                            label=f"wide windowed search (±{wlin:.1f} m / ±{math.degrees(wang):.0f} deg)")
         return res if res.success else None
 
@@ -801,17 +810,17 @@ class Relocalizer:
         if not cands:
             s.reasons.append(f"fallback over {len(near)} nearby submaps found nothing above {s.search_floor:g}")
             return None
-        res = self._decide(s, cands, "fallback-filtered", ro.global_min_score, s.prior,
+        res = self._decide(s, cands, SearchPath.FALLBACK_FILTERED, ro.global_min_score, s.prior,
                            label=f"fallback over {len(near)} nearby submaps")
         return res if res.success else None
 
     def _fallback_all(self, s: _Search) -> RelocalizationResult:
         """'fallback-all': every (covering) submap not searched yet, whole. Always answers."""
         if not s.rest:
-            return self._finish(s, None, "fallback-all", self.ro.global_min_score, s.prior)
+            return self._finish(s, None, SearchPath.FALLBACK_ALL, self.ro.global_min_score, s.prior)
         s.considered.extend(i for i in s.rest if i not in s.considered)
         cands = self._whole(s.search_pts, s.rest, s.search_floor, s.tm, margin=_AMBIGUITY_MARGIN)
-        return self._decide(s, cands, "fallback-all", self.ro.global_min_score, s.prior)
+        return self._decide(s, cands, SearchPath.FALLBACK_ALL, self.ro.global_min_score, s.prior)
 
     def _global_covering(self, s: _Search) -> RelocalizationResult | None:
         """'global', first the covering submaps, each over the box of its nodes; the answer when no other submap
@@ -823,9 +832,10 @@ class Relocalizer:
         s.candidates = self._whole(s.search_pts, submaps, s.search_floor, s.tm, margin=_AMBIGUITY_MARGIN)
         s.rest = [i for i in self.searchable if i not in set(submaps)]
         if not s.rest:
-            res = self._decide(s, s.candidates, "global", self.ro.global_min_score, np.zeros(3))
+            res = self._decide(s, s.candidates, SearchPath.GLOBAL, self.ro.global_min_score, np.zeros(3))
             return self._second_look(s, submaps, res)
-        res = self._decide(s, s.candidates, "global", self.ro.global_min_score, np.zeros(3), label="covering submaps")
+        res = self._decide(s, s.candidates, SearchPath.GLOBAL, self.ro.global_min_score, np.zeros(3),
+                           label="covering submaps")
         return res if res.success else None
 
     def _second_look(self, s: _Search, submaps: Sequence[int], res: RelocalizationResult) -> RelocalizationResult:
@@ -833,7 +843,7 @@ class Relocalizer:
         map_server image): the search again with _SECOND_LOOK_BETS bets, decided anew when it finds a place scoring
         above the first answer. Costs only queries that failed (bench-dense/intel's image: 6 of 100 global queries
         right there lost with 6 bets, scoring 0.50-0.71 against 0.82-0.85 at the right place)."""
-        if (res.verdict == "ok" or not s.second_look or not self.ro.multilevel_global_search
+        if (res.verdict == PoseVerdict.OK or not s.second_look or not self.ro.multilevel_global_search
                 or max(len(submaps), 1) >= _GLOBAL_BETS):
             return res
         first = max(c.score for c in s.candidates) if s.candidates else 0.0
@@ -844,7 +854,7 @@ class Relocalizer:
         s.reasons.append(f"second look with {_SECOND_LOOK_BETS} bets")
         # Four times the places tried raise the best wrong place's score: the answer must stand further out
         s.max_ambiguity = min(self.ro.max_ambiguity, _SECOND_LOOK_MAX_AMBIGUITY)
-        return self._decide(s, sorted(more + s.candidates, key=lambda c: -c.score), "global",
+        return self._decide(s, sorted(more + s.candidates, key=lambda c: -c.score), SearchPath.GLOBAL,
                             self.ro.global_min_score, np.zeros(3))
 
     def _global_rest(self, s: _Search) -> RelocalizationResult:
@@ -854,7 +864,7 @@ class Relocalizer:
         more = self._whole(s.search_pts, s.rest, s.search_floor, s.tm, margin=_AMBIGUITY_MARGIN)
         top = max([c.score for c in s.candidates + more], default=0.0)
         cands = sorted((c for c in s.candidates + more if c.score >= top - _AMBIGUITY_MARGIN), key=lambda c: -c.score)
-        return self._decide(s, cands, "global", self.ro.global_min_score, np.zeros(3))
+        return self._decide(s, cands, SearchPath.GLOBAL, self.ro.global_min_score, np.zeros(3))
 
     def _finish(self, s: _Search, cand: Candidate | None, path: str, threshold: float, fallback_pose, *,
                 label: str = "", rivals: Sequence[Candidate] = (), known_ok: bool = False) -> RelocalizationResult:
@@ -873,27 +883,27 @@ class Relocalizer:
         ok, reason = fit.ok, fit.reason
         t = time.perf_counter()
         cov = self.covariance(cand.submap, s.fine_pts, transform.compose(self.map_to_grid[cand.submap], pose))
-        verdict = "ok" if ok else "lost"
+        verdict = PoseVerdict.OK if ok else PoseVerdict.LOST
         ambiguity, rival_pose, rival_note = self._ambiguity(s, cand, pose, rivals, path)
         s.tm.add("scan scoring", t)
         limit = self.ro.max_ambiguity if s.max_ambiguity is None else s.max_ambiguity
         if ok and ambiguity >= limit:
-            verdict = "ambiguous"
+            verdict = PoseVerdict.AMBIGUOUS
             reason = f"ambiguous: {rival_note} (ratio {ambiguity:.3f}, at least {limit:g})"
-        if ok and s.max_jump is not None and s.prior is not None and path != "global":
+        if ok and s.max_jump is not None and s.prior is not None and path != SearchPath.GLOBAL:
             jump = math.hypot(*(pose[:2] - s.prior[:2]))
             if jump > s.max_jump:
-                verdict = "lost"
+                verdict = PoseVerdict.LOST
                 reason = f"the answer is {jump:.2f} m from the prior (more than --max-jump {s.max_jump:g} m)"
         if reason:
             s.reasons.append(f"{label}: {reason}" if label else reason)
         timings, total = s.tm.finish()
-        result = RelocalizationResult(pose, fit.score, path, verdict == "ok", s.considered, timings, total,
+        result = RelocalizationResult(pose, fit.score, path, verdict == PoseVerdict.OK, s.considered, timings, total,
                                       cand.submap, cand.score, "; ".join(s.reasons), threshold, fit.known_fraction,
                                       fit.known_score, fit.see_through, verdict, cov, ambiguity, rival_pose,
                                       fit.inlier_fraction)
-        rank = {"lost": 0, "ambiguous": 1}
-        if verdict != "ok" and (s.failed is None or (rank[verdict], fit.score) > (rank[s.failed.verdict],
+        rank: dict[str, int] = {PoseVerdict.LOST: 0, PoseVerdict.AMBIGUOUS: 1}
+        if verdict != PoseVerdict.OK and (s.failed is None or (rank[verdict], fit.score) > (rank[s.failed.verdict],
                                                                                   s.failed.score)):
             s.failed = result  # an ambiguous answer says more than a lost one, a better score more than a worse
         return result
@@ -903,7 +913,7 @@ class Relocalizer:
         """(best distinct rival's search score / the answer's, its map pose, a note): the other submaps' bests,
         and the best pose of the answer's own search window away from the answer (``branch_and_bound.best_rival``).
         With a prior, a rival farther from it than the answer (by more than _DISTINCT_XY) does not count."""
-        prior = None if path == "global" else s.prior
+        prior = None if path == SearchPath.GLOBAL else s.prior
         best: tuple[float, np.ndarray | None, str] = (0.0, None, "")
         rival = self._rival(cand, pose, rivals, prior)
         if rival is not None and cand.score > 0:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from carto_cli.core.enums import TextEnum
 from carto_cli.io.atomic import atomic_output
 from carto_cli.relocalization.queries import Query
 
@@ -20,17 +21,36 @@ __all__ = [
     "VERDICTS",
     "BatchSummary",
     "Latency",
+    "PoseVerdict",
     "QueryResult",
     "RelocalizationResult",
+    "SearchPath",
     "Timings",
     "summarize",
     "write_results_csv",
 ]
 
-# The search stage a result came from (RelocalizationResult.path), in the order a query tries them.
-PATHS = ("windowed", "windowed-wide", "fallback-filtered", "fallback-all", "global")
+class SearchPath(TextEnum):
+    """The search stage a result came from (RelocalizationResult.path), in the order a query tries them."""
+
+    WINDOWED = "windowed"
+    WINDOWED_WIDE = "windowed-wide"
+    FALLBACK_FILTERED = "fallback-filtered"
+    FALLBACK_ALL = "fallback-all"
+    GLOBAL = "global"
+
+
+class PoseVerdict(TextEnum):
+    """What a relocalization (or a tracked scan) concludes of its pose."""
+
+    OK = "ok"
+    AMBIGUOUS = "ambiguous"  # it fits, and so does a distinct rival nearly as well
+    LOST = "lost"  # nothing fits well enough, or the answer jumped farther than allowed
+
+
+PATHS = tuple(SearchPath)
 TIMING_BUCKETS = ("submap preparation", "pose search", "scan scoring", "other")
-VERDICTS = ("ok", "ambiguous", "lost")
+VERDICTS = tuple(PoseVerdict)
 # The batch CSV: the scan, then the same fields as one answer's JSON (RelocalizationResult.to_dict), flattened.
 CSV_COLUMNS = ("t", "scan_index", "x", "y", "yaw", "verdict", "score", "ambiguity", "inlier_fraction",
                "context_checked", "context_through_walls", "cov_xx",
@@ -79,7 +99,7 @@ class Latency:
 class RelocalizationResult:
     pose: np.ndarray  # (x, y, yaw) tracking frame in the map frame (refined when the refinement was trusted)
     score: float  # score_at of ``pose`` on ``submap`` (mean probability, 0.1..0.9); 0 when nothing was found
-    path: str  # one of PATHS
+    path: str  # a SearchPath
     success: bool  # found, score >= the path's threshold, refinement consistent
     submaps_considered: list[int]  # every submap searched, in search order
     timings: dict[str, float]  # ms per TIMING_BUCKETS
@@ -94,7 +114,7 @@ class RelocalizationResult:
     # How far to trust ``pose``: ``verdict`` 'ok' (success), 'ambiguous' (a different place fits about as well:
     # ``ambiguity`` = the best distinct rival's search score / the answer's, ``rival`` its map pose) or 'lost'
     # (nothing fits well enough, or the answer jumped farther than allowed); ``reason`` says why.
-    verdict: str = ""  # '' -> from ``success``: 'ok' or 'lost'
+    verdict: str = ""  # a PoseVerdict; '' -> from ``success``: OK or LOST
     covariance: np.ndarray | None = None  # (3, 3) of (x, y, yaw) in the map frame (m^2, rad^2)
     ambiguity: float = 0.0
     rival: np.ndarray | None = None
@@ -106,9 +126,10 @@ class RelocalizationResult:
 
     def __post_init__(self):
         if not self.verdict:
-            self.verdict = "ok" if self.success else "lost"
+            self.verdict = PoseVerdict.OK if self.success else PoseVerdict.LOST
         if self.verdict not in VERDICTS:
-            raise ValueError(f"verdict must be one of {VERDICTS}, got {self.verdict!r}")
+            raise ValueError(f"verdict must be one of {', '.join(VERDICTS)}, got {self.verdict!r}")
+        self.verdict = PoseVerdict(self.verdict)
 
     @property
     def sigmas(self) -> tuple[float, float, float] | None:
@@ -188,8 +209,8 @@ class BatchSummary:
 
 def summarize(results: Sequence[QueryResult]) -> BatchSummary:
     ok = sum(bool(q.result.success) for q in results)
-    paths = {p: sum(q.result.path == p for q in results) for p in PATHS}
-    verdicts = {v: sum(q.result.verdict == v for q in results) for v in VERDICTS}
+    paths = {p.value: sum(q.result.path == p for q in results) for p in SearchPath}
+    verdicts = {v.value: sum(q.result.verdict == v for q in results) for v in PoseVerdict}
     buckets = {b: float(np.mean([q.result.timings[b] for q in results])) if results else 0.0 for b in TIMING_BUCKETS}
     lat = Latency.of([q.result.total_ms for q in results])
     return BatchSummary(len(results), ok, ok / len(results) if results else 0.0, lat.p50_ms or 0.0,

@@ -31,6 +31,7 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan
 from carto_cli.relocalization.following import follow
 from carto_cli.relocalization.relocalizer import Relocalizer
+from carto_cli.relocalization.result import PoseVerdict
 
 __all__ = ["TRACK_COLUMNS", "TrackSummary", "TrackedScan", "Tracker", "summarize_track"]
 
@@ -115,7 +116,7 @@ class Tracker:
             out = self._step(rec, index, pose, prev_odom, scan_odom, velocity, failures, initial_pose, sigma_xy,
                              sigma_yaw)
             out.ms = (time.perf_counter() - t0) * 1e3
-            if out.pose is not None and out.verdict == "ok":
+            if out.pose is not None and out.verdict == PoseVerdict.OK:
                 if pose is not None:
                     velocity = transform.relative(pose, out.pose)
                 pose = out.pose
@@ -145,7 +146,7 @@ class Tracker:
         # Searches only every ``lost_after`` failed scans: a robot lost for a while is not searched for at 10 Hz.
         if failures >= self.lost_after and (failures - self.lost_after) % self.lost_after == 0:
             res = self._search(scan, index, predicted, 0.5, math.radians(10.0), f"{failures} scans lost")
-            if res.verdict == "ok":
+            if res.verdict == PoseVerdict.OK:
                 return res
             return self._search(scan, index, None, None, None, f"{failures} scans lost; windowed search failed")
         with_odometry = prev_odom is not None and odom is not None
@@ -153,12 +154,12 @@ class Tracker:
         f = follow(self.reloc, scan, predicted, self.mount, self.min_score, correlate=not with_odometry,
                    max_slide=self.max_slide, timings=self.timings)
         if f is None:
-            return TrackedScan(index, scan.time, predicted, "lost", "none", reason="no returns in range")
+            return TrackedScan(index, scan.time, predicted, PoseVerdict.LOST, "none", reason="no returns in range")
         t = time.perf_counter()
         cov = self.reloc.covariance(f.submap, f.points, f.grid_pose)
         sig = tuple(float(v) for v in np.sqrt(np.maximum(np.diag(cov), 0.0)))
         self._add("judging", t)
-        return TrackedScan(index, scan.time, f.pose, "ok" if f.ok else "lost", "track", f.fit.score,
+        return TrackedScan(index, scan.time, f.pose, PoseVerdict.OK if f.ok else PoseVerdict.LOST, "track", f.fit.score,
                            f.fit.inlier_fraction, (sig[0], sig[1], sig[2]), reason=f.reason)
 
     def _search(self, scan: Scan, index: int, prior, sigma_xy, sigma_yaw, why: str) -> TrackedScan:
@@ -176,7 +177,7 @@ class Tracker:
                 r = self.reloc.relocalize(scan, None, laser_pose=self.mount, second_look=False)
         finally:
             self._add("relocalization", t)
-        return TrackedScan(index, scan.time, r.pose if r.verdict != "lost" else None, r.verdict,
+        return TrackedScan(index, scan.time, r.pose if r.verdict != PoseVerdict.LOST else None, r.verdict,
                            f"relocalize:{r.path}", r.score, r.inlier_fraction, r.sigmas,
                            reason=f"{why}: {r.reason}" if r.reason else why)
 
@@ -189,8 +190,8 @@ class Tracker:
 def summarize_track(scans: list[TrackedScan], seconds: float, relocalizations: int,
                     timings: dict[str, float]) -> TrackSummary:
     """Counts, first fix and rate of a tracked recording (``seconds``: its whole processing time)."""
-    verdicts = {v: sum(s.verdict == v for s in scans) for v in ("ok", "ambiguous", "lost")}
-    first = next((k for k, s in enumerate(scans) if s.verdict == "ok"), None)
+    verdicts = {v.value: sum(s.verdict == v for s in scans) for v in PoseVerdict}
+    first = next((k for k, s in enumerate(scans) if s.verdict == PoseVerdict.OK), None)
     first_s = None if first is None else float(sum(s.ms for s in scans[:first + 1])) / 1e3
     return TrackSummary(len(scans), verdicts, relocalizations, None if first is None else scans[first].index,
                         first_s, seconds, len(scans) / seconds if seconds > 0 else 0.0,
