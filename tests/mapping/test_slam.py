@@ -8,7 +8,7 @@ import pytest
 from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Imu, Odometry, Scan
-from carto_cli.mapping import slam as slam_module
+from carto_cli.mapping import graph_runner
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.slam import Slam
 from carto_cli.options import load_options
@@ -91,12 +91,12 @@ def test_closing_after_a_failure_drops_the_nodes_the_graph_has_not_started(simul
         scans = [r for r in rec.records() if isinstance(r, Scan)][:60]
     for scan in scans:
         slam.add_scan(scan)
-    background = slam._background
+    runner = slam.runner
     while not started:  # the graph's thread is inside the first node
         time.sleep(0.001)
     closer = threading.Thread(target=slam.close, kwargs={"abandon": True})
     closer.start()
-    while not background._abandoned:  # close() gives up on the queue before it waits
+    while not runner.abandoned:  # close() gives up on the queue before it waits
         time.sleep(0.001)
     release.set()
     closer.join(10)
@@ -178,7 +178,7 @@ def test_an_early_error_in_the_graphs_process_stops_mapping_with_that_error(simu
         raise RuntimeError("graph failed")
 
     monkeypatch.setattr(PoseGraph, "add_node", broken)
-    monkeypatch.setattr(slam_module, "BACKLOG", 1)  # the queue fills at once: mapping notices the child is gone
+    monkeypatch.setattr(graph_runner, "BACKLOG", 1)  # the queue fills at once: mapping notices the child is gone
     slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
     with simulation.recording() as rec, pytest.raises(RuntimeError, match="graph failed"):
         _feed(slam, rec.records(), limit=100)
@@ -189,14 +189,14 @@ def test_a_graph_process_that_dies_is_a_clear_error(simulation):
     slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
     with simulation.recording() as rec:
         _feed(slam, rec.records(), limit=20)
-    slam._process._process.kill()
+    slam.runner.child.kill()
     with pytest.raises(CartoError, match="pose graph's process ended unexpectedly, exit code -9"):
         slam.finish()
 
 
 def test_abandoning_stops_the_graphs_process_at_once(simulation):
     slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose, jobs=2)
-    child = slam._process._process
+    child = slam.runner.child
     with simulation.recording() as rec:
         _feed(slam, rec.records(), limit=60)
     slam.close(abandon=True)
