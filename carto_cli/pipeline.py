@@ -25,12 +25,12 @@ from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.quality import LEVELS, MapQuality, assess
-from carto_cli.mapping.slam import Slam, SlamResult
+from carto_cli.mapping.slam import MappingSystem, Slam, SlamResult
 from carto_cli.options import Options, load_options
 from carto_cli.regime import AutoChoice, Regime, choose, survey
 
 if TYPE_CHECKING:
-    from carto_cli.gmapping.filter import GMappingSlam
+    pass
 
 
 @dataclass
@@ -251,7 +251,7 @@ def build(
     mount, mount_source = resolve_laser_pose(recording, scan_frame, laser_pose,
                                              selection.tf_odometry.fixed if selection.tf_odometry else ())
     tb = options.trajectory_builder_2d
-    slam: Slam | GMappingSlam
+    slam: MappingSystem
     if algorithm == Algorithm.GMAPPING:
         from carto_cli.gmapping.filter import GMappingSlam  # a Cartographer run never loads it (0.4 s)
 

@@ -187,7 +187,8 @@ class GMappingSlam:
         return Beams(origin, np.ascontiguousarray(ends), hit, np.ascontiguousarray(data.returns[usable]), data)
 
     def add_scan(self, scan: Scan) -> bool:
-        """Feed one scan; True when it was processed (the others are placed by odometry at the end)."""
+        """Feed one scan; True when it was processed, i.e. became a node (the others are placed by odometry at the
+        end)."""
         self.num_scans += 1
         timer = self.timer
         with timer.scan():

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -23,10 +24,35 @@ from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
 from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
 from carto_cli.mapping.graph_runner import GraphRunner, start_graph
-from carto_cli.mapping.local_slam import LocalSlam, LocalSlamResult
+from carto_cli.mapping.local_slam import LocalSlam
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options
+
+
+class MappingSystem(Protocol):
+    """What a mapping system is to the pipeline that feeds it (``Slam``; ``gmapping``'s ``GMappingSlam`` and
+    ``ScanToMapSlam``): time-ordered measurements in, a :class:`SlamResult` out."""
+
+    timer: Any
+    num_scans: int  # scans fed
+
+    @property
+    def num_poses(self) -> int:
+        """Scans that got a pose so far."""
+
+    def add_scan(self, scan: Scan) -> bool:
+        """Feed one scan; True when it became a node of the map."""
+
+    def add_odometry(self, odometry: Odometry) -> None: ...
+
+    def add_imu(self, imu: Imu) -> None: ...
+
+    def close(self, abandon: bool = False) -> None:
+        """Stop whatever runs beside the caller (``abandon``: mapping failed or was interrupted)."""
+
+    def finish(self) -> SlamResult:
+        """Every scan's pose and the map; call once."""
 
 
 @dataclass
@@ -90,7 +116,8 @@ class Slam:
     def num_poses(self) -> int:
         return len(self._times)
 
-    def add_scan(self, scan: Scan) -> LocalSlamResult | None:
+    def add_scan(self, scan: Scan) -> bool:
+        """Feed one scan; True when it became a node of the map (a scan local SLAM matched and inserted)."""
         self.num_scans += 1
         timer = self.timer
         # Global SLAM work a scan triggers counts in that scan, so per-scan percentiles show its spikes.
@@ -105,11 +132,11 @@ class Slam:
                                      self.trajectory_id, finished)
                 self._node_scans.append(len(self._times))
         if result is None or not self._node_scans:
-            return result  # nothing to anchor a scan to before the first node
+            return False  # nothing to anchor a scan to before the first node
         self._times.append(result.time)
         self._local_poses.append(result.local_pose)
         self._scan_node.append(len(self._node_scans) - 1)
-        return result
+        return result.insertion is not None
 
     def add_odometry(self, odometry: Odometry) -> None:
         self.runner.add_odometry(odometry.time, (odometry.x, odometry.y, odometry.yaw), self.trajectory_id)
