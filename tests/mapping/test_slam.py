@@ -201,3 +201,16 @@ def test_abandoning_stops_the_graphs_process_at_once(simulation):
         _feed(slam, rec.records(), limit=60)
     slam.close(abandon=True)
     assert not child.is_alive()
+
+
+def test_add_scan_says_which_scans_became_nodes(simulation):
+    slam = Slam(load_options("wheeled"), laser_pose=simulation.laser_pose)
+    became = 0
+    with simulation.recording() as rec:
+        for record in rec.records():
+            if isinstance(record, Scan):
+                became += slam.add_scan(record) is True
+            elif isinstance(record, Odometry):
+                slam.add_odometry(record)
+    result = slam.finish()
+    assert 0 < became == result.stats["nodes"] < result.stats["scans"]
