@@ -20,19 +20,28 @@ from collections.abc import Callable
 from typing import Protocol
 
 from carto_cli.core import interrupts
+from carto_cli.core.enums import TextEnum
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import give_back, peak_kb, reset_peak, status_kb
 from carto_cli.core.parallel import die_with_parent, fork_safe
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.submaps import Submap
 
-__all__ = ["BACKLOG", "ForkedGraph", "GraphRunner", "InlineGraph", "ThreadedGraph", "start_graph"]
+__all__ = ["BACKLOG", "ForkedGraph", "GraphPlace", "GraphRunner", "InlineGraph", "ThreadedGraph", "start_graph"]
+
+
+class GraphPlace(TextEnum):
+    """Where the graph runs."""
+
+    INLINE = "inline"
+    THREAD = "thread"
+    PROCESS = "process"
 
 
 class GraphRunner(Protocol):
     """The pose graph as local SLAM feeds it (``Slam``): nodes and odometry in the order they were made."""
 
-    kind: str  # where the graph runs: inline | thread | process
+    kind: GraphPlace
     # the peak memory of this process and the graph's together while the graph ran apart (0: it ran here)
     peak_memory_mb: float
 
@@ -268,7 +277,7 @@ def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply, parent: int) 
 class InlineGraph:
     """One job: each call runs at once, in the caller's thread."""
 
-    kind = "inline"
+    kind = GraphPlace.INLINE
     peak_memory_mb = 0.0
 
     def __init__(self, graph: PoseGraph, timer):
@@ -290,7 +299,7 @@ class InlineGraph:
 class ThreadedGraph:
     """The graph's calls queued to one thread of its own; its searches on ``jobs`` threads."""
 
-    kind = "thread"
+    kind = GraphPlace.THREAD
     peak_memory_mb = 0.0
 
     def __init__(self, graph: PoseGraph, jobs: int, timer):
@@ -325,7 +334,7 @@ class ForkedGraph:
     """The graph in a forked process (:class:`_GraphProcess`); at ``join`` its data is put into the caller's graph,
     whose submaps are local SLAM's own (the process had stand-ins)."""
 
-    kind = "process"
+    kind = GraphPlace.PROCESS
 
     def __init__(self, graph: PoseGraph, jobs: int, timer, trajectory: int):
         self.graph = graph

@@ -23,7 +23,7 @@ from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer
 from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
-from carto_cli.mapping.graph_runner import GraphRunner, start_graph
+from carto_cli.mapping.graph_runner import GraphPlace, GraphRunner, start_graph
 from carto_cli.mapping.local_slam import LocalSlam
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.submaps import Submap
@@ -108,8 +108,8 @@ class Slam:
         self.graph_process_peak_memory_mb = 0.0
 
     @property
-    def graph_runs(self) -> str:
-        """Where the graph runs: inline (one job) | thread | process."""
+    def graph_runs(self) -> GraphPlace:
+        """Where the graph runs: inline (one job), on a thread, or in a process."""
         return self.runner.kind
 
     @property
