@@ -21,6 +21,7 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -30,7 +31,7 @@ from carto_cli.core.parallel import Done
 from carto_cli.core.timing import NullTimer
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure, NodeData, SubmapData
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
-from carto_cli.mapping.optimization import NodePairs, OptimizationSummary, optimize, residuals
+from carto_cli.mapping.optimization import NodePairs, OptimizationResult, OptimizationSummary, optimize, residuals
 from carto_cli.mapping.pose_graph_state import PoseGraphState, SubmapEntry, odometry_at_nodes
 from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options
@@ -75,6 +76,48 @@ class _Growing:
 
 
 @dataclass
+class PendingClosure:
+    """A loop closure found while ``confirm_loop_closures`` is on, kept per submap: ``inserted`` once a closure of
+    a neighbouring node agreed with it and both went into the graph."""
+
+    node: int
+    relative: np.ndarray  # the node's pose in the submap's frame
+    inserted: bool
+
+
+@dataclass(frozen=True)
+class OptimizationProblem:
+    """One optimization's inputs, copied when it starts: a solve beside the next nodes reads nothing live."""
+
+    node_poses: np.ndarray
+    submap_poses: np.ndarray
+    constraints: ConstraintSet
+    odometry: NodePairs | None
+    local_slam: NodePairs
+    huber_scale: float
+    max_num_iterations: int
+    fixed_submaps: tuple[int, ...] = (0,)
+
+    def solve(self) -> tuple[OptimizationResult, int]:
+        """The optimized poses and how long the solve took (ns), on whichever thread runs it."""
+        start = time.perf_counter_ns()
+        result = optimize(self.node_poses, self.submap_poses, self.constraints, self.odometry, self.local_slam,
+                          huber_scale=self.huber_scale, max_num_iterations=self.max_num_iterations,
+                          fixed_submaps=self.fixed_submaps)
+        return result, time.perf_counter_ns() - start
+
+
+@dataclass(frozen=True)
+class RunningOptimization:
+    """The periodic optimization running beside the next nodes: its result to come, and what it had."""
+
+    task: Any  # a Future or core.parallel.Done of OptimizationProblem.solve's answer
+    num_nodes: int
+    num_submaps: int
+    thread: Any  # its timer branch when it runs on the solver's thread; None when computed inline
+
+
+@dataclass
 class PoseGraphStats:
     optimizations: int = 0
     optimization_time_s: float = 0.0
@@ -114,12 +157,11 @@ class PoseGraph:
         self._finished: set[int] = set()
         self.stats = PoseGraphStats()
         self._nodes_since_optimization = 0
-        # confirm_loop_closures: per submap, [node, relative pose, added] of every closure found
-        self._pending_closures: dict[int, list[list]] = {}
+        # confirm_loop_closures: per submap, every closure found there
+        self._pending_closures: dict[int, list[PendingClosure]] = {}
         self.unconfirmed_loop_closures = 0
         self._in_flight: list = []  # searches started, in order, whose closures are not yet added
-        # The periodic optimization running beside the next nodes: (its result to come, nodes, submaps it had).
-        self._running: tuple | None = None
+        self._running: RunningOptimization | None = None  # the periodic optimization beside the next nodes
         self._solver: ThreadPoolExecutor | None = None  # its thread, with more than one job
 
     # ------------------------------------------------------------------ state in and out
@@ -365,7 +407,7 @@ class PoseGraph:
         """Up to CONFIRM_NEIGHBOURS nodes nearest to ``node`` along its trajectory, not in ``submap`` and without
         a closure to it already (a second search would only add the same constraint twice)."""
         members = set(self.submaps[submap].nodes)
-        members.update(entry[0] for entry in self._pending_closures.get(submap, ()))
+        members.update(entry.node for entry in self._pending_closures.get(submap, ()))
         trajectory = self.node_trajectory[node]
         out = []
         for step in range(1, CONFIRM_MAX_NODES + 1):
@@ -386,7 +428,8 @@ class PoseGraph:
         # does. A closure waits until a closure of another node of the same trajectory, near it along the
         # trajectory, places both nodes in the submap as local SLAM places them relative to each other.
         pending = self._pending_closures.setdefault(lc.submap, [])
-        agreeing = [entry for entry in pending if self._closures_agree(entry[0], entry[1], lc.node, lc.relative_pose)]
+        agreeing = [entry for entry in pending
+                    if self._closures_agree(entry.node, entry.relative, lc.node, lc.relative_pose)]
         if not agreeing and not confirming:
             # The samplers search only a share of the pairs, so the neighbours that could confirm this closure
             # may never be tried: search the nearest ones against this submap now.
@@ -399,15 +442,15 @@ class PoseGraph:
                 if found is not None:
                     self._add_loop_closure(found, confirming=True)
             agreeing = [entry for entry in pending
-                        if self._closures_agree(entry[0], entry[1], lc.node, lc.relative_pose)]
+                        if self._closures_agree(entry.node, entry.relative, lc.node, lc.relative_pose)]
         if agreeing:
             self._insert_loop_closure(lc.node, lc.submap, lc.relative_pose)
             for entry in agreeing:
-                if not entry[2]:
-                    self._insert_loop_closure(entry[0], lc.submap, entry[1])
-                    entry[2] = True
+                if not entry.inserted:
+                    self._insert_loop_closure(entry.node, lc.submap, entry.relative)
+                    entry.inserted = True
                     self.unconfirmed_loop_closures -= 1
-        pending.append([lc.node, lc.relative_pose, bool(agreeing)])
+        pending.append(PendingClosure(lc.node, lc.relative_pose, bool(agreeing)))
         self.unconfirmed_loop_closures += 0 if agreeing else 1
 
     def _closures_agree(self, m: int, rel_m: np.ndarray, n: int, rel_n: np.ndarray) -> bool:
@@ -509,24 +552,23 @@ class PoseGraph:
             self._solver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="carto-optimize")
         if self._solver is None:
             with self.timer.stage("optimization"):
-                task: object = Done(_timed_optimize(problem))
+                task: Any = Done(problem.solve())
             thread = None
         else:
-            task = self._solver.submit(_timed_optimize, problem)
+            task = self._solver.submit(problem.solve)
             thread = self.timer.concurrent(OPTIMIZER_THREAD)
-        self._running = (task, self.num_nodes, len(self.submaps), thread)
+        self._running = RunningOptimization(task, self.num_nodes, len(self.submaps), thread)
 
     def _land(self) -> None:
         """Apply the optimization running beside the nodes, if any (waiting for it)."""
         running, self._running = self._running, None
         if running is None:
             return
-        task, num_nodes, num_submaps, thread = running
         with self.timer.stage("optimization wait"):
-            result, ns = task.result()
-        if thread is not None:  # computed inline, it was timed where it ran
-            thread.add("optimization", ns)
-        self._apply(result, num_nodes, num_submaps)
+            result, ns = running.task.result()
+        if running.thread is not None:  # computed inline, it was timed where it ran
+            running.thread.add("optimization", ns)
+        self._apply(result, running.num_nodes, running.num_submaps)
 
     def optimize(self, final: bool = False) -> OptimizationSummary | None:
         self.settle()
@@ -561,7 +603,7 @@ class PoseGraph:
         drop[idx] = True
         return self.constraints.remove(drop)
 
-    def _problem(self, final: bool) -> dict | None:
+    def _problem(self, final: bool) -> OptimizationProblem | None:
         """The optimization's inputs at this moment, copied: a solve beside the next nodes reads nothing live."""
         if self.num_nodes == 0 or not self.submaps:
             return None
@@ -576,9 +618,8 @@ class PoseGraph:
             odometry = NodePairs.consecutive(odom, traj, translation_weight=op.odometry_translation_weight,
                                              rotation_weight=op.odometry_rotation_weight)
         iterations = self.pg.max_num_final_iterations if final else op.ceres_solver_options.max_num_iterations
-        return {"node_poses": self.global_poses.copy(), "submap_poses": self.submap_global_poses,
-                "constraints": self.constraints.copy(), "odometry": odometry, "local_slam": local,
-                "huber_scale": op.huber_scale, "max_num_iterations": iterations, "fixed_submaps": (0,)}
+        return OptimizationProblem(self.global_poses.copy(), self.submap_global_poses, self.constraints.copy(),
+                                   odometry, local, op.huber_scale, iterations)
 
     def _optimize(self, final: bool = False) -> OptimizationSummary | None:
         self._nodes_since_optimization = 0
@@ -586,7 +627,7 @@ class PoseGraph:
             problem = self._problem(final)
             if problem is None:
                 return None
-            result = optimize(**problem)
+            result, _ = problem.solve()
         return self._apply(result, self.num_nodes, len(self.submaps))
 
     def _apply(self, result, num_nodes: int, num_submaps: int) -> OptimizationSummary:
@@ -641,13 +682,6 @@ class PoseGraph:
     @property
     def num_loop_closures(self) -> int:
         return int(self.constraints.num_loop_closures)
-
-
-def _timed_optimize(problem: dict):
-    """``optimize(**problem)`` and how long it took (ns), on whichever thread runs it."""
-    start = time.perf_counter_ns()
-    result = optimize(**problem)
-    return result, time.perf_counter_ns() - start
 
 
 @register_warm_up(system="cartographer")
