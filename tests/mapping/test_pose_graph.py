@@ -354,3 +354,17 @@ def test_a_periodic_optimization_is_taken_a_period_later_and_carries_the_nodes_a
     graph.optimize(final=True)  # takes it, then the final one
     graph.close()
     assert graph.stats.optimizations == 3
+
+
+def test_what_a_graph_hands_back_from_its_process_names_every_attribute():
+    """export_data / import_data go by PoseGraph.EXPORTED; with NOT_EXPORTED it must name everything a graph holds,
+    so that a new attribute is handed back (or left out) on purpose."""
+    graph = _graph(loop_closure=True)
+    exported, kept = set(PoseGraph.EXPORTED), set(PoseGraph.NOT_EXPORTED)
+    assert not exported & kept
+    assert set(vars(graph)) == exported | kept
+    data = graph.export_data()
+    assert set(data) == exported | {"submaps", "builder"}
+    other = _graph(loop_closure=True)
+    other.import_data(data, {}, trajectory=0)
+    assert all(getattr(other, name) is data[name] for name in exported)
