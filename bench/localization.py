@@ -73,7 +73,7 @@ class _Recording:
 
     def context(self, i: int):
         from carto_cli.relocalization import ScanContext
-        from carto_cli.relocalization.following import CONTEXT_SECONDS
+        from carto_cli.relocalization.queries import CONTEXT_SECONDS
 
         k, t = self.at[i], self.scans[i].time
         lo = int(np.searchsorted(self.times, t - CONTEXT_SECONDS, side="left"))

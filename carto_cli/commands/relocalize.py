@@ -43,7 +43,7 @@ from carto_cli.relocalization import (
     write_results_csv,
 )
 from carto_cli.relocalization.auto import AutoRelocalization, choose_for_map, choose_for_scans
-from carto_cli.relocalization.following import CONTEXT_SECONDS
+from carto_cli.relocalization.queries import CONTEXT_SECONDS
 from carto_cli.relocalization.result import PoseVerdict
 from carto_cli.relocalization.tracking import TRACK_COLUMNS, TrackedScan, Tracker, TrackSummary, summarize_track
 

@@ -28,7 +28,7 @@ from carto_cli.relocalization import (
     scans_for_queries,
     select_scan_topic,
 )
-from carto_cli.relocalization.following import CONTEXT_SECONDS
+from carto_cli.relocalization.queries import CONTEXT_SECONDS
 
 __all__ = ["Outcome", "Probe", "Summary", "every_nth_scan", "pose_error", "run_probes", "scans_by_index",
            "scans_with_context", "summarize_outcomes", "within"]

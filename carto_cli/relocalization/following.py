@@ -23,18 +23,39 @@ import math
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.records import Odometry, Record, Scan
 from carto_cli.matching import correlative
+from carto_cli.relocalization.queries import ScanContext
+from carto_cli.relocalization.result import Fit
 
 if TYPE_CHECKING:
-    from carto_cli.relocalization.relocalizer import Fit, Relocalizer
+    from carto_cli.matching.least_squares import CeresScanMatcher
+    from carto_cli.options.schema import Relocalization
 
-__all__ = ["CONTEXT_SECONDS", "ContextCheck", "Followed", "ScanContext", "check_context", "follow"]
+__all__ = ["ContextCheck", "Followed", "MapToFollow", "check_context", "follow"]
+
+
+class MapToFollow(Protocol):
+    """What following a scan needs of the map it follows in (``Relocalizer`` is one): its grids and their frames,
+    the scan preparation and the judgement of relocalization, so that both judge a pose alike."""
+
+    grids: list
+    map_to_grid: np.ndarray  # (M, 3) each submap's grid frame seen from the map frame
+    grid_to_map: np.ndarray
+    ceres: CeresScanMatcher
+    ro: Relocalization
+
+    def preprocess(self, scan: Scan, laser_pose=None, *, search: bool = True) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def nearest_submap(self, xy) -> int: ...
+
+    def judge(self, submap: int, points: np.ndarray, grid_pose: np.ndarray, threshold: float, *,
+              known_ok: bool = False, sensor=(0.0, 0.0)) -> Fit: ...
 
 # Without odometry the prediction is the previous motion repeated, and least squares from it alone is held back
 # by its pull towards the prediction: along a corridor the track fell behind by 0.1 m a scan (3 m in 6 s, every
@@ -47,8 +68,6 @@ CORRELATIVE_WINDOW_RAD = math.radians(5.0)
 # on freiburg-079's image fitted a corridor for 3 m forward and 2 m back, and its path met walls beyond.
 CONTEXT_STEP_M = 0.5
 CONTEXT_STEP_RAD = math.radians(10.0)
-# How far (s) around the query a caller gathers records for a ScanContext: 8 steps of 0.5 m at 0.13 m/s.
-CONTEXT_SECONDS = 30.0
 
 
 @dataclass
@@ -64,7 +83,7 @@ class Followed:
     reason: str
 
 
-def follow(reloc: Relocalizer, scan: Scan, predicted: np.ndarray, mount: np.ndarray, min_score: float, *,
+def follow(reloc: MapToFollow, scan: Scan, predicted: np.ndarray, mount: np.ndarray, min_score: float, *,
            correlate: bool, max_slide: float, timings: dict[str, float] | None = None) -> Followed | None:
     """``scan`` refined from ``predicted`` (map frame) in the submap nearest it and judged: its fit (score or
     known-cell score against ``min_score``, see-through, on-wall share, laser on a known cell) and a slide of at
@@ -100,16 +119,6 @@ def follow(reloc: Relocalizer, scan: Scan, predicted: np.ndarray, mount: np.ndar
         ok, reason = False, f"refinement slid {slide:.2f} m from the prediction"
     lap("judging")
     return Followed(found, submap, grid_pose, fine, fit, ok, reason)
-
-
-@dataclass
-class ScanContext:
-    """The records of a recording around a query scan, in time order: ``before`` ends with the last record
-    before the query scan, ``after`` starts with the first after it. Scans of the query's topic and odometry
-    (other records are ignored); ``CONTEXT_SECONDS`` either way is enough."""
-
-    before: Sequence[Record] = ()
-    after: Sequence[Record] = ()
 
 
 @dataclass
@@ -168,7 +177,7 @@ def _moved(a: Odometry, b: Odometry) -> bool:
     return math.hypot(b.x - a.x, b.y - a.y) >= CONTEXT_STEP_M or turn >= CONTEXT_STEP_RAD
 
 
-def check_context(reloc: Relocalizer, context: ScanContext, pose, mount: np.ndarray, min_score: float,
+def check_context(reloc: MapToFollow, context: ScanContext, pose, mount: np.ndarray, min_score: float,
                   scans: int, max_through_walls: int, *, max_slide: float = 0.3) -> ContextCheck:
     """Follow up to ``scans`` neighbours each way from ``pose`` (the answer for the scan between ``context``'s
     ``before`` and ``after``), one each ``CONTEXT_STEP_M`` / ``CONTEXT_STEP_RAD`` of odometry (every scan without

@@ -11,7 +11,20 @@ from carto_cli.core import parse
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Record, Scan
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
-from carto_cli.relocalization.following import ScanContext
+
+# How far (s) around the query a caller gathers records for a ScanContext: 8 steps of 0.5 m at 0.13 m/s (following's
+# neighbours are taken every 0.5 m, 8 each way).
+CONTEXT_SECONDS = 30.0
+
+
+@dataclass
+class ScanContext:
+    """The records of a recording around a query scan, in time order: ``before`` ends with the last record
+    before the query scan, ``after`` starts with the first after it. Scans of the query's topic and odometry
+    (other records are ignored); ``CONTEXT_SECONDS`` either way is enough."""
+
+    before: Sequence[Record] = ()
+    after: Sequence[Record] = ()
 
 __all__ = [
     "Query", "context_at", "contexts_for", "iter_scans", "parse_pose", "read_queries", "scan_at", "scans_for_queries",

@@ -89,10 +89,11 @@ from carto_cli.matching.ray_consistency import see_through_fraction
 from carto_cli.matching.scoring import fit_scores
 from carto_cli.matching.stack_cache import StackCache
 from carto_cli.options import Options
-from carto_cli.relocalization.following import CONTEXT_SECONDS, ScanContext, check_context
-from carto_cli.relocalization.queries import Query, contexts_for, scans_for_queries
+from carto_cli.relocalization.following import check_context
+from carto_cli.relocalization.queries import CONTEXT_SECONDS, Query, ScanContext, contexts_for, scans_for_queries
 from carto_cli.relocalization.result import (
     BatchSummary,
+    Fit,
     PoseVerdict,
     QueryResult,
     RelocalizationResult,
@@ -135,20 +136,6 @@ _KNOWN_SEARCH_FLOOR = 0.35
 MIN_KNOWN_FRACTION = 0.5
 # Not for whole-submap searches: there it turned more queries in places the map never saw into wrong answers than
 # it recovered missed ones (docs/measurements.md).
-
-
-@dataclass(frozen=True)
-class Fit:
-    """How well a scan fits the map at a pose (``Relocalizer.judge``), and whether that is good enough."""
-
-    ok: bool
-    reason: str  # '' when ok
-    score: float  # mean probability under the points, unknown cells 0.1
-    known_fraction: float  # share of the points on cells the map knows
-    known_score: float  # their mean probability
-    see_through: float  # share of the rays crossing a wall before their end
-    inlier_fraction: float  # share of the points on a wall (within a cell)
-    laser_seen: bool = True  # the laser stands on a cell the map knows (``Relocalizer.seen``)
 
 
 @dataclass

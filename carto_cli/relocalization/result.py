@@ -20,6 +20,7 @@ __all__ = [
     "TIMING_BUCKETS",
     "VERDICTS",
     "BatchSummary",
+    "Fit",
     "Latency",
     "PoseVerdict",
     "QueryResult",
@@ -29,6 +30,20 @@ __all__ = [
     "summarize",
     "write_results_csv",
 ]
+
+@dataclass(frozen=True)
+class Fit:
+    """How well a scan fits the map at a pose (``Relocalizer.judge``), and whether that is good enough."""
+
+    ok: bool
+    reason: str  # '' when ok
+    score: float  # mean probability under the points, unknown cells 0.1
+    known_fraction: float  # share of the points on cells the map knows
+    known_score: float  # their mean probability
+    see_through: float  # share of the rays crossing a wall before their end
+    inlier_fraction: float  # share of the points on a wall (within a cell)
+    laser_seen: bool = True  # the laser stands on a cell the map knows (``Relocalizer.seen``)
+
 
 class SearchPath(TextEnum):
     """The search stage a result came from (RelocalizationResult.path), in the order a query tries them."""

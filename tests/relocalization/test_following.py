@@ -5,7 +5,8 @@ from reloc_map import pose_error
 
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.relocalization import ScanContext
-from carto_cli.relocalization.following import CONTEXT_SECONDS, check_context
+from carto_cli.relocalization.following import check_context
+from carto_cli.relocalization.queries import CONTEXT_SECONDS
 
 QUERY_T = 1022.0  # on the bottom stretch
 ELSEWHERE_T = 1040.0  # 18 s later, near the corner
