@@ -4,7 +4,8 @@
 follows a known pose, ``tracking`` a whole recording followed through the map, ``auto`` the search settings
 chosen from the map, ``queries`` the query files, scan selection and the records around a query scan, ``result``
 what a query, a batch or one judgement answers. ``following`` needs of a relocalizer only what its ``MapToFollow``
-names, so the modules import one another one way: result <- queries <- following <- relocalizer <- tracking.
+names, so the modules import one another one way (each imported by those after it): queries, result, following,
+relocalizer, tracking.
 The LRU of precomputation stacks is ``carto_cli.matching.stack_cache.StackCache``.
 """
 from carto_cli.matching.stack_cache import StackCache
