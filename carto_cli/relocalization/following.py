@@ -57,6 +57,7 @@ class MapToFollow(Protocol):
     def judge(self, submap: int, points: np.ndarray, grid_pose: np.ndarray, threshold: float, *,
               known_ok: bool = False, sensor=(0.0, 0.0)) -> Fit: ...
 
+
 # Without odometry the prediction is the previous motion repeated, and least squares from it alone is held back
 # by its pull towards the prediction: along a corridor the track fell behind by 0.1 m a scan (3 m in 6 s, every
 # scan still scoring 0.75) on the loop building. A small correlative search first (as local SLAM's online one).

@@ -1,4 +1,5 @@
-"""What to relocalize: query files and ``--initial-pose`` text, and the recording's scans they select."""
+"""What to relocalize: query files and ``--initial-pose`` text, the recording's scans they select, and the records
+around each (``ScanContext``)."""
 from __future__ import annotations
 
 import re
@@ -11,6 +12,11 @@ from carto_cli.core import parse
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Record, Scan
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
+
+__all__ = [
+    "CONTEXT_SECONDS", "Query", "ScanContext", "context_at", "contexts_for", "iter_scans", "parse_pose", "read_queries",
+    "scan_at", "scans_for_queries", "select_scan_topic",
+]
 
 # How far (s) around the query a caller gathers records for a ScanContext: 8 steps of 0.5 m at 0.13 m/s (following's
 # neighbours are taken every 0.5 m, 8 each way).
@@ -25,11 +31,6 @@ class ScanContext:
 
     before: Sequence[Record] = ()
     after: Sequence[Record] = ()
-
-__all__ = [
-    "Query", "context_at", "contexts_for", "iter_scans", "parse_pose", "read_queries", "scan_at", "scans_for_queries",
-    "select_scan_topic",
-]
 
 
 @dataclass(frozen=True)
