@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -139,10 +140,11 @@ def _scan_to_scan(scans: list[Scan]) -> np.ndarray:
     if len(scans) < 2:
         return np.zeros((0, 3))
     picks = np.unique(np.linspace(0, len(scans) - 2, min(MATCH_PAIRS, len(scans) - 1)).astype(int))
-    crop = dict(mount=(0.0, 0.0, 0.0), min_range=0.0, max_range=30.0, missing_data_ray_length=1.0)
+    crop: dict[str, Any] = dict(min_range=0.0, max_range=30.0, missing_data_ray_length=1.0)
+    mount = (0.0, 0.0, 0.0)
 
     def match(i: int) -> np.ndarray | None:
-        a, b = crop_scan(scans[i], **crop), crop_scan(scans[i + 1], **crop)
+        a, b = crop_scan(scans[i], mount=mount, **crop), crop_scan(scans[i + 1], mount=mount, **crop)
         if len(a.returns) < 10 or len(b.returns) < 10:
             return None
         # A coarse grid keeps a window as wide as a key scan's motion (1 m, 45 deg) cheap.

@@ -57,7 +57,7 @@ def record() -> None:
     _state["requested"] = True
 
 
-def interrupt(signum: int | None = None, frame=None) -> None:
+def interrupt(signum: int | None = None, frame: object = None) -> None:
     """The handler: record the request, then raise KeyboardInterrupt, unless the command has ended (``hold``) or
     is inside ``deferred``."""
     if _state["held"]:

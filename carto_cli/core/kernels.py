@@ -14,6 +14,7 @@ import sys
 import tempfile
 from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager
+from typing import Any
 
 from carto_cli.core.timing import NullTimer
 
@@ -32,7 +33,7 @@ def on_compiling(fn: Callable[[str], None] | None) -> None:
     _notice[:] = [] if fn is None else [fn]
 
 
-def register_warm_up(fn: Callable[[], None] | None = None, *, system: str | None = None):
+def register_warm_up(fn: Callable[[], None] | None = None, *, system: str | None = None) -> Any:
     """Decorator (``@register_warm_up`` or ``@register_warm_up(system="gmapping")``): ``fn`` runs the kernels of its
     module once on toy data. ``system``: only a run of that mapping system needs them (None: every run). The first
     run after installing compiles what it warms up (GMapping's kernels alone take half a minute), so a
@@ -59,7 +60,7 @@ def pending(systems: Collection[str] | None = None) -> bool:
     return bool(_wanted(systems))
 
 
-def warm_up(timer=None, systems: Collection[str] | None = None) -> None:
+def warm_up(timer: Any = None, systems: Collection[str] | None = None) -> None:
     """Run every registered warm-up not yet run (the shared ones and those of ``systems``; None: all), inside
     ``timer``'s ``jit warm-up`` stage. On a cold cache (the first run after installing) the kernels are compiled
     by this process and helper processes at once, one per further core, each writing its share to the on-disk
@@ -107,7 +108,7 @@ def _name(fn: Callable[[], None]) -> str:
     return f"{fn.__module__}:{fn.__qualname__}"
 
 
-def claim(claims: str, fn_or_name) -> bool:
+def claim(claims: str, fn_or_name: str | Callable[[], None]) -> bool:
     """Whether this process is the first to take the warm-up (an exclusive file create is atomic)."""
     name = fn_or_name if isinstance(fn_or_name, str) else _name(fn_or_name)
     try:

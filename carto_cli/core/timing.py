@@ -350,7 +350,7 @@ class NullTimer:
     def export_tree(self) -> None:
         return None
 
-    def import_tree(self, tree) -> None:
+    def import_tree(self, tree: object) -> None:
         pass
 
     def begin_scan(self) -> None:
@@ -422,7 +422,7 @@ class Snapshot:
 # --------------------------------------------------------------------------- reports
 
 
-def _snap(timer) -> Snapshot:
+def _snap(timer: StageTimer | NullTimer | Snapshot) -> Snapshot:
     return timer if isinstance(timer, Snapshot) else timer.snapshot()
 
 
@@ -499,7 +499,8 @@ def report_tree_text(timer: StageTimer | NullTimer | Snapshot) -> str:
     def pct(a: int, b: int) -> str:
         return f"{100.0 * a / b:.1f}%" if b > 0 else ""
 
-    def row(label: str, total: int, in_scan: bool, calls: str = "", p50=None, p95=None):
+    def row(label: str, total: int, in_scan: bool, calls: str = "", p50: float | None = None,
+            p95: float | None = None) -> None:
         rows.append((
             label,
             f"{total / 1e6:.1f}",
@@ -511,7 +512,7 @@ def report_tree_text(timer: StageTimer | NullTimer | Snapshot) -> str:
             _fmt(p95, ".3f"),
         ))
 
-    def visit(s: StageStats, prefix: str, branch: str):
+    def visit(s: StageStats, prefix: str, branch: str) -> None:
         name = s.name if s.path else "total (wall)"
         if s.path == SCAN_STAGE:
             name = f"{SCAN_STAGE} ({snap.scans} scans)"

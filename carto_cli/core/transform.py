@@ -10,11 +10,12 @@ import math
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 IDENTITY = np.zeros(3)
 
 
-def as_pose(pose) -> np.ndarray:
+def as_pose(pose: ArrayLike) -> np.ndarray:
     return np.asarray(pose, dtype=np.float64)
 
 
@@ -46,7 +47,7 @@ def unwrap_angle(theta: float, reference: float) -> float:
     return reference + math.remainder(theta - reference, _TWO_PI)
 
 
-def compose(a, b) -> np.ndarray:
+def compose(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     """a ∘ b: first b, then a (b expressed in a's child frame)."""
     a = as_pose(a)
     b = as_pose(b)
@@ -63,7 +64,7 @@ def compose(a, b) -> np.ndarray:
     return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
 
 
-def inverse(a) -> np.ndarray:
+def inverse(a: ArrayLike) -> np.ndarray:
     a = as_pose(a)
     if a.shape == (3,):
         ax, ay, at = a.tolist()
@@ -75,12 +76,12 @@ def inverse(a) -> np.ndarray:
     return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
 
 
-def relative(a, b) -> np.ndarray:
+def relative(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     """Pose of b in a's frame: inverse(a) ∘ b."""
     return compose(inverse(a), b)
 
 
-def apply(pose, points) -> np.ndarray:
+def apply(pose: ArrayLike, points: ArrayLike) -> np.ndarray:
     """Map (n, 2) points from the pose's child frame into its parent frame."""
     pose = as_pose(pose)
     points = np.asarray(points, dtype=np.float64)
@@ -91,5 +92,5 @@ def apply(pose, points) -> np.ndarray:
     return out
 
 
-def rotate(theta: float, points) -> np.ndarray:
+def rotate(theta: float, points: ArrayLike) -> np.ndarray:
     return apply((0.0, 0.0, theta), points)

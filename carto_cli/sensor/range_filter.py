@@ -17,11 +17,18 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core import transform
+
+if TYPE_CHECKING:
+    from carto_cli.core.records import Scan
+
+Pose = Sequence[float] | np.ndarray  # (x, y, theta), or (x, y) for a position
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,7 +43,7 @@ class RangeData:
     def empty() -> RangeData:
         return RangeData(np.zeros(2), np.empty((0, 2)), np.empty((0, 2)))
 
-    def transformed(self, pose) -> RangeData:
+    def transformed(self, pose: Pose) -> RangeData:
         x, y, theta = (float(v) for v in pose)
         c, s = math.cos(theta), math.sin(theta)
         ox, oy = float(self.origin[0]), float(self.origin[1])
@@ -147,9 +154,9 @@ def _crop_polar_moving(ranges, angles, min_range, max_range, missing_data_ray_le
     return returns[:nr].copy(), misses[:nm].copy()
 
 
-def crop_polar(ranges, angles, *, min_range: float = 0.0, max_range: float = 30.0,
-               missing_data_ray_length: float = 5.0, mount=None, time_increment: float = 0.0,
-               motion=(0.0, 0.0, 0.0)) -> RangeData:
+def crop_polar(ranges: ArrayLike, angles: ArrayLike, *, min_range: float = 0.0, max_range: float = 30.0,
+               missing_data_ray_length: float = 5.0, mount: Pose | None = None, time_increment: float = 0.0,
+               motion: Pose = (0.0, 0.0, 0.0)) -> RangeData:
     """Range data from beam ranges and bearings.
 
     Without ``mount``, in the sensor frame (origin at 0). With ``mount`` (the
@@ -169,7 +176,7 @@ def crop_polar(ranges, angles, *, min_range: float = 0.0, max_range: float = 30.
     return RangeData(np.array([mx, my]), returns, misses)
 
 
-def crop_scan(scan, *, mount=None, motion=None, **kwargs) -> RangeData:
+def crop_scan(scan: Scan, *, mount: Pose | None = None, motion: Pose | None = None, **kwargs: Any) -> RangeData:
     """``crop_polar`` for a :class:`carto_cli.core.records.Scan`.
 
     The scan's own limits come first, as REP 117 has them: a reading above its ``range_max`` is no return (as
@@ -191,7 +198,7 @@ def crop_scan(scan, *, mount=None, motion=None, **kwargs) -> RangeData:
                       **kwargs)
 
 
-def _within_sensor_limits(ranges, range_min: float, range_max: float) -> np.ndarray:
+def _within_sensor_limits(ranges: ArrayLike, range_min: float, range_max: float) -> np.ndarray:
     """``ranges`` with readings above ``range_max`` set to +inf and those below ``range_min`` to NaN (a copy only
     when one is out of its limits; non-finite or non-positive limits are no limits)."""
     r = np.asarray(ranges)
@@ -207,7 +214,7 @@ def _within_sensor_limits(ranges, range_min: float, range_max: float) -> np.ndar
     return r
 
 
-def crop_points(points, origin=(0.0, 0.0), *, min_range: float = 0.0, max_range: float = 30.0,
+def crop_points(points: ArrayLike, origin: Pose = (0.0, 0.0), *, min_range: float = 0.0, max_range: float = 30.0,
                 missing_data_ray_length: float = 5.0) -> RangeData:
     """Same rules for Cartesian points measured from ``origin`` (e.g. a sliced point cloud)."""
     origin = np.asarray(origin, dtype=np.float64)
@@ -219,7 +226,7 @@ def crop_points(points, origin=(0.0, 0.0), *, min_range: float = 0.0, max_range:
     return RangeData(origin.copy(), returns, misses)
 
 
-def accumulate(parts: Sequence[RangeData], poses: Sequence, frame=None) -> RangeData:
+def accumulate(parts: Sequence[RangeData], poses: Sequence, frame: Pose | None = None) -> RangeData:
     """Merge ``num_accumulated_range_data`` scans into one.
 
     ``poses[i]`` places ``parts[i]`` (its sensor frame) in a common frame; the

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 _HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing
 
@@ -117,11 +118,11 @@ def _adaptive_mask(points, max_length, min_num_points, max_range):
     return keep
 
 
-def _as_points(points) -> np.ndarray:
+def _as_points(points: ArrayLike) -> np.ndarray:
     return np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
 
 
-def voxel_filter(points, length: float = 0.025) -> np.ndarray:
+def voxel_filter(points: ArrayLike, length: float = 0.025) -> np.ndarray:
     """Keep the first point of every occupied ``length`` x ``length`` voxel."""
     if length <= 0:
         raise ValueError("voxel length must be positive")
@@ -129,7 +130,7 @@ def voxel_filter(points, length: float = 0.025) -> np.ndarray:
     return points[_voxel_mask(points, float(length))]
 
 
-def adaptive_voxel_filter(points, *, max_length: float = 0.5, min_num_points: int = 200,
+def adaptive_voxel_filter(points: ArrayLike, *, max_length: float = 0.5, min_num_points: int = 200,
                           max_range: float = 50.0) -> np.ndarray:
     """Coarsest voxel filter that still leaves at least ``min_num_points`` points.
 
