@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -113,7 +113,7 @@ def _cartographer_layout(section: str, values: dict) -> dict:
     return _nest((key.split(".", 1)[1], value) for key, value in keys)
 
 
-def _nest(items) -> dict:
+def _nest(items: Iterable[tuple[str, Any]]) -> dict:
     """(dotted key, value) pairs as a nested mapping."""
     out: dict = {}
     for key, value in items:
@@ -177,7 +177,7 @@ def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
         yield prefix[:-1], value
 
 
-def _to_python(value, seen: frozenset = frozenset()) -> Any:
+def _to_python(value: Any, seen: frozenset = frozenset()) -> Any:
     """A Lua value as Python: tables as dicts (arrays as lists), numbers and strings as they are."""
     from lupa import lua_type
 
@@ -192,7 +192,7 @@ def _to_python(value, seen: frozenset = frozenset()) -> Any:
     return items
 
 
-def _typed(value: Any, tp) -> Any:
+def _typed(value: Any, tp: Any) -> Any:
     """A Lua number as the option's type: Lua writes 50 and 50. alike where carto wants an int or a float."""
     if tp is int and isinstance(value, float) and value.is_integer():
         return int(value)
@@ -204,7 +204,7 @@ def _typed(value: Any, tp) -> Any:
 def _leaf_types() -> dict[str, Any]:
     out: dict[str, Any] = {}
 
-    def walk(cls, prefix: str) -> None:
+    def walk(cls: type, prefix: str) -> None:
         for f in dataclasses.fields(cls):
             tp = hints(cls)[f.name]
             if is_section(tp):
@@ -263,7 +263,7 @@ def _import(path: Path) -> LuaImport:
         raise CartoError(f'include "{name}": not found next to {path.name}, and not one of Cartographer\'s stock '
                          f"files ({', '.join(sorted(stock))})", path)
 
-    def run(code: str, name: str):
+    def run(code: str, name: str) -> Any:
         return lua.execute(code, name=f"@{name}")
 
     lua.globals().include = include

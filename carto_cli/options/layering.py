@@ -92,7 +92,7 @@ def read_yaml(path: Path) -> tuple[dict, dict[str, int]]:
     return data, lines
 
 
-def _construct(loader, node, prefix: str, lines: dict[str, int], path: Path):
+def _construct(loader: Any, node: Any, prefix: str, lines: dict[str, int], path: Path) -> Any:
     if not isinstance(node, yaml.MappingNode):
         return loader.construct_object(node, deep=True)
     out: dict = {}
@@ -140,7 +140,7 @@ def _show(value: Any) -> str:
     return repr(value)
 
 
-def _coerce(value: Any, tp, f: dataclasses.Field, key: str, layer: Layer):
+def _coerce(value: Any, tp: Any, f: dataclasses.Field, key: str, layer: Layer) -> Any:
     unit = f.metadata.get("unit", "")
     # Values handed over by code (layer without a file) get no unit parsing at all.
     deg = _DEG.match(value) if isinstance(value, str) else None
@@ -179,7 +179,7 @@ def _coerce(value: Any, tp, f: dataclasses.Field, key: str, layer: Layer):
     return value
 
 
-def apply_values(obj, mapping: dict, layer: Layer, prefix: str = ""):
+def apply_values(obj: Any, mapping: dict, layer: Layer, prefix: str = "") -> Any:
     """``obj`` (options or one of their sections) with a nested or dotted {key: value} mapping applied.
 
     Each value is type- and bounds-checked; unknown keys are rejected with the closest valid

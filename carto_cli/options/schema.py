@@ -20,7 +20,7 @@ import dataclasses
 import difflib
 import math
 import typing
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from functools import cache
 from typing import Any, NamedTuple
@@ -49,7 +49,8 @@ __all__ = [
 ]
 
 
-def _opt(default, doc: str, *, unit: str = "", gt=None, ge=None, lt=None, le=None):
+def _opt(default: Any, doc: str, *, unit: str = "", gt: float | None = None, ge: float | None = None,
+         lt: float | None = None, le: float | None = None) -> Any:
     """A leaf option: default, one-line doc, unit and bounds, kept in field metadata."""
     return field(default=default, metadata={"doc": doc, "unit": unit, "gt": gt, "ge": ge, "lt": lt, "le": le})
 
@@ -110,7 +111,7 @@ class CeresSolverOptions:
     max_num_iterations: int = _opt(dataclasses.MISSING, "solver iterations", ge=1)
 
 
-def _solver(max_num_iterations: int, doc: str):
+def _solver(max_num_iterations: int, doc: str) -> Any:
     """An owner's ``ceres_solver_options``: its iteration default and what one of its iterations does.
 
     The doc lives on the owner's field because the same leaf means a different solve in
@@ -445,12 +446,12 @@ class Options:
 
 
 @cache
-def hints(cls) -> dict[str, Any]:
+def hints(cls: type) -> dict[str, Any]:
     """The resolved field types of an options dataclass (the annotations are strings)."""
     return typing.get_type_hints(cls)
 
 
-def is_section(tp) -> bool:
+def is_section(tp: Any) -> bool:
     """Whether a field type is a section (a nested options dataclass) rather than a value."""
     return isinstance(tp, type) and dataclasses.is_dataclass(tp)
 
@@ -467,7 +468,7 @@ class OptionInfo:
     bounds: str  # e.g. '> 0.5 and < 1', '' when unbounded
 
 
-def bounds_text(md) -> str:
+def bounds_text(md: Mapping[str, Any]) -> str:
     """An option's bounds as text, e.g. '> 0.5 and < 1' ('' when unbounded), from its field metadata."""
     parts = [f"{op} {md[k]:g}" for k, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
              if md.get(k) is not None]
@@ -483,7 +484,7 @@ class Leaf(NamedTuple):
     doc: str  # the owning section's wording when it gives one (shared sections such as CeresSolverOptions)
 
 
-def walk(cls, prefix: str = "", docs: dict[str, str] | None = None) -> Iterator[Leaf]:
+def walk(cls: type, prefix: str = "", docs: dict[str, str] | None = None) -> Iterator[Leaf]:
     """Every leaf of ``cls``, in declaration order."""
     types = hints(cls)
     for f in dataclasses.fields(cls):
