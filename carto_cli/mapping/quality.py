@@ -314,6 +314,14 @@ def _solid(hit, passed, ix, iy, ny, nx, share):
     return h >= share * (h + p)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _sensor_in_map(poses, i, sensor):
+    """Node ``i``'s heading (cos, sin) and its sensor's position in the map frame, for both ray walks."""
+    c = math.cos(poses[i, 2])
+    s = math.sin(poses[i, 2])
+    return c, s, c * sensor[0] - s * sensor[1] + poses[i, 0], s * sensor[0] + c * sensor[1] + poses[i, 1]
+
+
 @njit(cache=True, nogil=True)
 def _see_through(start, travel, gox, goy, cell, ny, nx, near_start, near_travel, nox, noy, near_cell, nny, nnx, disk,
                  radius, points, offsets, poses, node_travel, sensor, window, margin, min_other, hit, passed, share):
@@ -325,10 +333,7 @@ def _see_through(start, travel, gox, goy, cell, ny, nx, near_start, near_travel,
     hits = np.zeros(n, np.int64)
     checked = np.zeros(n, np.int64)
     for i in range(n):
-        c = math.cos(poses[i, 2])
-        s = math.sin(poses[i, 2])
-        sx = c * sensor[0] - s * sensor[1] + poses[i, 0]
-        sy = s * sensor[0] + c * sensor[1] + poses[i, 1]
+        c, s, sx, sy = _sensor_in_map(poses, i, sensor)
         lo = node_travel[i] - window
         hi = node_travel[i] + window
         for k in range(offsets[i], offsets[i + 1]):
@@ -392,10 +397,7 @@ def _solidity(start, travel, gox, goy, cell, ny, nx, points, offsets, poses, nod
     hit = np.zeros(ny * nx, np.int32)
     passed = np.zeros(ny * nx, np.int32)
     for i in range(n):
-        c = math.cos(poses[i, 2])
-        s = math.sin(poses[i, 2])
-        sx = c * sensor[0] - s * sensor[1] + poses[i, 0]
-        sy = s * sensor[0] + c * sensor[1] + poses[i, 1]
+        c, s, sx, sy = _sensor_in_map(poses, i, sensor)
         lo = node_travel[i] - window
         hi = node_travel[i] + window
         # The sensor in cell units.
