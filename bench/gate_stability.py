@@ -21,13 +21,13 @@ sys.path.insert(0, str(ROOT))
 
 from carto_cli.commands.profile import ProfileRun, run_profile  # noqa: E402
 from carto_cli.matching import least_squares  # noqa: E402
-from carto_cli.pipeline import Auto  # noqa: E402
+from carto_cli.pipeline import Auto, MapRequest  # noqa: E402
 
 SLOWED = "scan/match/least squares"
 
 
 def profile(recording: Path, repeat: int) -> dict:
-    return run_profile(recording, Auto(()), repeat=repeat).report
+    return run_profile(MapRequest(recording, Auto(())), repeat=repeat).report
 
 
 def gate(report: dict, baseline: dict, max_regression: float):

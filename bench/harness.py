@@ -404,19 +404,15 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     from carto_cli.core.timing import StageTimer, report_json, report_tree_text
     from carto_cli.evaluation.metrics import Relations, ate, read_relations, relation_error
     from carto_cli.io.map_image import render_png, write_png
-    from carto_cli.io.read_ahead import RecordStream
     from carto_cli.io.sources.open import open_recording
-    from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
     from carto_cli.options import load_options
-    from carto_cli.pipeline import build_configured, read_options
+    from carto_cli.pipeline import Auto, MapRequest, execute, planned, read_options
 
     import_s = time.perf_counter() - t_import
     import carto_cli
 
     package_dir = Path(carto_cli.__file__).resolve().parent
-    from carto_cli.pipeline import Auto, configure
-
     spec = Auto(tuple(overrides)) if profile == "auto" else load_options(profile, overrides)
     max_scans = case.quick_scans if quick else None
     info: dict = {"import_s": import_s, "package": str(package_dir), "fingerprint": source_fingerprint(package_dir)}
@@ -431,25 +427,18 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
         recording = open_recording(case.path, read_options(spec))
     info["setup_s"] = time.perf_counter() - t0
 
-    with recording as rec, RecordStream(rec, (selection := select_topics(rec)), selection.topics) as stream:
-        # Read as `carto map` reads (io.read_ahead): decoded beside mapping, the survey's look replayed.
-        t_survey = time.perf_counter()
-        configured = configure(spec, rec, selection, algorithm, stream=stream)
-        info["survey_s"] = time.perf_counter() - t_survey
-        if configured.auto is not None:
-            info["auto"] = {"regime": configured.regime.to_dict(), "describe": configured.regime.describe(),
-                            "profile": configured.auto.profile, "settings": configured.auto.settings,
-                            "algorithm": configured.auto.algorithm}
-        total = next((t.count for t in rec.topics() if t.name == selection.scan), None)
+    # Read as `carto map` reads (io.read_ahead): decoded beside mapping, the survey's look replayed.
+    t_survey = time.perf_counter()
+    with recording as rec, planned(MapRequest(rec, spec, algorithm, max_scans=max_scans)) as plan:
+        info["survey_s"] = time.perf_counter() - t_survey  # with loading the kernels
+        selection = plan.selection
         timer = StageTimer()
-        result, configured = build_configured(rec, configured, spec, selection=selection, timer=timer,
-                                              on_scan=_progress(case, total), max_scans=max_scans, stream=stream)
-        algorithm = configured.algorithm
-        if configured.auto is not None:
-            info["auto"]["note"] = configured.auto.note
-            info["auto"]["settings"] = configured.auto.settings
-            info["auto"]["profile"] = configured.auto.profile
-            info["auto"]["algorithm"] = configured.auto.algorithm
+        result = execute(plan, timer=timer, on_scan=_progress(case, plan.scan_count))
+        algorithm = result.configured.algorithm
+        if result.auto is not None and result.regime is not None:
+            info["auto"] = {"regime": result.regime.to_dict(), "describe": result.regime.describe(),
+                            "profile": result.auto.profile, "settings": result.auto.settings,
+                            "algorithm": result.auto.algorithm, "note": result.auto.note}
         timer.stop()
         t_eval = time.perf_counter()
         odometry = None

@@ -34,11 +34,13 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli.evaluation.metrics import ate, read_relations, relation_error
+from carto_cli.io.sources.open import open_recording
+from carto_cli.io.topics import select_topics
 from carto_cli.io.trajectory import Trajectory, read_trajectory
 from carto_cli.mapping.constraint_builder import ConstraintBuilder
 from carto_cli.mapping.quality import assess
 from carto_cli.options import load_options
-from carto_cli.pipeline import build, opened, read_options
+from carto_cli.pipeline import build, read_options
 from carto_cli.sim.world import Material
 
 SHARED = Path(os.environ.get("CARTO_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -265,14 +267,13 @@ def map_run(run: Run, cache: Path, remap: bool) -> dict:
         return out
     d = SHARED / run.case
     opts = load_options(run.profile, run.overrides)
-    with opened(d / "scans.clf.gz", read_options(opts)) as src:
+    with open_recording(d / "scans.clf.gz", read_options(opts)) as recording:
         # A short map first, so that numba's compilation is not timed as mapping.
-        build(src.recording, opts, selection=src.selection, loop_closure=run.loop_closure, max_scans=30)
+        build(recording, opts, loop_closure=run.loop_closure, max_scans=30)
         t0 = time.perf_counter()
-        res = build(src.recording, opts, selection=src.selection, loop_closure=run.loop_closure,
-                    max_scans=run.max_scans)
+        res = build(recording, opts, loop_closure=run.loop_closure, max_scans=run.max_scans)
         seconds = time.perf_counter() - t0
-        odo = np.array([(r.time, r.x, r.y, r.yaw) for r in src.recording.records([src.selection.odometry])])
+        odo = np.array([(r.time, r.x, r.y, r.yaw) for r in recording.records([select_topics(recording).odometry])])
     relations = read_relations(d / "relations.txt")
     error = relation_error(Trajectory.from_poses(res.times, res.poses), relations).translation.mean
     odo_error = relation_error(Trajectory.from_poses(odo[:, 0], odo[:, 1:]), relations).translation.mean

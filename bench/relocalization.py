@@ -8,7 +8,7 @@
 
 Per case (every directory of ``$DATA/bench-dense`` as ``dense-<name>`` and of ``$DATA/bench``):
 
-1. **Map.** ``pipeline.build_configured(recording, ..., max_scans=N60)`` on the first 60 % of the
+1. **Map.** ``pipeline.execute`` of a ``MapRequest(recording, ..., max_scans=N60)`` on the first 60 % of the
    scans (of the first ``--max-scans`` scans when given), saved with ``save_map`` and loaded back
    with ``load_map`` (what ``carto relocalize`` reads). Mapping options: ``--profile`` when given,
    else ``auto``, what ``carto map`` does with no profile (the survey of the recording chooses the
@@ -142,10 +142,9 @@ def run_case(name: str, path: Path, args) -> dict:
     from carto_cli.evaluation.relocalization import Probe, run_probes, scans_by_index, scans_with_context, within
     from carto_cli.io.map_file import load_map, save_map
     from carto_cli.io.sources.open import open_recording
-    from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import read_trajectory
     from carto_cli.options import load_options
-    from carto_cli.pipeline import Auto, build_configured, configure, read_options
+    from carto_cli.pipeline import Auto, MapRequest, execute, planned, read_options
     from carto_cli.relocalization import Relocalizer
     from carto_cli.relocalization.auto import choose_for_map
 
@@ -175,12 +174,11 @@ def run_case(name: str, path: Path, args) -> dict:
                 print(f"[{name}] map from {cached}", file=sys.stderr, flush=True)
             else:
                 t0 = time.perf_counter()
-                selection = select_topics(rec)
-                configured = configure(spec, rec, selection)
-                result, configured = build_configured(rec, configured, spec, selection=selection, max_scans=n_map)
-                options = configured.options
+                with planned(MapRequest(rec, spec, max_scans=n_map)) as plan:
+                    result = execute(plan)
+                options = result.configured.options
                 info["map_s"] = time.perf_counter() - t0
-                info["algorithm"] = configured.algorithm
+                info["algorithm"] = result.configured.algorithm
                 info["submaps"] = len(result.submaps)
                 info["loop_closures"] = int(result.stats.get("loop_closures", 0))
                 map_path = save_map(Path(tmp) / "map.carto" if cached is None else cached, result, options,

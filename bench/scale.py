@@ -66,9 +66,8 @@ def revisit_relations(gt: np.ndarray, *, step: int = 10, every: int = 5, min_dt:
 def one(minutes: float, jobs: int | None, budget: float | None) -> dict:
     from carto_cli.core.memory import peak_rss_mb
     from carto_cli.evaluation.metrics import Relations, relation_error
-    from carto_cli.io.topics import select_topics
     from carto_cli.io.trajectory import Trajectory as Tum
-    from carto_cli.pipeline import Auto, build_configured, configure
+    from carto_cli.pipeline import Auto, MapRequest, execute, planned
     from carto_cli.sim import Lidar, Limits, Trajectory, simulate
     from carto_cli.sim.world import campus
 
@@ -80,7 +79,6 @@ def one(minutes: float, jobs: int | None, budget: float | None) -> dict:
     overrides = () if budget is None else (f"pose_graph.constraint_builder.precomputation_memory={budget!r}",)
     spec = Auto(overrides)
     rec = sim.recording()
-    selection = select_topics(rec)
     rss_before = rss_mb()
     marks: list[float] = []
     t0 = time.perf_counter()
@@ -88,9 +86,8 @@ def one(minutes: float, jobs: int | None, budget: float | None) -> dict:
     def tick(n: int) -> None:
         marks.append(time.perf_counter())
 
-    configured = configure(spec, rec, selection)
-    result, configured = build_configured(rec, configured, spec, selection=selection, max_scans=scans, jobs=jobs,
-                                          on_scan=tick)
+    with planned(MapRequest(rec, spec, max_scans=scans, jobs=jobs)) as plan:
+        result = execute(plan, on_scan=tick)
     wall = time.perf_counter() - t0
     marks_a = np.array(marks)
     last = marks_a[-min(len(marks_a), int(15 * 60 * SCAN_RATE)):]
@@ -117,7 +114,7 @@ def one(minutes: float, jobs: int | None, budget: float | None) -> dict:
         "consecutive_error_m": float(local.translation.mean),
         "relations": int(len(relations.t1)), "revisits": int(revisits),
         "quality": result.quality.verdict if result.quality is not None else None,
-        "profile": configured.auto.profile if configured.auto is not None else None,
+        "profile": result.auto.profile if result.auto is not None else None,
     }
 
 

@@ -28,14 +28,12 @@ import numpy as np
 from carto_cli.commands.eval import run_eval
 from carto_cli.commands.map import MapOutputs, check_outdir, run_map, write_outputs
 from carto_cli.commands.relocalize import apply_map_auto, load_relocalization_map
-from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
 from carto_cli.evaluation.metrics import Evaluation
 from carto_cli.io.sources.memory import MemoryRecording
-from carto_cli.io.topics import select_topics
 from carto_cli.options import Options, load_options
-from carto_cli.pipeline import Auto, MapResult, build_configured, configure
+from carto_cli.pipeline import Auto, MapRequest, MapResult, execute, planned
 from carto_cli.relocalization import RelocalizationResult, Relocalizer, ScanContext
 
 __all__ = [
@@ -90,17 +88,13 @@ def map_recording(recording: str | Path, *, profile: str | Path | None = None, o
                   algorithm: str | None = None, jobs: int | None = None, outdir: str | Path | None = None,
                   force: bool = False) -> MapRun:
     """Map a recording file as `carto map` does; with ``outdir`` the outputs are written there too."""
-    import tempfile
-
-    opts = options(profile, overrides)
+    request = MapRequest(Path(recording), options(profile, overrides), algorithm, jobs=jobs)
     if outdir is not None:
-        result, _ = run_map(Path(recording), Path(outdir), opts, algorithm=algorithm, force=force, jobs=jobs)
+        result, _ = run_map(request, Path(outdir), force=force)
     else:
-        with tempfile.TemporaryDirectory() as tmp:  # run_map writes; the caller wants the result only
-            result, _ = run_map(Path(recording), Path(tmp) / "map", opts, algorithm=algorithm, jobs=jobs,
-                                state=False)
-    assert result.options is not None  # run_map records the options it mapped with
-    return MapRun(result, result.options, (Path(recording).name,))
+        with planned(request) as plan:  # nothing written: the caller wants the result only
+            result = execute(plan)
+    return MapRun(result, result.configured.options, (Path(recording).name,))
 
 
 def map_records(records: Iterable[Record], *, laser_pose: Sequence[float] | None = None,
@@ -116,14 +110,10 @@ def map_records(records: Iterable[Record], *, laser_pose: Sequence[float] | None
     recording = MemoryRecording(records, statics)
     if not any(t.kind == "scan" for t in recording.topics()):
         raise CartoError("no scans to map")
-    opts = options(profile, overrides)
-    selection = select_topics(recording)
-    mount = None if laser_pose is None else transform.as_pose(laser_pose).reshape(3)
-    configured = configure(opts, recording, selection, algorithm, mount)
-    result, configured = build_configured(recording, configured, opts, selection=selection, laser_pose=mount,
-                                          jobs=jobs)
-    result.regime, result.auto, result.options = configured.regime, configured.auto, configured.options
-    return MapRun(result, configured.options, ("memory",))
+    request = MapRequest(recording, options(profile, overrides), algorithm, laser_pose=laser_pose, jobs=jobs)
+    with planned(request) as plan:
+        result = execute(plan)
+    return MapRun(result, result.configured.options, ("memory",))
 
 
 def scan(time: float, ranges, *, angle_min: float, angle_increment: float, range_min: float = 0.0,

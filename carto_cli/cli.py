@@ -428,19 +428,17 @@ def map_(
     from carto_cli.core import parse
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
+    from carto_cli.pipeline import MapRequest, TopicChoice
 
-    options = _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget))
-    mount = parse.pose(laser_pose, "--laser-pose") if laser_pose else None
+    request = MapRequest(
+        recording, _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget)), algorithm,
+        TopicChoice(scan_topic, odom_topic, imu_topic, odom_frame, base_frame),
+        laser_pose=parse.pose(laser_pose, "--laser-pose") if laser_pose else None, use_odometry=not no_odometry,
+        loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs)
     timer = StageTimer()
     with progress(f"mapping {recording.name}", None, state.quiet) as bar:
-        result, outputs = run_map(
-            recording, outdir, options, scan_topic=scan_topic, odom_topic=odom_topic, imu_topic=imu_topic,
-            laser_pose=mount, use_odometry=not no_odometry, odom_frame=odom_frame, base_frame=base_frame,
-            timer=timer, on_scan=bar.advance,
-            on_total=bar.set_total, loop_closure=not no_loop_closure, state=not no_state,
-            load_state=load_state, on_configured=_say_configured,
-            algorithm=algorithm, force=force, jobs=jobs,
-        )
+        result, outputs = run_map(request, outdir, timer=timer, on_scan=bar.advance, on_total=bar.set_total,
+                                  on_configured=_say_configured, state=not no_state, force=force)
     for warning in result.warnings:
         typer.echo(f"carto: warning: {warning}", err=True)
     if timings:
@@ -541,14 +539,15 @@ def profile_(
     from carto_cli.commands.profile import run_profile
     from carto_cli.core.progress import progress
     from carto_cli.evaluation.profiling import format_relocalization, format_report
+    from carto_cli.pipeline import MapRequest, TopicChoice
 
-    options = _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget))
+    request = MapRequest(recording, _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget)),
+                         algorithm, TopicChoice(scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame),
+                         max_scans=max_scans, jobs=jobs)
     with progress(f"profiling {recording.name}", None, state.quiet) as bar:
-        run = run_profile(recording, options, scan_topic=scan_topic, odom_topic=odom_topic, odom_frame=odom_frame,
-                          base_frame=base_frame, output=output,
-                          baseline=baseline, calibrate_first=calibrate, max_scans=max_scans,
-                          relocalize_map=relocalize_map, on_total=bar.set_total, on_scan=bar.advance,
-                          algorithm=algorithm, force=force, repeat=repeat, jobs=jobs)
+        run = run_profile(request, output=output, baseline=baseline, calibrate_first=calibrate,
+                          relocalize_map=relocalize_map, on_total=bar.set_total, on_scan=bar.advance, force=force,
+                          repeat=repeat)
     for warning in run.warnings:
         typer.echo(f"carto: warning: {warning}", err=True)
     report = run.report

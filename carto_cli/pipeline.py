@@ -1,18 +1,25 @@
-"""The one place a recording meets the SLAM core: open it, choose its topics, place the laser, feed
-:class:`~carto_cli.mapping.slam.Slam` in time order. Every subcommand that maps goes through here."""
+"""The one place a recording meets the SLAM core. A :class:`MapRequest` (what is asked: a recording and how to
+map it) is resolved once, against the opened recording, into a :class:`Plan` (topics, the laser's mount, the
+options and system auto or the caller chose, the map continued), and :func:`execute` maps by the plan, feeding
+the chosen system in time order and judging its map. ``carto map``, ``carto profile``, the Python API and the
+benchmarks all go this way.
+
+    with planned(MapRequest(path)) as plan:      # open, read ahead, survey, configure: once
+        result = execute(plan)                   # may run again (a profile's repeats: one pass each)
+"""
 from __future__ import annotations
 
 import dataclasses
 import time as _time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from carto_cli.core import transform
+from carto_cli.core import kernels, transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
@@ -23,25 +30,35 @@ from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
-from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.quality import LEVELS, MapQuality, assess
-from carto_cli.mapping.slam import MappingSystem, Slam, SlamResult
+from carto_cli.mapping.slam import MappingSystem, RunStats, Slam, SlamResult
 from carto_cli.options import Options, load_options
 from carto_cli.regime import AutoChoice, Regime, choose, survey
 
 if TYPE_CHECKING:
-    pass
+    from carto_cli.io.loaded_map import LoadedMap
+
+__all__ = ["Auto", "Configured", "MapRequest", "MapResult", "Plan", "TopicChoice", "build", "execute", "planned",
+           "read_options", "resolve_laser_pose", "survey_mount"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class MapResult(SlamResult):
+    """A map as :func:`execute` made it: the core's result, with how it was made and the verdict on it."""
+
     laser_pose_source: str = ""
     selection: TopicSelection | None = None
     regime: Regime | None = None  # what --profile auto measured (None for a named profile)
     auto: AutoChoice | None = None  # and what it chose
     quality: MapQuality | None = None  # carto's own verdict on the map (mapping.quality)
-    warnings: list[str] = field(default_factory=list)  # what the recording held that mapping dropped (io.content)
-    options: Options | None = None  # the options the map was built with (auto's choice), once known
+    warnings: tuple[str, ...] = ()  # what the recording held that mapping dropped (io.content)
+    options: Options | None = None  # the options the map was built with (auto's choice)
+
+    @property
+    def configured(self) -> Configured:
+        """The options and system that made this map (after auto's fallback, not what it chose first)."""
+        assert self.options is not None  # execute records them
+        return Configured(self.options, self.regime, self.auto, self.stats.get("algorithm", Algorithm.CARTOGRAPHER))
 
     def summary(self) -> dict:
         """What summary.json holds: the mapping system, the verdict, the statistics, and what auto detected and
@@ -69,6 +86,58 @@ class Auto:
     overrides: tuple[str, ...] = ()
 
 
+@dataclass(frozen=True, slots=True)
+class TopicChoice:
+    """The ``--scan-topic`` family: what the user named; None leaves a choice to ``io.topics.select_topics``."""
+
+    scan: str | None = None
+    odometry: str | None = None
+    imu: str | None = None
+    odom_frame: str | None = None
+    base_frame: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class MapRequest:
+    """One mapping run as asked, before the recording is looked at. ``source``: a recording file, or a recording
+    already open (in memory, simulated). ``algorithm`` None: auto's choice for :class:`Auto` options, else
+    Cartographer (also when continuing ``load_state``, whose pose graph is Cartographer's). ``laser_pose``: the
+    laser on the robot (x, y, yaw), None: the recording's TF. ``max_scans``: map only the first scans. ``jobs``:
+    threads where the work is independent (None: every core); the map does not depend on it."""
+
+    source: str | Path | Recording
+    options: Options | Auto = Auto()
+    algorithm: str | None = None
+    topics: TopicChoice = TopicChoice()
+    laser_pose: Sequence[float] | None = None
+    use_odometry: bool = True
+    loop_closure: bool = True
+    load_state: Path | None = None
+    max_scans: int | None = None
+    jobs: int | None = None
+
+    def __post_init__(self) -> None:
+        # Refused before any recording is read or state loaded: mapping would refuse only after both.
+        if self.algorithm is not None and self.algorithm not in ALGORITHMS:
+            raise CartoError(f"--algorithm: unknown algorithm '{self.algorithm}' (choose from "
+                             f"{', '.join(ALGORITHMS)})")
+        if self.load_state is not None and self.algorithm in GMAPPING_PIPELINE:
+            raise CartoError(f"--load-state continues a Cartographer pose graph; {self.algorithm} starts every map "
+                             "afresh (drop --load-state or use --algorithm cartographer)", self.load_state)
+
+    @property
+    def system(self) -> str | None:
+        """The mapping system asked for; None: auto chooses."""
+        if self.algorithm is None and self.load_state is not None:
+            return Algorithm.CARTOGRAPHER
+        return self.algorithm
+
+    @property
+    def name(self) -> str:
+        """The recording's name, as map.carto lists it."""
+        return Path(self.source).name if isinstance(self.source, (str, Path)) else "memory"
+
+
 @dataclass(frozen=True)
 class Configured:
     options: Options
@@ -77,77 +146,33 @@ class Configured:
     algorithm: str = Algorithm.CARTOGRAPHER  # what maps: the caller's choice, else auto's, else Cartographer
 
 
-def configure(spec: Options | Auto, recording: Recording, selection: TopicSelection,
-              algorithm: str | None = None, laser_pose=None, timer=None,
-              stream: RecordStream | None = None) -> Configured:
-    """The options and mapping system for ``recording``: ``spec`` itself (Cartographer unless ``algorithm``
-    says otherwise), or for :class:`Auto` the survey's choice (``algorithm``, when given, wins). ``laser_pose``:
-    the user's mount (None: the recording's), for the survey's odometry check; ``timer``: its kernels' warm-up;
-    ``stream``: the records mapping will read (the survey looks at their start)."""
-    if isinstance(spec, Options):
-        return Configured(spec, algorithm=algorithm or Algorithm.CARTOGRAPHER)
-    # The odometry check sizes the particle filter's motion model: a Cartographer run does not need it
-    check = algorithm in (None, Algorithm.GMAPPING)
-    mount = survey_mount(recording, selection, laser_pose) if check else None
-    return configure_regime(survey(recording, selection, check_odometry=check, laser_pose=mount, timer=timer,
-                                   stream=stream), spec, algorithm)
+@dataclass(frozen=True)
+class Plan:
+    """A :class:`MapRequest` resolved against its opened recording: everything mapping needs, decided once before
+    the first scan. It may be executed more than once (each execution reads the recording again)."""
 
-
-def survey_mount(recording: Recording, selection: TopicSelection, laser_pose=None) -> np.ndarray | None:
-    """The laser's mount as mapping will resolve it (None without scans)."""
-    scan_frame = first_scan_frame(recording, selection.scan)
-    if scan_frame is None:
-        return None
-    return resolve_laser_pose(recording, scan_frame, laser_pose,
-                              selection.tf_odometry.fixed if selection.tf_odometry else ())[0]
-
-
-def configure_regime(regime: Regime, spec: Auto, algorithm: str | None = None) -> Configured:
-    """:func:`configure` for a regime already surveyed."""
-    base = load_options(None, list(spec.overrides))
-    g = base.gmapping
-    choice = choose(regime, base_max_range=base.trajectory_builder_2d.max_range, algorithm=algorithm,
-                    gmapping_max_range=g.maxRange, gmapping_noise=(g.srr, g.srt, g.str, g.stt))
-    return Configured(load_options(choice.profile, choice.settings + list(spec.overrides)), regime, choice,
-                      choice.algorithm)
-
-
-def build_configured(recording: Recording, configured: Configured, spec: Options | Auto,
-                     **kwargs) -> tuple[MapResult, Configured]:
-    """:func:`build` with ``configured``'s options and system. When auto chose GMapping and judges its map
-    less than ``ok``, the recording is mapped again with Cartographer's key-scan settings and the map the
-    verdict prefers is kept: the particle filter's outcome varies from run to run (aces: 0.05 m with 30
-    particles, 0.33 m with 50, judged suspect) where Cartographer's does not. On a tie GMapping's stays, the
-    system auto chose for the regime (key scans: better on four of five buildings left out one at a time,
-    docs/gmapping.md; fhw: both judged suspect, GMapping's 0.053 m against Cartographer's 0.114 m).
-    Returns the map and the configuration that made it; after a second mapping its ``wall_time_s`` and
-    ``scans_per_s`` cover both, and ``first_pass_wall_time_s`` the first."""
-    started = _time.perf_counter()
-    result = build(recording, configured.options, algorithm=configured.algorithm, **kwargs)
-    auto = configured.auto
-    if (not isinstance(spec, Auto) or auto is None or not auto.chose_algorithm or auto.algorithm != Algorithm.GMAPPING
-            or configured.regime is None or result.quality is None or result.quality.ok):
-        return result, configured
-    other = configure_regime(configured.regime, spec, Algorithm.CARTOGRAPHER)
-    assert other.auto is not None
-    first_wall = float(result.stats.get("wall_time_s", float("nan")))
-    again = build(recording, other.options, algorithm=Algorithm.CARTOGRAPHER, **kwargs)
-    wall = _time.perf_counter() - started
-    for r in (result, again):
-        r.stats.update(wall_time_s=wall, first_pass_wall_time_s=first_wall,
-                       scans_per_s=r.stats["scans"] / wall if wall > 0 else float("nan"))
-    if again.quality is None or LEVELS.index(again.quality.verdict) < LEVELS.index(result.quality.verdict):
-        note = (f"gmapping's map judged {result.quality.verdict}; mapped again with cartographer, judged "
-                f"{again.quality.verdict if again.quality else 'not'}")
-        return again, dataclasses.replace(other, auto=dataclasses.replace(other.auto, note=note))
-    note = f"cartographer's map judged {again.quality.verdict}: kept gmapping's, judged {result.quality.verdict}"
-    return result, dataclasses.replace(configured, auto=dataclasses.replace(auto, note=note))
-
-
-@dataclass
-class OpenedRecording:
+    request: MapRequest
     recording: Recording
     selection: TopicSelection
+    mount: np.ndarray  # the laser on the robot (x, y, yaw)
+    mount_source: str  # where that came from, in words
+    configured: Configured
+    continued: LoadedMap | None = None  # the saved map this run extends (--load-state)
+    stream: RecordStream | None = None  # the recording's records, read ahead (None: read them here)
+
+    @property
+    def recordings(self) -> tuple[str, ...]:
+        """The recordings the map will have been built from, in order."""
+        earlier = tuple(self.continued.metadata.recordings) if self.continued is not None else ()
+        return earlier + (self.request.name,)
+
+    @property
+    def may_fall_back(self) -> bool:
+        """Auto chose GMapping by itself: a map it judges less than ``ok`` is made again with Cartographer
+        (:func:`execute`)."""
+        auto = self.configured.auto
+        return (isinstance(self.request.options, Auto) and auto is not None and auto.chose_algorithm
+                and auto.algorithm == Algorithm.GMAPPING and self.configured.regime is not None)
 
     @property
     def scan_count(self) -> int:
@@ -164,13 +189,126 @@ def read_options(options: Options | Auto) -> ReadOptions:
 
 
 @contextmanager
-def opened(path: str | Path, read: ReadOptions | None = None, *, scan_topic: str | None = None,
-           odom_topic: str | None = None, imu_topic: str | None = None, odom_frame: str | None = None,
-           base_frame: str | None = None) -> Iterator[OpenedRecording]:
-    """Open a recording and choose its topics (the ``--scan-topic`` family of choices), closing it after."""
-    with open_recording(path, read) as rec:
-        yield OpenedRecording(rec, select_topics(rec, scan_topic, odom_topic, imu_topic, odom_frame=odom_frame,
-                                                 base_frame=base_frame))
+def planned(request: MapRequest, timer: Any = None) -> Iterator[Plan]:
+    """Open ``request``'s recording (unless it came open), choose its topics, start reading ahead, load or compile
+    the kernels, survey and configure: the :class:`Plan`, for as long as the recording stays open."""
+    with _opened(request) as recording:
+        t = request.topics
+        selection = select_topics(recording, t.scan, t.odometry, t.imu, odom_frame=t.odom_frame,
+                                  base_frame=t.base_frame)
+        # --no-odometry: the survey must not count on odometry local SLAM will not get.
+        surveyed = selection if request.use_odometry else dataclasses.replace(selection, odometry=None)
+        # Started first: with two jobs or more the records are decoded in a child while this process loads its
+        # kernels, surveys and maps (io.read_ahead).
+        with RecordStream(recording, surveyed, surveyed.topics, jobs=request.jobs) as stream:
+            # Before the survey, which needs the matchers: on a cold cache every kernel the run will use is
+            # compiled here at once, on every core (GMapping's only if it was asked for: auto rarely picks it).
+            kernels.warm_up(timer, systems=(request.system or Algorithm.CARTOGRAPHER,))
+            yield resolve(request, recording, selection, stream=stream, timer=timer)
+
+
+@contextmanager
+def _opened(request: MapRequest) -> Iterator[Recording]:
+    if isinstance(request.source, (str, Path)):
+        with open_recording(request.source, read_options(request.options)) as recording:
+            yield recording
+    else:
+        yield request.source
+
+
+def resolve(request: MapRequest, recording: Recording, selection: TopicSelection, *,
+            stream: RecordStream | None = None, timer: Any = None) -> Plan:
+    """The :class:`Plan` for ``request`` on an opened ``recording`` whose topics are ``selection``: the laser's
+    mount, the options and system (for :class:`Auto` the survey's choice; ``request.algorithm`` wins), the saved
+    map to continue. ``stream``: the records mapping will read (the survey looks at their start)."""
+    scan_frame = first_scan_frame(recording, selection.scan)
+    if scan_frame is None:
+        raise CartoError(f"no scans on {selection.scan}", recording.path)
+    explicit = None if request.laser_pose is None else transform.as_pose(request.laser_pose).reshape(3)
+    mount, mount_source = resolve_laser_pose(recording, scan_frame, explicit,
+                                             selection.tf_odometry.fixed if selection.tf_odometry else ())
+    spec = request.options
+    if isinstance(spec, Options):
+        configured = Configured(spec, algorithm=request.system or Algorithm.CARTOGRAPHER)
+    else:
+        # The odometry check sizes the particle filter's motion model: a Cartographer run does not need it
+        check = request.system in (None, Algorithm.GMAPPING)
+        surveyed = selection if request.use_odometry else dataclasses.replace(selection, odometry=None)
+        regime = survey(recording, surveyed, check_odometry=check, laser_pose=mount if check else None, timer=timer,
+                        stream=stream)
+        configured = configure_regime(regime, spec, request.system)
+    continued = None
+    if request.load_state is not None:
+        from carto_cli.io.map_file import load_map  # reads pose graphs: only a run that continues one needs it
+
+        continued = load_map(request.load_state)
+    return Plan(request, recording, selection, mount, mount_source, configured, continued, stream)
+
+
+def survey_mount(recording: Recording, selection: TopicSelection, laser_pose: Any = None) -> np.ndarray | None:
+    """The laser's mount as mapping will resolve it (None without scans)."""
+    scan_frame = first_scan_frame(recording, selection.scan)
+    if scan_frame is None:
+        return None
+    return resolve_laser_pose(recording, scan_frame, laser_pose,
+                              selection.tf_odometry.fixed if selection.tf_odometry else ())[0]
+
+
+def configure_regime(regime: Regime, spec: Auto, algorithm: str | None = None) -> Configured:
+    """The options and system auto chooses for a surveyed ``regime`` (``algorithm``, when given, wins), the
+    user's ``--set`` on top."""
+    base = load_options(None, list(spec.overrides))
+    g = base.gmapping
+    choice = choose(regime, base_max_range=base.trajectory_builder_2d.max_range, algorithm=algorithm,
+                    gmapping_max_range=g.maxRange, gmapping_noise=(g.srr, g.srt, g.str, g.stt))
+    return Configured(load_options(choice.profile, choice.settings + list(spec.overrides)), regime, choice,
+                      choice.algorithm)
+
+
+def execute(plan: Plan, *, timer: Any = None, on_scan: Callable[[int], None] | None = None) -> MapResult:
+    """Map by ``plan``. When auto chose GMapping and judges its map less than ``ok``, the recording is mapped
+    again with Cartographer's key-scan settings and the map the verdict prefers is kept: the particle filter's
+    outcome varies from run to run (aces: 0.05 m with 30 particles, 0.33 m with 50, judged suspect) where
+    Cartographer's does not. On a tie GMapping's stays, the system auto chose for the regime (key scans: better
+    on four of five buildings left out one at a time, docs/gmapping.md; fhw: both judged suspect, GMapping's
+    0.053 m against Cartographer's 0.114 m). After a second mapping the result's ``wall_time_s`` and
+    ``scans_per_s`` cover both, and ``first_pass_wall_time_s`` the first. ``timer``: the stages' times;
+    ``on_scan``: called with 1 for every scan fed (a progress bar)."""
+    started = _time.perf_counter()
+    result = _map_once(plan, plan.configured, timer, on_scan)
+    if not plan.may_fall_back or result.quality is None or result.quality.ok:
+        return result
+    assert plan.configured.regime is not None and isinstance(plan.request.options, Auto)  # may_fall_back's
+    other = configure_regime(plan.configured.regime, plan.request.options, Algorithm.CARTOGRAPHER)
+    assert other.auto is not None
+    first_wall = float(result.stats.get("wall_time_s", float("nan")))
+    again = _map_once(plan, other, timer, on_scan)
+    wall = _time.perf_counter() - started
+
+    def both(r: MapResult) -> RunStats:
+        stats = r.stats.copy()
+        stats["wall_time_s"] = wall
+        stats["first_pass_wall_time_s"] = first_wall
+        stats["scans_per_s"] = r.stats["scans"] / wall if wall > 0 else float("nan")
+        return stats
+
+    if again.quality is None or LEVELS.index(again.quality.verdict) < LEVELS.index(result.quality.verdict):
+        note = (f"gmapping's map judged {result.quality.verdict}; mapped again with cartographer, judged "
+                f"{again.quality.verdict if again.quality else 'not'}")
+        return dataclasses.replace(again, stats=both(again), auto=dataclasses.replace(other.auto, note=note))
+    assert result.auto is not None  # auto chose GMapping
+    note = f"cartographer's map judged {again.quality.verdict}: kept gmapping's, judged {result.quality.verdict}"
+    return dataclasses.replace(result, stats=both(result), auto=dataclasses.replace(result.auto, note=note))
+
+
+def build(recording: Recording, options: Options, *, laser_pose: Sequence[float] | None = None, timer: Any = None,
+          on_scan: Callable[[int], None] | None = None, use_odometry: bool = True, max_scans: int | None = None,
+          loop_closure: bool = True, algorithm: str = Algorithm.CARTOGRAPHER, jobs: int | None = None) -> MapResult:
+    """Map an opened ``recording`` with fixed ``options`` (tests, tuning trials, benchmarks that hold a recording
+    and its options already): :func:`execute` of the request, its records read here."""
+    request = MapRequest(recording, options, algorithm, laser_pose=laser_pose, use_odometry=use_odometry,
+                         loop_closure=loop_closure, max_scans=max_scans, jobs=jobs)
+    return execute(resolve(request, recording, select_topics(recording), timer=timer), timer=timer, on_scan=on_scan)
 
 
 def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit,
@@ -213,80 +351,13 @@ def _timed(records: Iterator, timer, stage: str = "read recording") -> Iterator:
         timer.add(stage, total, count)
 
 
-def build(
-    recording: Recording,
-    options: Options,
-    *,
-    selection: TopicSelection | None = None,
-    laser_pose=None,
-    timer=None,
-    on_scan: Callable[[int], None] | None = None,
-    use_odometry: bool = True,
-    use_imu: bool = True,
-    max_scans: int | None = None,
-    loop_closure: bool = True,
-    graph: PoseGraph | None = None,
-    trajectory_id: int = 0,
-    judge: bool = True,
-    algorithm: str = Algorithm.CARTOGRAPHER,
-    jobs: int | None = None,
-    stream: RecordStream | None = None,
-) -> MapResult:
-    """Map one recording. With ``graph`` (e.g. from a loaded map.carto) the recording becomes trajectory
-    ``trajectory_id`` of that graph, linked to the earlier ones by loop closures, as Cartographer's
-    offline node does with --load_state_filename. ``algorithm`` "gmapping" maps with the particle filter
-    (``options.gmapping``) instead of Cartographer. ``jobs``: threads where work is independent (Cartographer's
-    pose graph beside local SLAM and its loop-closure searches, GMapping's particles and final searches; None: every
-    core); the map is the same for any number. ``stream``: the recording's records, read ahead (one pass of it
-    is taken; by default the recording is read here)."""
-    wall0 = _time.perf_counter()
-    if algorithm not in ALGORITHMS:
-        raise CartoError(f"unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
-    if algorithm in GMAPPING_PIPELINE and graph is not None:
-        raise CartoError(f"{algorithm} cannot continue a saved map (--load-state is for cartographer)", recording.path)
-    selection = selection or select_topics(recording)
-    scan_frame = first_scan_frame(recording, selection.scan)
-    if scan_frame is None:
-        raise CartoError(f"no scans on {selection.scan}", recording.path)
-    mount, mount_source = resolve_laser_pose(recording, scan_frame, laser_pose,
-                                             selection.tf_odometry.fixed if selection.tf_odometry else ())
-    tb = options.trajectory_builder_2d
-    slam: MappingSystem
-    if algorithm == Algorithm.GMAPPING:
-        from carto_cli.gmapping.filter import GMappingSlam  # a Cartographer run never loads it (0.4 s)
-
-        slam = GMappingSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)
-    elif algorithm == Algorithm.SCAN_TO_MAP:
-        from carto_cli.gmapping.front_end import ScanToMapSlam
-
-        slam = ScanToMapSlam(options, laser_pose=mount, timer=timer, started=wall0, jobs=jobs)
-    else:
-        slam = Slam(options, laser_pose=mount, timer=timer, loop_closure=loop_closure, graph=graph,
-                    trajectory_id=trajectory_id, started=wall0, jobs=jobs)
-
-    topics = [selection.scan]
-    if use_odometry and selection.odometry:
-        topics.append(selection.odometry)
-    if use_imu and selection.imu and tb.use_imu_data and algorithm not in GMAPPING_PIPELINE:
-        topics.append(selection.imu)
-
+def _map_once(plan: Plan, configured: Configured, timer: Any,
+              on_scan: Callable[[int], None] | None) -> MapResult:
+    """One pass of the recording through the system ``configured`` names, and the verdict on its map."""
+    slam, trajectory_id = _start_system(plan, configured, timer)
     content = ContentCheck()
     try:
-        records = (stream.records(topics, slam.timer) if stream is not None
-                   else selected_records(recording, selection, topics))
-        for record in _timed(content.filter(records), slam.timer):
-            if isinstance(record, Scan):
-                if max_scans is not None and slam.num_scans >= max_scans:
-                    break
-                slam.add_scan(record)
-                if on_scan is not None:
-                    on_scan(1)
-            elif isinstance(record, Odometry):
-                slam.add_odometry(record)
-            elif isinstance(record, Imu):
-                slam.add_imu(record)
-        if slam.num_poses == 0:
-            raise CartoError("no scan could be matched (all scans empty after filtering?)", recording.path)
+        _feed(plan, configured, slam, content, on_scan)
     except BaseException:
         try:
             slam.close(abandon=True)  # Ctrl-C or a bad recording: do not make the user wait for the graph
@@ -294,14 +365,67 @@ def build(
             pass
         raise
     core = slam.finish()
-    result = MapResult(**vars(core), laser_pose_source=mount_source, selection=selection,
-                       warnings=list(recording.warnings) + content.warnings())
+    stats = core.stats.copy()
     peak = peak_rss_mb()
     # or of this process and the pose graph's together while that one ran (mapping.slam), if higher
-    together = result.stats.get("graph_process_peak_memory_mb", 0.0)
-    result.stats["peak_memory_mb"] = None if peak is None else max(peak, together)
-    if judge and result.graph is not None:
+    together = stats.get("graph_process_peak_memory_mb", 0.0)
+    stats["peak_memory_mb"] = None if peak is None else max(peak, together)
+    quality = None
+    if core.graph is not None:
         with slam.timer.stage("quality"):
-            result.quality = assess(result, result.graph.odometry_samples(trajectory_id))
-    return result
+            quality = assess(core, core.graph.odometry_samples(trajectory_id))
+    fields = {f.name: getattr(core, f.name) for f in dataclasses.fields(SlamResult)}
+    return MapResult(**(fields | {"stats": stats}), laser_pose_source=plan.mount_source, selection=plan.selection,
+                     regime=configured.regime, auto=configured.auto, quality=quality,
+                     warnings=tuple(plan.recording.warnings) + tuple(content.warnings()), options=configured.options)
 
+
+def _start_system(plan: Plan, configured: Configured, timer: Any) -> tuple[MappingSystem, int]:
+    """The mapping system ``configured`` names, and the trajectory it maps. A run that continues a saved map
+    becomes the next trajectory of that map's pose graph, linked to the earlier ones by loop closures, as
+    Cartographer's offline node does with --load_state_filename."""
+    wall0 = _time.perf_counter()
+    request, options, algorithm = plan.request, configured.options, configured.algorithm
+    if algorithm == Algorithm.GMAPPING:
+        from carto_cli.gmapping.filter import GMappingSlam  # a Cartographer run never loads it (0.4 s)
+
+        return GMappingSlam(options, laser_pose=plan.mount, timer=timer, started=wall0, jobs=request.jobs), 0
+    if algorithm == Algorithm.SCAN_TO_MAP:
+        from carto_cli.gmapping.front_end import ScanToMapSlam
+
+        return ScanToMapSlam(options, laser_pose=plan.mount, timer=timer, started=wall0, jobs=request.jobs), 0
+    graph = None
+    trajectory_id = 0
+    if plan.continued is not None:
+        graph = plan.continued.to_pose_graph(options, timer=timer, loop_closure=request.loop_closure)
+        trajectory_id = plan.continued.next_trajectory_id
+    return Slam(options, laser_pose=plan.mount, timer=timer, loop_closure=request.loop_closure, graph=graph,
+                trajectory_id=trajectory_id, started=wall0, jobs=request.jobs), trajectory_id
+
+
+def _feed(plan: Plan, configured: Configured, slam: MappingSystem, content: ContentCheck,
+          on_scan: Callable[[int], None] | None) -> None:
+    """The recording's records to ``slam`` in time order: the scans (up to ``max_scans``), the odometry unless
+    turned off, the IMU where the system uses it; what mapping cannot use is dropped by ``content``."""
+    request, selection = plan.request, plan.selection
+    topics = [selection.scan]
+    if request.use_odometry and selection.odometry:
+        topics.append(selection.odometry)
+    if (selection.imu and configured.options.trajectory_builder_2d.use_imu_data
+            and configured.algorithm not in GMAPPING_PIPELINE):
+        topics.append(selection.imu)
+    records = (plan.stream.records(topics, slam.timer) if plan.stream is not None
+               else selected_records(plan.recording, selection, topics))
+    for record in _timed(content.filter(records), slam.timer):
+        if isinstance(record, Scan):
+            if request.max_scans is not None and slam.num_scans >= request.max_scans:
+                break
+            slam.add_scan(record)
+            if on_scan is not None:
+                on_scan(1)
+        elif isinstance(record, Odometry):
+            slam.add_odometry(record)
+        elif isinstance(record, Imu):
+            slam.add_imu(record)
+    if slam.num_poses == 0:
+        raise CartoError("no scan could be matched (all scans empty after filtering?)", plan.recording.path)

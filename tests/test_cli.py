@@ -298,8 +298,8 @@ def test_min_z_and_max_z_on_map_become_the_options(tmp_path, monkeypatch):
 
     seen = {}
 
-    def fake_run_map(recording, outdir, options, **kwargs):
-        seen["options"] = options
+    def fake_run_map(request, outdir, **kwargs):
+        seen["options"] = request.options
         raise KeyboardInterrupt  # stop before mapping
 
     monkeypatch.setattr(map_command, "run_map", fake_run_map)

@@ -1,12 +1,23 @@
-"""pipeline: the one place a recording is opened, its topics chosen and the laser placed."""
+"""pipeline: a map request resolved once into a plan (topics, the laser, options and system), executed."""
 import numpy as np
 import pytest
 
-from carto_cli.core.errors import TopicError
+from carto_cli.core.errors import CartoError, TopicError
 from carto_cli.core.timing import StageTimer
 from carto_cli.io.recording_writers import write_recording
+from carto_cli.io.sources.open import open_recording
 from carto_cli.options import load_options
-from carto_cli.pipeline import build, opened, read_options, resolve_laser_pose
+from carto_cli.pipeline import (
+    Auto,
+    MapRequest,
+    MapResult,
+    Plan,
+    TopicChoice,
+    execute,
+    planned,
+    read_options,
+    resolve_laser_pose,
+)
 from carto_cli.sim import loop_building, loop_trajectory, simulate
 
 
@@ -21,16 +32,29 @@ def sim_bag(tmp_path_factory):
     return path, sim
 
 
-def test_opened_chooses_the_topics_and_counts_the_scans(sim_bag):
+def test_a_plan_chooses_the_topics_places_the_laser_and_counts_the_scans(sim_bag):
     path, sim = sim_bag
-    with opened(path, read_options(load_options(None))) as o:
-        assert o.selection.scan == "/scan" and o.selection.odometry == "/odom"
-        assert o.scan_count == len(sim.scan_times)
+    with planned(MapRequest(path, load_options(None), jobs=1)) as plan:
+        assert plan.selection.scan == "/scan" and plan.selection.odometry == "/odom"
+        assert plan.scan_count == len(sim.scan_times)
+        assert plan.mount_source.startswith("static TF") and np.allclose(plan.mount, sim.laser_pose)
+        assert plan.configured.algorithm == "cartographer" and plan.recordings == ("sim.bag",)
+    with planned(MapRequest(path, load_options(None), laser_pose=(1.0, 2.0, 0.5), jobs=1)) as plan:
+        assert plan.mount_source == "--laser-pose" and np.allclose(plan.mount, (1.0, 2.0, 0.5))
 
 
-def test_opened_names_a_missing_topic(sim_bag):
-    with pytest.raises(TopicError, match="/nope"), opened(sim_bag[0], scan_topic="/nope"):
+def test_a_plan_names_a_missing_topic(sim_bag):
+    with pytest.raises(TopicError, match="/nope"), planned(MapRequest(sim_bag[0], topics=TopicChoice("/nope"))):
         pass
+
+
+def test_a_request_refuses_what_cannot_be_mapped_before_reading(tmp_path):
+    with pytest.raises(CartoError, match="unknown algorithm 'ekf'"):
+        MapRequest(tmp_path / "no-such.bag", algorithm="ekf")
+    with pytest.raises(CartoError, match="gmapping starts every map afresh"):
+        MapRequest(tmp_path / "no-such.bag", algorithm="gmapping", load_state=tmp_path / "m.carto")
+    assert MapRequest(tmp_path / "r.bag", load_state=tmp_path / "m.carto").system == "cartographer"
+    assert MapRequest(tmp_path / "r.bag").system is None  # auto chooses
 
 
 def test_read_options_slice_clouds_as_the_options_say():
@@ -41,26 +65,29 @@ def test_read_options_slice_clouds_as_the_options_say():
 
 def test_laser_pose_from_the_command_line_then_static_tf_then_identity(sim_bag):
     path, sim = sim_bag
-    with opened(path) as o:
-        frame = next(r.frame for r in o.recording.records(["/scan"]))
-        pose, source = resolve_laser_pose(o.recording, frame, (1.0, 2.0, 0.5))
+    with open_recording(path) as recording:
+        frame = next(r.frame for r in recording.records(["/scan"]))
+        pose, source = resolve_laser_pose(recording, frame, (1.0, 2.0, 0.5))
         assert source == "--laser-pose" and np.allclose(pose, (1.0, 2.0, 0.5))
-        pose, source = resolve_laser_pose(o.recording, frame, None)
+        pose, source = resolve_laser_pose(recording, frame, None)
         assert source.startswith("static TF") and np.allclose(pose, sim.laser_pose)
-        pose, source = resolve_laser_pose(o.recording, "no_such_frame", None)
+        pose, source = resolve_laser_pose(recording, "no_such_frame", None)
         assert source.startswith("identity") and np.allclose(pose, 0.0)
 
 
-def _fake_build(verdicts, calls):
-    from types import SimpleNamespace
-
+def _fake_map_once(verdicts, calls):
     from carto_cli.mapping.quality import MapQuality, MapVerdict
 
-    def build(recording, options, *, algorithm, **kwargs):
-        calls.append(algorithm)
-        return SimpleNamespace(quality=MapQuality(MapVerdict(verdicts[algorithm]), [], []), algorithm=algorithm,
-                               stats={"scans": 10, "wall_time_s": 0.0})
-    return build
+    def map_once(plan, configured, timer, on_scan):
+        calls.append(configured.algorithm)
+        return MapResult(None, None, None, None, [], None, None, None, stats={"scans": 10, "wall_time_s": 0.0},
+                         quality=MapQuality(MapVerdict(verdicts[configured.algorithm]), [], []),
+                         regime=configured.regime, auto=configured.auto, options=configured.options)
+    return map_once
+
+
+def _plan(configured, options):
+    return Plan(MapRequest("r.bag", options), None, None, np.zeros(3), "", configured)
 
 
 @pytest.mark.parametrize("gm, carto, kept", [("suspect", "ok", "cartographer"), ("failed", "suspect", "cartographer"),
@@ -68,37 +95,35 @@ def _fake_build(verdicts, calls):
                                              ("ok", "ok", "gmapping")])
 def test_auto_falls_back_to_cartographer_when_gmappings_map_is_judged_worse(monkeypatch, gm, carto, kept):
     from carto_cli import pipeline
-    from carto_cli.options import load_options
     from carto_cli.regime import AutoChoice
 
     calls: list[str] = []
-    monkeypatch.setattr(pipeline, "build", _fake_build({"gmapping": gm, "cartographer": carto}, calls))
+    monkeypatch.setattr(pipeline, "_map_once", _fake_map_once({"gmapping": gm, "cartographer": carto}, calls))
     monkeypatch.setattr(pipeline, "configure_regime", lambda regime, spec, algorithm: pipeline.Configured(
         load_options(), regime, AutoChoice("sparse", algorithm=algorithm), algorithm))
     chosen = pipeline.Configured(load_options(), object(), AutoChoice("sparse", algorithm="gmapping",
                                                                       chose_algorithm=True), "gmapping")
-    result, configured = pipeline.build_configured(None, chosen, pipeline.Auto())
-    assert result.algorithm == kept == configured.algorithm
+    result = execute(_plan(chosen, Auto()))
+    assert result.auto.algorithm == kept
     assert calls == (["gmapping"] if gm == "ok" else ["gmapping", "cartographer"])
     if gm != "ok":
-        assert "gmapping's map judged" in configured.auto.note or "kept gmapping's" in configured.auto.note
+        assert "gmapping's map judged" in result.auto.note or "kept gmapping's" in result.auto.note
         # The time reported is both mappings', not the second one's alone.
         assert result.stats["wall_time_s"] > 0 and "first_pass_wall_time_s" in result.stats
 
 
 def test_no_fallback_when_the_user_chose_gmapping(monkeypatch):
     from carto_cli import pipeline
-    from carto_cli.options import load_options
     from carto_cli.regime import AutoChoice
 
     calls: list[str] = []
-    monkeypatch.setattr(pipeline, "build", _fake_build({"gmapping": "failed", "cartographer": "ok"}, calls))
+    monkeypatch.setattr(pipeline, "_map_once", _fake_map_once({"gmapping": "failed", "cartographer": "ok"}, calls))
     forced = pipeline.Configured(load_options(), object(), AutoChoice("sparse", algorithm="gmapping"), "gmapping")
-    _, configured = pipeline.build_configured(None, forced, pipeline.Auto())
-    assert calls == ["gmapping"] and configured is forced
+    result = execute(_plan(forced, Auto()))
+    assert calls == ["gmapping"] and result.auto is forced.auto
     named = pipeline.Configured(load_options(), algorithm="gmapping")
-    _, configured = pipeline.build_configured(None, named, load_options())
-    assert calls == ["gmapping", "gmapping"] and configured is named
+    result = execute(_plan(named, load_options()))
+    assert calls == ["gmapping", "gmapping"] and result.auto is None
 
 
 def test_reading_the_recording_is_a_stage_of_its_own(sim_bag):
@@ -107,9 +132,9 @@ def test_reading_the_recording_is_a_stage_of_its_own(sim_bag):
     path, sim = sim_bag
     options = load_options(None)
     timer = StageTimer()
-    with opened(path, read_options(options)) as o:
-        build(o.recording, options, selection=o.selection, timer=timer, loop_closure=False, jobs=1)
-        records = sum(1 for _ in o.recording.records([o.selection.scan, o.selection.odometry]))
+    with planned(MapRequest(path, options, loop_closure=False, jobs=1), timer) as plan:
+        execute(plan, timer=timer)
+        records = sum(1 for _ in plan.recording.records([plan.selection.scan, plan.selection.odometry]))
     timer.stop()
     read = timer.snapshot().find("read recording")
     assert read is not None and read.count == records > len(sim.scan_times)

@@ -6,7 +6,7 @@ import pytest
 
 from carto_cli.io.topics import select_topics
 from carto_cli.options import load_options
-from carto_cli.pipeline import Auto, Configured, configure
+from carto_cli.pipeline import Auto, Configured, MapRequest, resolve
 from carto_cli.regime import Regime, choose, survey
 from carto_cli.sim import follow_route, loop_building, loop_trajectory, office, simulate
 
@@ -120,9 +120,9 @@ def test_configure_layers_the_users_overrides_over_the_auto_choice(world):
     sim = simulate(world, loop_trajectory(world), duration=10.0, beams=90)
     rec = sim.recording()
     sel = select_topics(rec)
-    got = configure(Auto(("trajectory_builder_2d.max_range=12.5",)), rec, sel)
+    got = resolve(MapRequest(rec, Auto(("trajectory_builder_2d.max_range=12.5",))), rec, sel).configured
     assert got.auto is not None and got.auto.profile == "wheeled"
     assert got.options.trajectory_builder_2d.max_range == 12.5  # --set wins over the derived 29.9
     assert got.options == load_options("wheeled", got.auto.settings + ["trajectory_builder_2d.max_range=12.5"])
     named = load_options("office")
-    assert configure(named, rec, sel) == Configured(named)
+    assert resolve(MapRequest(rec, named), rec, sel).configured == Configured(named)

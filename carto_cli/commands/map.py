@@ -1,23 +1,20 @@
 """`carto map` as a library call: open, build, write every output. The CLI only parses arguments."""
 from __future__ import annotations
 
-import dataclasses
 import json
 from collections.abc import Callable
-from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from carto_cli.commands.common import check_algorithm, compiling_note
+from carto_cli.commands.common import compiling_note
 from carto_cli.core import kernels
 from carto_cli.core.errors import CartoError
-from carto_cli.gmapping import GMAPPING_PIPELINE
 from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
 from carto_cli.io.map_image import render_png, write_map, write_png
-from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
-from carto_cli.pipeline import Auto, Configured, MapResult, build_configured, configure, opened, read_options
+from carto_cli.pipeline import Configured, MapRequest, MapResult, execute, planned
 
 __all__ = ["OUTPUT_NAMES", "MapOutputs", "check_outdir", "compile_note", "default_outdir", "run_map", "summary_line",
            "write_outputs"]
@@ -88,80 +85,36 @@ def check_outdir(outdir: Path, *, force: bool = False) -> None:
 
 
 def run_map(
-    recording_path: Path,
-    outdir: Path | None,
-    options: Options | Auto,
+    request: MapRequest,
+    outdir: Path | None = None,
     *,
-    scan_topic: str | None = None,
-    odom_topic: str | None = None,
-    imu_topic: str | None = None,
-    laser_pose=None,
-    use_odometry: bool = True,
-    odom_frame: str | None = None,
-    base_frame: str | None = None,
-    timer=None,
+    timer: Any = None,
     on_scan: Callable[[int], None] | None = None,
     on_total: Callable[[int], None] | None = None,
-    loop_closure: bool = True,
-    state: bool = True,
-    load_state: Path | None = None,
     on_configured: Callable[[Configured], None] | None = None,
-    algorithm: str | None = None,
+    state: bool = True,
     force: bool = False,
-    jobs: int | None = None,
 ) -> tuple[MapResult, MapOutputs]:
-    """Map a recording and write every output (to ``default_outdir`` when ``outdir`` is None); with
-    ``load_state`` continue an existing map.carto; with :class:`~carto_cli.pipeline.Auto` options chosen
-    from the recording; ``algorithm`` "gmapping" maps with the particle filter (``options.gmapping``), None
-    leaves the choice to auto (Cartographer for a named profile). ``timer`` is stopped once the outputs are
-    written. An earlier map in the output directory is replaced only with ``force`` (checked before mapping).
-    ``jobs``: threads where the work is independent (None: every core); the outputs do not depend on it."""
-    if algorithm is not None:
-        check_algorithm(algorithm)
-    elif load_state is not None:
-        algorithm = "cartographer"  # continuing a map.carto's pose graph is Cartographer's
-    if load_state is not None and algorithm in GMAPPING_PIPELINE:
-        # Before the recording is surveyed and the state loaded: build would refuse only after both.
-        raise CartoError(f"--load-state continues a Cartographer pose graph; {algorithm} starts every map afresh "
-                         "(drop --load-state or use --algorithm cartographer)", load_state)
+    """Map as ``request`` asks and write every output (to ``default_outdir`` of the recording when ``outdir`` is
+    None); ``state``: map.carto too. ``on_configured`` hears the options and system chosen (again when auto fell
+    back to another system), ``on_total`` the scans to come, ``on_scan`` each scan fed. ``timer`` is stopped once
+    the outputs are written. An earlier map in the output directory is replaced only with ``force`` (checked
+    before mapping)."""
     if outdir is None:
-        outdir = default_outdir(recording_path)
+        if not isinstance(request.source, (str, Path)):
+            raise CartoError("a recording in memory has no name to make an output directory of: give outdir")
+        outdir = default_outdir(Path(request.source))
     check_outdir(outdir, force=force)  # before mapping: not after the whole recording was mapped
-    graph = None
-    trajectory_id = 0
-    recordings = [Path(recording_path).name]
-    with opened(recording_path, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic,
-                imu_topic=imu_topic, odom_frame=odom_frame, base_frame=base_frame) as source, ExitStack() as stack:
-        # --no-odometry: the survey must not count on odometry local SLAM will not get.
-        surveyed = source.selection if use_odometry else dataclasses.replace(source.selection, odometry=None)
-        # Started first: with two jobs or more the records are decoded in a child while this process loads its
-        # kernels, surveys and maps (io.read_ahead).
-        stream = stack.enter_context(RecordStream(source.recording, surveyed, surveyed.topics, jobs=jobs))
-        # Before the survey, which needs the matchers: on a cold cache every kernel the run will use is compiled
-        # here at once, on every core (GMapping's only if it was asked for: auto rarely picks it).
-        kernels.warm_up(timer, systems=(algorithm or "cartographer",))
-        configured = configure(options, source.recording, surveyed, algorithm, laser_pose, timer=timer,
-                               stream=stream)
+    with planned(request, timer) as plan:
         if on_configured is not None:
-            on_configured(configured)
-        if load_state is not None:
-            from carto_cli.io.map_file import load_map
-
-            loaded = load_map(load_state)
-            graph = loaded.to_pose_graph(configured.options, timer=timer, loop_closure=loop_closure)
-            trajectory_id = loaded.next_trajectory_id
-            recordings = list(loaded.metadata.recordings) + recordings
+            on_configured(plan.configured)
         if on_total is not None:
-            on_total(source.scan_count)
-        chosen = configured
-        result, configured = build_configured(
-            source.recording, configured, options, selection=source.selection, laser_pose=laser_pose, timer=timer,
-            on_scan=on_scan, use_odometry=use_odometry, loop_closure=loop_closure, graph=graph,
-            trajectory_id=trajectory_id, jobs=jobs, stream=stream)
-        if configured is not chosen and on_configured is not None:
-            on_configured(configured)  # auto fell back to another system: say so
-        result.regime, result.auto, result.options = configured.regime, configured.auto, configured.options
-    outputs = write_outputs(result, outdir, configured.options, state=state, recordings=recordings, jobs=jobs)
+            on_total(plan.scan_count)
+        result = execute(plan, timer=timer, on_scan=on_scan)
+        if result.auto is not plan.configured.auto and on_configured is not None:
+            on_configured(result.configured)  # auto tried another system (execute): say what came of it
+        recordings = plan.recordings
+    outputs = write_outputs(result, outdir, result.options, state=state, recordings=recordings, jobs=request.jobs)
     if timer is not None:
         timer.stop()
     return result, outputs

@@ -7,15 +7,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from carto_cli.commands.common import check_algorithm
 from carto_cli.core.errors import CartoError
 from carto_cli.core.timing import StageTimer
 from carto_cli.evaluation.gates import GateResult, compare_profiles
 from carto_cli.evaluation.profiling import build_report, calibrate, merge_repeats
 from carto_cli.io.atomic import write_text_atomic
-from carto_cli.io.read_ahead import RecordStream
-from carto_cli.options import Options
-from carto_cli.pipeline import Auto, build_configured, configure, opened, read_options
+from carto_cli.pipeline import Auto, MapRequest, execute, planned, read_options
 
 __all__ = ["ProfileRun", "read_baseline", "run_profile"]
 
@@ -42,37 +39,28 @@ def read_baseline(path: Path) -> dict:
 
 
 def run_profile(
-    recording: Path,
-    options: Options | Auto,
+    request: MapRequest,
     *,
-    scan_topic: str | None = None,
-    odom_topic: str | None = None,
-    odom_frame: str | None = None,
-    base_frame: str | None = None,
     output: Path | None = None,
     baseline: Path | None = None,
     calibrate_first: bool = False,
-    max_scans: int | None = None,
     relocalize_map: Path | None = None,
     on_total: Callable[[int], None] | None = None,
     on_scan: Callable[[int], None] | None = None,
-    algorithm: str | None = None,
     force: bool = False,
     repeat: int = 1,
-    jobs: int | None = None,
 ) -> ProfileRun:
-    """Map ``recording`` (its first ``max_scans`` scans) with ``algorithm`` under a StageTimer and build the
-    report; with ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with
-    ``output`` write the report there (an existing file only with ``force``, refused before any work).
-    ``on_total`` hears how many scans will be mapped. Every stage's CPU time (the whole process's) is
-    recorded beside its wall time; with ``repeat`` > 1 the recording is mapped that many times and each stage
-    keeps its lowest CPU time and the spread of the repeats (what the gates compare, and their noise floor).
-    ``jobs``: threads (None: every core); compare a baseline profiled with as many, since the graph's stages move
-    to a concurrent branch of the tree with more than one."""
+    """Map as ``request`` asks (its first ``max_scans`` scans) under a StageTimer and build the report; with
+    ``relocalize_map`` also time relocalizing the recording's scans in that map.carto; with ``output`` write the
+    report there (an existing file only with ``force``, refused before any work). ``on_total`` hears how many
+    scans will be mapped. Every stage's CPU time (the whole process's) is recorded beside its wall time; with
+    ``repeat`` > 1 the recording is mapped that many times and each stage keeps its lowest CPU time and the spread
+    of the repeats (what the gates compare, and their noise floor). Compare a baseline profiled with as many
+    ``jobs``, since the graph's stages move to a concurrent branch of the tree with more than one."""
     if repeat < 1:
         raise CartoError(f"--repeat must be at least 1, got {repeat}")
-    if algorithm is not None:
-        check_algorithm(algorithm)
+    if relocalize_map is not None and not isinstance(request.source, (str, Path)):
+        raise CartoError("profiling relocalization reads the recording again: give a recording file")
     if output is not None and Path(output).exists() and not force:
         raise CartoError("exists; --force replaces it, or give another --output", output)
     base = read_baseline(baseline) if baseline is not None else None
@@ -84,43 +72,37 @@ def run_profile(
                              f"maps with {runs}: compare a run with a baseline of the same algorithm", baseline)
 
     # Known before the recording is opened unless auto is to choose it.
-    known = algorithm or (None if isinstance(options, Auto) else "cartographer")
+    known = request.system or (None if isinstance(request.options, Auto) else "cartographer")
     if known is not None:
         check_baseline(known)
     calibration = calibrate() if calibrate_first else None
+    label = request.source if isinstance(request.source, (str, Path)) else request.name  # the report's recording
     runs = []
-    warnings: list[str] = []
-    with opened(recording, read_options(options), scan_topic=scan_topic, odom_topic=odom_topic, odom_frame=odom_frame,
-                base_frame=base_frame) as source, RecordStream(source.recording, source.selection,
-                                                               source.selection.topics, jobs=jobs) as stream:
+    with planned(request) as plan:
         # The records as `carto map` reads them (io.read_ahead); each repeat is a pass of its own.
-        configured = configure(options, source.recording, source.selection, algorithm, stream=stream)
-        algorithm = configured.algorithm
-        check_baseline(algorithm)
-        total = source.scan_count
+        check_baseline(plan.configured.algorithm)
+        total = plan.scan_count
         if on_total is not None:
-            on_total(repeat * min(total, max_scans or total))
-        chosen = configured
+            on_total(repeat * min(total, request.max_scans or total))
         for _ in range(repeat):
             timer = StageTimer(cpu_clock=time.process_time_ns)
-            result, configured = build_configured(source.recording, chosen, options, selection=source.selection,
-                                                  timer=timer, on_scan=on_scan, max_scans=max_scans, jobs=jobs,
-                                                  stream=stream)
+            result = execute(plan, timer=timer, on_scan=on_scan)
             timer.stop()
-            runs.append(build_report(result, timer, configured.options, recording, calibration))
-            warnings = result.warnings  # every repeat reads the same records
+            runs.append(build_report(result, timer, result.configured.options, label, calibration))
     report = merge_repeats(runs)
-    if configured.auto is not None and configured.regime is not None:
-        report["auto"] = {"detected": configured.regime.describe(), "profile": configured.auto.profile,
-                          "settings": configured.auto.settings, "algorithm": configured.auto.algorithm,
-                          "note": configured.auto.note}
+    if result.auto is not None and result.regime is not None:
+        report["auto"] = {"detected": result.regime.describe(), "profile": result.auto.profile,
+                          "settings": result.auto.settings, "algorithm": result.auto.algorithm,
+                          "note": result.auto.note}
     if relocalize_map is not None:
         from carto_cli.evaluation.profiling import profile_relocalization
         from carto_cli.io.map_file import load_map
         from carto_cli.io.sources.open import open_recording
 
-        with open_recording(recording, read_options(options)) as rec:
-            report["relocalization"] = profile_relocalization(load_map(relocalize_map), rec, scan_topic=scan_topic)
+        assert isinstance(request.source, (str, Path))  # checked before mapping
+        with open_recording(request.source, read_options(request.options)) as rec:
+            report["relocalization"] = profile_relocalization(load_map(relocalize_map), rec,
+                                                              scan_topic=request.topics.scan)
     if output is not None:
         write_text_atomic(output, json.dumps(report, indent=2) + "\n")
-    return ProfileRun(report, base, warnings)
+    return ProfileRun(report, base, list(result.warnings))  # every repeat reads the same records

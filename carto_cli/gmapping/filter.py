@@ -31,7 +31,7 @@ from carto_cli.gmapping import Algorithm, loops, matcher, motion, refine, resamp
 from carto_cli.gmapping.maps import CELL_BYTES, TILE, TiledMaps
 from carto_cli.grid.occupancy_image import OccupancyImage
 from carto_cli.mapping.pose_graph import PoseGraph
-from carto_cli.mapping.slam import SlamResult
+from carto_cli.mapping.slam import RunStats, SlamResult
 from carto_cli.mapping.submaps import ActiveSubmaps
 from carto_cli.matching import correlative
 from carto_cli.options import Options
@@ -354,7 +354,7 @@ class GMappingSlam:
                                    self.g.delta, origin)
             graph, submaps, node_scans = self._submaps(steps)
         wall = _time.perf_counter() - self._started
-        stats = {
+        stats: RunStats = {
             "algorithm": Algorithm.GMAPPING,
             "scans": self.num_scans,
             "poses": len(self._scan_times),

@@ -9,9 +9,8 @@ are GMapping's (``gmapping.*`` options, ``finish``), so the two systems differ o
 pose: many hypotheses, each matched on its own map, or one.
 
 Why: on the key-scan logs the particles cost 40-120 s of CPU and 0.8-1.7 GB, where one pose matched on one
-map and then the same loop step and re-matching cost 3-7 s (docs/measurements.md); one pose cannot recover
-from a wrong match, so auto judges its map and maps again with the particles when the verdict is not ``ok``
-(``pipeline.build_configured``).
+map and then the same loop step and re-matching cost 3-7 s (docs/measurements.md). But one pose cannot recover
+from a wrong match (fhw: metres off), so auto never chooses it; it is there to be asked for and measured.
 """
 from __future__ import annotations
 
@@ -21,6 +20,7 @@ from carto_cli.core import kernels, transform
 from carto_cli.gmapping import Algorithm, motion
 from carto_cli.gmapping.filter import Beams, GMappingSlam
 from carto_cli.grid.distance_map import DistanceMap
+from carto_cli.mapping.slam import RunStats
 from carto_cli.matching import distance_matcher
 
 # The distance field's reach: a match must see a wall within it from where odometry puts the scan. LaMa's
@@ -67,7 +67,7 @@ class ScanToMapSlam(GMappingSlam):
 
     def finish(self):
         result = super().finish()
-        result.stats.update(algorithm=Algorithm.SCAN_TO_MAP, particles=0, resamplings=0, mean_neff=None,
-                            unconverged_matches=self.unconverged,
-                            map_memory_peak_bytes=int(self.distance_map.memory_bytes))
+        result.stats.update(RunStats(algorithm=Algorithm.SCAN_TO_MAP, particles=0, resamplings=0, mean_neff=None,
+                                     unconverged_matches=self.unconverged,
+                                     map_memory_peak_bytes=int(self.distance_map.memory_bytes)))
         return result

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypedDict
 
 import numpy as np
 
@@ -55,7 +55,40 @@ class MappingSystem(Protocol):
         """Every scan's pose and the map; call once."""
 
 
-@dataclass
+class RunStats(TypedDict, total=False):
+    """A mapping run's statistics (summary.json's ``stats``), by the system that made the map. Times are the
+    mapping's (wall, from the system's start), memory in MB or bytes as named."""
+
+    algorithm: str  # GMapping's pipeline names itself; a Cartographer run leaves it out
+    scans: int  # fed
+    poses: int  # scans that got a pose
+    nodes: int
+    processed_scans: int  # GMapping: the scans that moved the robot far enough to be processed
+    submaps: int
+    wall_time_s: float  # after auto's second mapping, both passes (first_pass_wall_time_s: the first)
+    first_pass_wall_time_s: float
+    scans_per_s: float
+    empty_scans: int
+    constraints: int
+    loop_closures: int
+    loop_closure_candidates: int
+    loop_closure_searches: int
+    optimizations: int
+    optimization_time_s: float
+    precomputation_bytes: int  # the most branch-and-bound stacks held at once
+    precomputations: int  # stacks built, rebuilt ones included
+    precomputation_evictions: int
+    particles: int
+    resamplings: int
+    mean_neff: float | None
+    map_tiles_peak: int
+    map_memory_peak_bytes: int
+    unconverged_matches: int  # scan-to-map: Gauss-Newton runs that stopped at the iteration limit
+    graph_process_peak_memory_mb: float  # the pose graph's own process, when it ran in one (else 0)
+    peak_memory_mb: float | None  # this process's, or with the graph's process while it ran if higher
+
+
+@dataclass(frozen=True)
 class SlamResult:
     times: np.ndarray  # (S,) every scan that got a pose
     poses: np.ndarray  # (S, 3) tracking frame in the map frame
@@ -65,7 +98,7 @@ class SlamResult:
     submap_poses: np.ndarray  # (M, 3) global poses of the submaps' frames (local frame ↦ map frame)
     image: OccupancyImage | AssembledImage  # a large map is assembled strip by strip as it is written
     laser_pose: np.ndarray
-    stats: dict = field(default_factory=dict)
+    stats: RunStats = field(default_factory=lambda: RunStats())
     loop_closures: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (K, 4) x1 y1 x2 y2 for drawing
     graph: PoseGraph | None = None
     # (N, 3) the nodes' poses before a final refinement that made the map consistent (GMapping's loop step and
@@ -182,7 +215,7 @@ class Slam:
                 image.probability  # noqa: B018 - assembled now, in this stage; a larger map as it is written
         wall = _time.perf_counter() - self._started
         n_scans = self.num_scans
-        stats = {
+        stats: RunStats = {
             "scans": n_scans,
             "poses": len(self._times),
             "nodes": len(self._node_scans),

@@ -13,6 +13,7 @@ from carto_cli.core.errors import CartoError
 from carto_cli.io.map_file import load_map
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.io.trajectory import read_trajectory
+from carto_cli.pipeline import MapRequest
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
@@ -112,7 +113,7 @@ def test_run_map_as_a_library_call(sim_bag, tmp_path, monkeypatch):
     assert default_outdir(copy) == Path("drive.2024_map")
     timer, totals = StageTimer(), []
     options = load_options(None, FAST[1:])
-    result, outputs = run_map(copy, None, options, timer=timer, on_total=totals.append, state=False)
+    result, outputs = run_map(MapRequest(copy, options), None, timer=timer, on_total=totals.append, state=False)
     assert outputs.yaml.resolve() == tmp_path / "here" / "drive.2024_map" / "map.yaml" and outputs.state is None
     assert totals == [sim.counts()["/scan"]]
     assert timer.snapshot().scans == result.stats["scans"]
@@ -217,11 +218,11 @@ def test_run_map_refuses_gmapping_with_a_state_before_reading(tmp_path):
     from carto_cli.options import load_options
 
     with pytest.raises(CartoError, match="gmapping starts every map afresh") as e:
-        run_map(tmp_path / "no-such.bag", tmp_path / "o", load_options(), load_state=tmp_path / "m.carto",
-                algorithm="gmapping")
+        run_map(MapRequest(tmp_path / "no-such.bag", load_options(), "gmapping", load_state=tmp_path / "m.carto"),
+                tmp_path / "o")
     assert e.value.path == str(tmp_path / "m.carto")
     with pytest.raises(CartoError, match="unknown algorithm 'ekf'"):
-        run_map(tmp_path / "no-such.bag", tmp_path / "o", load_options(), algorithm="ekf")
+        run_map(MapRequest(tmp_path / "no-such.bag", load_options(), "ekf"), tmp_path / "o")
 
 
 def test_summary_line_per_algorithm():
@@ -443,7 +444,7 @@ def test_two_jobs_decode_the_recording_in_a_process_of_their_own(sim_bag, tmp_pa
     runs = {}
     for jobs in (1, 2):
         timer = StageTimer()
-        _, outputs = run_map(bag, tmp_path / str(jobs), options, timer=timer, state=False, jobs=jobs)
+        _, outputs = run_map(MapRequest(bag, options, jobs=jobs), tmp_path / str(jobs), timer=timer, state=False)
         runs[jobs] = (timer.snapshot().find(f"{STAGE}/read recording"), outputs.trajectory.read_bytes(),
                       outputs.pgm.read_bytes())
     assert runs[1][0] is None and runs[2][0] is not None

@@ -10,13 +10,14 @@ from carto_cli.commands.profile import ProfileRun, read_baseline, run_profile
 from carto_cli.core.errors import CartoError
 from carto_cli.evaluation.profiling import SCHEMA_PATH, format_report
 from carto_cli.options import load_options
+from carto_cli.pipeline import MapRequest
 
 
 @pytest.fixture(scope="module")
 def first(tmp_path_factory):
     out = tmp_path_factory.mktemp("profile") / "base.json"
     totals, scans = [], []
-    run = run_profile(SAMPLE_BAG, load_options(), output=out, max_scans=30, on_total=totals.append,
+    run = run_profile(MapRequest(SAMPLE_BAG, load_options(), max_scans=30), output=out, on_total=totals.append,
                       on_scan=scans.append)
     return run, out, totals, scans
 
@@ -50,7 +51,7 @@ def test_gates_against_a_baseline(first):
 
 def test_bad_baseline_fails_before_mapping(tmp_path):
     with pytest.raises(CartoError, match="cannot read baseline") as e:
-        run_profile(tmp_path / "no-such-recording.bag", load_options(), baseline=tmp_path / "missing.json")
+        run_profile(MapRequest(tmp_path / "no-such-recording.bag", load_options()), baseline=tmp_path / "missing.json")
     assert e.value.path == str(tmp_path / "missing.json")
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
@@ -63,19 +64,19 @@ def test_an_existing_output_is_kept_unless_force(first, tmp_path):
     before = out.read_bytes()
     # Refused before the recording is even opened (it does not exist).
     with pytest.raises(CartoError, match="--force") as e:
-        run_profile(tmp_path / "no-such-recording.bag", load_options(), output=out)
+        run_profile(MapRequest(tmp_path / "no-such-recording.bag", load_options()), output=out)
     assert e.value.path == str(out) and out.read_bytes() == before
     replaced = tmp_path / "again.json"
     replaced.write_text("old")
-    run_profile(SAMPLE_BAG, load_options(), output=replaced, max_scans=5, force=True)
+    run_profile(MapRequest(SAMPLE_BAG, load_options(), max_scans=5), output=replaced, force=True)
     assert json.loads(replaced.read_text())["counts"]["scans"] == 5
 
 
 @pytest.fixture(scope="module")
 def gmapping_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("profile") / "gmapping.json"
-    run = run_profile(SAMPLE_BAG, load_options(None, ["gmapping.particles=5"]), output=out, max_scans=20,
-                      algorithm="gmapping")
+    run = run_profile(MapRequest(SAMPLE_BAG, load_options(None, ["gmapping.particles=5"]), "gmapping", max_scans=20),
+                      output=out)
     return run, out
 
 
@@ -96,23 +97,23 @@ def test_a_baseline_of_the_other_algorithm_is_refused_before_mapping(first, gmap
     _, gmapping_out = gmapping_run
     assert read_baseline(carto_out)["algorithm"] == "cartographer"
     with pytest.raises(CartoError, match="profiled with gmapping, this run maps with cartographer") as e:
-        run_profile(tmp_path / "no-such-recording.bag", load_options(), baseline=gmapping_out)
+        run_profile(MapRequest(tmp_path / "no-such-recording.bag", load_options()), baseline=gmapping_out)
     assert e.value.path == str(gmapping_out)
     with pytest.raises(CartoError, match="profiled with cartographer, this run maps with gmapping"):
-        run_profile(tmp_path / "no-such-recording.bag", load_options(), baseline=carto_out, algorithm="gmapping")
+        run_profile(MapRequest(tmp_path / "no-such-recording.bag", load_options(), "gmapping"), baseline=carto_out)
     # A report from before --algorithm names none: it was Cartographer's.
     old = read_baseline(carto_out)
     del old["algorithm"]
     (tmp_path / "old.json").write_text(json.dumps(old))
     with pytest.raises(CartoError, match="profiled with cartographer"):
-        run_profile(tmp_path / "no-such-recording.bag", load_options(), baseline=tmp_path / "old.json",
-                    algorithm="gmapping")
+        run_profile(MapRequest(tmp_path / "no-such-recording.bag", load_options(), "gmapping"),
+                    baseline=tmp_path / "old.json")
 
 
 def test_repeated_runs_record_cpu_time_and_its_spread(tmp_path):
-    run = run_profile(SAMPLE_BAG, load_options(), max_scans=10, repeat=2)
+    run = run_profile(MapRequest(SAMPLE_BAG, load_options(), max_scans=10), repeat=2)
     stages = run.report["timing"]["stages"]
     assert run.report["repeats"] == 2 and run.report["counts"]["scans"] == 10
     assert stages["scan"]["cpu_ms_per_scan"] > 0 and stages["scan"]["cpu_spread"] >= 0
     with pytest.raises(CartoError, match="--repeat"):
-        run_profile(SAMPLE_BAG, load_options(), repeat=0)
+        run_profile(MapRequest(SAMPLE_BAG, load_options()), repeat=0)

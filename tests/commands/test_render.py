@@ -11,6 +11,7 @@ from carto_cli.commands.render import run_render
 from carto_cli.core.errors import CartoError
 from carto_cli.io.map_image import PNG_FREE, PNG_UNKNOWN
 from carto_cli.io.map_server import occupancy_from_pixels
+from carto_cli.pipeline import MapRequest
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +27,7 @@ def mapped(tmp_path_factory):
     sim = simulate(w, loop_trajectory(w), duration=30.0, scan_rate=10.0)
     bag = base / "sim.bag"
     write_recording(iter(list(sim.records(["/scan", "/odom"]))), bag, "ros1")
-    result, _ = run_map(bag, base / "map", load_options("wheeled"))
+    result, _ = run_map(MapRequest(bag, load_options("wheeled")), base / "map")
     return base / "map", result
 
 

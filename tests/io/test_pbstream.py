@@ -11,6 +11,7 @@ from carto_cli.core.errors import FormatError
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.io import pbstream
 from carto_cli.io.map_file import load_map
+from carto_cli.pipeline import MapRequest
 
 # The messages carto reads and writes, as Cartographer's published .proto files declare them (cartographer/
 # mapping/proto/{serialization,pose_graph,trajectory,submap,grid_2d,map_limits,cell_limits_2d,
@@ -141,7 +142,7 @@ def sample_map(tmp_path_factory):
     from carto_cli.options import load_options
 
     out = tmp_path_factory.mktemp("pb") / "map"
-    run_map(SAMPLE_BAG, out, load_options("office"))
+    run_map(MapRequest(SAMPLE_BAG, load_options("office")), out)
     return load_map(out / "map.carto")
 
 

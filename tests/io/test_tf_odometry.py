@@ -10,6 +10,7 @@ from carto_cli.core.records import Odometry, Scan, Transform, yaw_quaternion
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.topics import select_topics, selected_records
+from carto_cli.pipeline import MapRequest
 from carto_cli.sim import loop_building, loop_trajectory, simulate
 
 LASER = (0.2, 0.05, math.radians(3.0))
@@ -80,8 +81,8 @@ def test_a_tf_only_recording_maps_as_the_one_with_an_odometry_topic(bags, tmp_pa
 
     with_odom, only_tf = bags
     options = load_options("wheeled")
-    a, _ = run_map(with_odom, tmp_path / "a", options, state=False)
-    b, _ = run_map(only_tf, tmp_path / "b", options, state=False)
+    a, _ = run_map(MapRequest(with_odom, options), tmp_path / "a", state=False)
+    b, _ = run_map(MapRequest(only_tf, options), tmp_path / "b", state=False)
     assert a.laser_pose_source.startswith("static TF base_link -> laser")
     assert b.laser_pose_source == "TF base_link -> laser (fixed transforms on /tf)"
     # Odometry from TF carries no twist; where local SLAM's extrapolator would use it the poses may differ a little.
