@@ -32,9 +32,11 @@ update, so the field never needs a patch that is not there.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.grid.range_inserter import cast_rays
@@ -406,7 +408,7 @@ class DistanceMap:
         self.table = table
         self.tile_origin = (tx0, ty0)
 
-    def _allocate(self, hits: np.ndarray, free: np.ndarray, box=None) -> None:
+    def _allocate(self, hits: np.ndarray, free: np.ndarray, box: np.ndarray | Sequence[int] | None = None) -> None:
         """Patches for the free cells and for every cell within the window of a hit; ``box`` (min x, min y,
         max x, max y) of all those cells when the caller knows it (the ray casting does)."""
         if hits.shape[0] == 0 and free.shape[0] == 0:
@@ -442,7 +444,7 @@ class DistanceMap:
 
     # ------------------------------------------------------------------ writing
 
-    def insert(self, origin, returns, misses=None) -> tuple[int, int]:
+    def insert(self, origin: ArrayLike, returns: ArrayLike, misses: ArrayLike | None = None) -> tuple[int, int]:
         """Insert a scan given in the map frame: rays from ``origin`` (2,) to ``returns`` (n, 2) end in
         obstacles, rays to ``misses`` (m, 2) only clear free space. Returns (cells that became obstacles, cells
         that stopped being one)."""
@@ -460,7 +462,7 @@ class DistanceMap:
         self.version += 1
         return int(added.shape[0]), int(removed.shape[0])
 
-    def set_obstacles(self, add=None, remove=None) -> None:
+    def set_obstacles(self, add: ArrayLike | None = None, remove: ArrayLike | None = None) -> None:
         """Make cells (k, 2) (world lattice) obstacles or not directly (their counts set to one hit or one miss),
         then update the field: for tests and for maps loaded from elsewhere."""
         add = np.ascontiguousarray(add if add is not None else np.empty((0, 2)), dtype=np.int64).reshape(-1, 2)
@@ -478,13 +480,13 @@ class DistanceMap:
 
     # ------------------------------------------------------------------ reading
 
-    def distances(self, points) -> np.ndarray:
+    def distances(self, points: ArrayLike) -> np.ndarray:
         """(n, 3): interpolated distance (m) and its gradient (per m) at world ``points`` (n, 2)."""
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         ox, oy = self.tile_origin
         return _distances(self.table, ox, oy, self.sqdist, self.lut, 1.0 / self.resolution, pts)
 
-    def cell_state(self, cells) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def cell_state(self, cells: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For cells (k, 2) of the world lattice: squared distance in cells (FAR beyond the truncation or
         unallocated), the nearest obstacle cell (k, 2; meaningless where FAR), and whether each is an obstacle."""
         cells = np.ascontiguousarray(cells, dtype=np.int64).reshape(-1, 2)

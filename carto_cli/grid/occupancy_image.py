@@ -16,7 +16,7 @@ from numba import njit
 
 from carto_cli.core import transform
 from carto_cli.core.kernels import register_warm_up
-from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
+from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY, ProbabilityGrid
 
 
 @dataclass(frozen=True)
@@ -73,7 +73,7 @@ def _accumulate(total, count, gox, goy, res, cells, logodds, sox, soy, sres, c, 
             count[gy, gx] += 1
 
 
-def _known_corners(grid) -> np.ndarray | None:
+def _known_corners(grid: ProbabilityGrid) -> np.ndarray | None:
     b = grid.known_bounds
     if b is None:
         return None
@@ -161,13 +161,13 @@ class AssembledImage:
         return prob
 
 
-def _world_to_pixel(xy: np.ndarray, origin, resolution: float, height: int) -> np.ndarray:
+def _world_to_pixel(xy: np.ndarray, origin: tuple[float, float], resolution: float, height: int) -> np.ndarray:
     px = (xy[:, 0] - origin[0]) / resolution
     py = height - (xy[:, 1] - origin[1]) / resolution
     return np.stack([px, py], axis=1)
 
 
-def image_rows(image, strip: int = STRIP_ROWS) -> Iterator[np.ndarray]:
+def image_rows(image: OccupancyImage | AssembledImage, strip: int = STRIP_ROWS) -> Iterator[np.ndarray]:
     """Strips of ``image`` (an OccupancyImage or an AssembledImage), top first, row 0 at the top."""
     if isinstance(image, AssembledImage):
         yield from image.rows(strip)
@@ -177,7 +177,7 @@ def image_rows(image, strip: int = STRIP_ROWS) -> Iterator[np.ndarray]:
         yield p[max(0, y1 - strip):y1][::-1]
 
 
-def coarsened(image, factor: int) -> OccupancyImage:
+def coarsened(image: OccupancyImage | AssembledImage, factor: int) -> OccupancyImage:
     """``image`` with ``factor`` x ``factor`` cells made one, built strip by strip: a block is unknown when all of
     its cells are, else it takes its most occupied known cell (walls stay walls when the map shrinks)."""
     factor = int(factor)
@@ -219,8 +219,6 @@ def assemble(grids: Sequence, corrections: Sequence, resolution: float | None = 
 @register_warm_up
 def warm_up() -> None:
     """Assembling the map image from a toy grid."""
-    from carto_cli.grid.probability_grid import ProbabilityGrid
-
     grid = ProbabilityGrid(0.05, (0.0, 0.0), (8, 8))
     grid.set_probability(np.array([[2, 3], [4, 4]]), 0.8)
     assemble([grid], [np.array([0.1, 0.0, 0.2])])

@@ -15,8 +15,10 @@ import threading
 import weakref
 import zlib
 from collections import OrderedDict
+from collections.abc import Callable, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 MIN_PROBABILITY = 0.1
 MAX_PROBABILITY = 0.9
@@ -28,13 +30,13 @@ UPDATE_MARKER = 1 << 15
 _SCALE = (MAX_CORRESPONDENCE_COST - MIN_CORRESPONDENCE_COST) / (MAX_VALUE - 1)
 
 
-def correspondence_cost_to_value(cost) -> np.ndarray:
+def correspondence_cost_to_value(cost: ArrayLike) -> np.ndarray:
     """Clamp to [0.1, 0.9] and quantise to 1..32767 (rounding half away from zero, like lround)."""
     c = np.clip(np.asarray(cost, dtype=np.float64), MIN_CORRESPONDENCE_COST, MAX_CORRESPONDENCE_COST)
     return (np.floor((c - MIN_CORRESPONDENCE_COST) / _SCALE + 0.5) + 1).astype(np.uint16)
 
 
-def probability_to_value(p) -> np.ndarray:
+def probability_to_value(p: ArrayLike) -> np.ndarray:
     return correspondence_cost_to_value(1.0 - np.asarray(p, dtype=np.float64))
 
 
@@ -93,7 +95,7 @@ class UnpackedCells:
                     dropped._unpacked = None  # a kernel still holding the array keeps it alive until done
         return cells
 
-    def _forgetter(self, key: int):
+    def _forgetter(self, key: int) -> Callable[[weakref.ref], None]:
         def forget(_ref: weakref.ref) -> None:
             self._forget(key)
         return forget
@@ -150,7 +152,8 @@ class ProbabilityGrid:
         """Bytes the cells take at rest (packed or not)."""
         return len(self._packed[0]) if self._packed is not None else int(self.cells.nbytes)
 
-    def __init__(self, resolution: float = 0.05, origin=(0.0, 0.0), num_cells=(100, 100)):
+    def __init__(self, resolution: float = 0.05, origin: ArrayLike = (0.0, 0.0),
+                 num_cells: Sequence[int] = (100, 100)) -> None:
         nx, ny = int(num_cells[0]), int(num_cells[1])
         if resolution <= 0 or nx <= 0 or ny <= 0:
             raise ValueError("resolution and cell counts must be positive")
@@ -163,7 +166,7 @@ class ProbabilityGrid:
         self.version = 0
 
     @classmethod
-    def centered(cls, center, resolution: float = 0.05, num_cells: int = 100) -> ProbabilityGrid:
+    def centered(cls, center: ArrayLike, resolution: float = 0.05, num_cells: int = 100) -> ProbabilityGrid:
         """A ``num_cells`` square grid centred on ``center`` (Cartographer's initial submap size)."""
         center = np.asarray(center, dtype=np.float64)[:2]
         return cls(resolution, center - 0.5 * num_cells * resolution, (num_cells, num_cells))
@@ -179,16 +182,16 @@ class ProbabilityGrid:
     def max_corner(self) -> np.ndarray:
         return self.origin + self.resolution * np.array(self.num_cells, dtype=np.float64)
 
-    def cell_index(self, points) -> np.ndarray:
+    def cell_index(self, points: ArrayLike) -> np.ndarray:
         """(n, 2) int64 (ix, iy) of the cells containing world points."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         return np.floor((p - self.origin) / self.resolution).astype(np.int64)
 
-    def cell_center(self, cells) -> np.ndarray:
+    def cell_center(self, cells: ArrayLike) -> np.ndarray:
         c = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
         return self.origin + (c + 0.5) * self.resolution
 
-    def contains(self, cells) -> np.ndarray:
+    def contains(self, cells: ArrayLike) -> np.ndarray:
         c = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
         nx, ny = self.num_cells
         return (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
@@ -201,7 +204,7 @@ class ProbabilityGrid:
             return None
         return tuple(int(v) for v in b)
 
-    def grow_to_include(self, points, margin: int = 4) -> bool:
+    def grow_to_include(self, points: ArrayLike, margin: int = 4) -> bool:
         """Re-allocate so every point lies inside; returns whether the grid grew.
 
         A side that must grow grows by at least the current size along that
@@ -234,17 +237,17 @@ class ProbabilityGrid:
 
     # --- values ---------------------------------------------------------------------------
 
-    def _values(self, cells) -> np.ndarray:
+    def _values(self, cells: ArrayLike) -> np.ndarray:
         c = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
         inside = self.contains(c)
         values = np.zeros(c.shape[0], dtype=np.uint16)
         values[inside] = self.cells[c[inside, 1], c[inside, 0]]
         return values
 
-    def is_known(self, cells) -> np.ndarray:
+    def is_known(self, cells: ArrayLike) -> np.ndarray:
         return self._values(cells) != UNKNOWN_VALUE
 
-    def probability(self, cells, unknown: float = np.nan) -> np.ndarray:
+    def probability(self, cells: ArrayLike, unknown: float = np.nan) -> np.ndarray:
         """p per cell; ``unknown`` for cells never observed or outside the grid.
 
         (Cartographer's GetProbability returns 0.1 there: pass ``unknown=0.1``.)
@@ -252,7 +255,7 @@ class ProbabilityGrid:
         v = self._values(cells)
         return np.where(v == UNKNOWN_VALUE, unknown, VALUE_TO_PROBABILITY[v])
 
-    def set_probability(self, cells, probability) -> None:
+    def set_probability(self, cells: ArrayLike, probability: ArrayLike) -> None:
         """Overwrite cells (growing as needed), e.g. to build a known map in a test."""
         c = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
         if c.shape[0] == 0:

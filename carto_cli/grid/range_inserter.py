@@ -22,10 +22,12 @@ every grid on the same cell lattice: both active submaps.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numba import njit
 
-from carto_cli.core.timing import NullTimer
+from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.grid.probability_grid import (
     UNKNOWN_VALUE,
     UPDATE_MARKER,
@@ -229,11 +231,13 @@ class ProbabilityGridRangeDataInserter:
         self.hit_table = compute_lookup_table_to_apply_odds(odds(hit_probability))
         self.miss_table = compute_lookup_table_to_apply_odds(odds(miss_probability))
 
-    def insert(self, range_data: RangeData, grid: ProbabilityGrid, timer=None) -> int:
+    def insert(self, range_data: RangeData, grid: ProbabilityGrid,
+               timer: StageTimer | NullTimer | None = None) -> int:
         """Insert range data given in the grid's frame; returns the number of cells updated."""
         return self.insert_many(range_data, [grid], timer)[0]
 
-    def insert_many(self, range_data: RangeData, grids, timer=None) -> list[int]:
+    def insert_many(self, range_data: RangeData, grids: Sequence[ProbabilityGrid],
+                    timer: StageTimer | NullTimer | None = None) -> list[int]:
         """Insert the same range data into several grids; returns the cells updated in each.
 
         Rays are cast once for all grids whose cells lie on a common lattice

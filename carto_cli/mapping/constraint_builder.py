@@ -29,7 +29,7 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.parallel import Done, available_cores
-from carto_cli.core.timing import NullTimer
+from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching import branch_and_bound, least_squares
 from carto_cli.matching.precomputation import PrecomputationGridStack
@@ -139,7 +139,8 @@ class _OnThread:
 
 
 class ConstraintBuilder:
-    def __init__(self, options: Options, timer=None, seed: int = 0, jobs: int | None = 1):
+    def __init__(self, options: Options, timer: StageTimer | NullTimer | None = None, seed: int = 0,
+                 jobs: int | None = 1) -> None:
         """``jobs``: threads for ``search_many`` (None: every available core; 1: the caller's thread)."""
         self.cb = options.pose_graph.constraint_builder
         self.ceres = least_squares.CeresScanMatcher.from_options(self.cb.ceres_scan_matcher)
@@ -174,7 +175,7 @@ class ConstraintBuilder:
             self._pool.shutdown()
             self._pool = None
 
-    def stack(self, index: int, grid) -> PrecomputationGridStack:
+    def stack(self, index: int, grid: ProbabilityGrid) -> PrecomputationGridStack:
         """The precomputation grids of finished submap ``index``: built on first use, kept while the memory
         budget allows (least recently used dropped first), rebuilt when needed again."""
         if index in self.stacks:
@@ -242,7 +243,7 @@ class ConstraintBuilder:
         threads = self.timer.concurrent(SEARCH_THREADS)
         return [_OnThread(self._pool.submit(self._match, *item), threads) for item in work]
 
-    def record(self, handle) -> LoopClosure | None:
+    def record(self, handle: Done[SearchOutcome] | _OnThread) -> LoopClosure | None:
         """A submitted search's closure (None if it found none), counted in the statistics; waits for it."""
         outcome = handle.result()
         if isinstance(handle, _OnThread):

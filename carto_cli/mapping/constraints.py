@@ -16,6 +16,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 class ConstraintKind(enum.IntEnum):
@@ -62,8 +63,8 @@ class ConstraintSet:
     # ------------------------------------------------------------------ construction
 
     @classmethod
-    def from_arrays(cls, submap, node, relative, translation_weight, rotation_weight,
-                    is_loop_closure=False) -> ConstraintSet:
+    def from_arrays(cls, submap: ArrayLike, node: ArrayLike, relative: ArrayLike, translation_weight: ArrayLike,
+                    rotation_weight: ArrayLike, is_loop_closure: ArrayLike = False) -> ConstraintSet:
         submap = np.atleast_1d(np.asarray(submap, dtype=np.int64))
         out = cls(capacity=len(submap))
         out.extend(submap, node, relative, translation_weight, rotation_weight, is_loop_closure)
@@ -89,7 +90,7 @@ class ConstraintSet:
             new[: self._n] = old[: self._n]
             setattr(self, name, new)
 
-    def add(self, submap: int, node: int, relative_pose, translation_weight: float,
+    def add(self, submap: int, node: int, relative_pose: ArrayLike, translation_weight: float,
             rotation_weight: float, is_loop_closure: bool | ConstraintKind = False) -> int:
         """Append one constraint and return its index."""
         self._reserve(self._n + 1)
@@ -103,8 +104,8 @@ class ConstraintSet:
         self._n += 1
         return i
 
-    def extend(self, submap, node, relative, translation_weight, rotation_weight,
-               is_loop_closure=False) -> slice:
+    def extend(self, submap: ArrayLike, node: ArrayLike, relative: ArrayLike, translation_weight: ArrayLike,
+               rotation_weight: ArrayLike, is_loop_closure: ArrayLike = False) -> slice:
         """Append many constraints (weights and the flag broadcast); return their index range."""
         submap = np.atleast_1d(np.asarray(submap, dtype=np.int64))
         k = len(submap)
@@ -164,7 +165,7 @@ class ConstraintSet:
     def __iter__(self) -> Iterator[Constraint]:
         return (self[i] for i in range(self._n))
 
-    def select(self, which) -> ConstraintSet:
+    def select(self, which: ArrayLike) -> ConstraintSet:
         """A new set holding the constraints picked by a boolean mask or index array."""
         which = np.asarray(which)
         if which.dtype == bool and len(which) != self._n:
@@ -173,7 +174,7 @@ class ConstraintSet:
                                          self.translation_weight[which], self.rotation_weight[which],
                                          self.is_loop_closure[which])
 
-    def remove(self, mask) -> int:
+    def remove(self, mask: ArrayLike) -> int:
         """Drop the constraints where ``mask`` is true, in place; return how many went."""
         mask = np.asarray(mask, dtype=bool)
         if len(mask) != self._n:

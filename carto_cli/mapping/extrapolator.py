@@ -18,7 +18,9 @@ from collections import deque
 
 import numpy as np
 
+from carto_cli.core.records import Imu, Odometry
 from carto_cli.core.transform import wrap_angle_scalar
+from carto_cli.sensor.range_filter import Pose
 
 
 class PoseExtrapolator:
@@ -33,7 +35,7 @@ class PoseExtrapolator:
 
     # --- inputs ---------------------------------------------------------------------------
 
-    def add_pose(self, time: float, pose) -> None:
+    def add_pose(self, time: float, pose: Pose) -> None:
         """A matched pose of the tracking frame in the local frame."""
         x, y, theta = pose
         self._poses.append((float(time), (float(x), float(y), float(theta))))
@@ -42,14 +44,14 @@ class PoseExtrapolator:
         self._update_velocities_from_poses()
         self._trim()
 
-    def add_odometry(self, odometry) -> None:
+    def add_odometry(self, odometry: Odometry) -> None:
         """A :class:`carto_cli.core.records.Odometry`; out-of-order samples are ignored."""
         if self._odometry and odometry.time <= self._odometry[-1][0]:
             return
         self._odometry.append((float(odometry.time), (float(odometry.x), float(odometry.y), float(odometry.yaw))))
         self._trim()
 
-    def add_imu(self, imu) -> None:
+    def add_imu(self, imu: Imu) -> None:
         """A :class:`carto_cli.core.records.Imu`; only its yaw rate is used, and only with ``use_imu_data``."""
         if not self.use_imu_data or (self._imu and imu.time <= self._imu[-1][0]):
             return

@@ -17,15 +17,23 @@ import queue
 import signal
 import threading
 from collections.abc import Callable
-from typing import Protocol
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike
 
 from carto_cli.core import interrupts
 from carto_cli.core.enums import TextEnum
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import give_back, peak_kb, reset_peak, status_kb
 from carto_cli.core.parallel import die_with_parent, fork_safe
+from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.submaps import Submap
+
+if TYPE_CHECKING:
+    from multiprocessing.connection import Connection
+    from multiprocessing.queues import Queue
 
 __all__ = ["BACKLOG", "ForkedGraph", "GraphPlace", "GraphRunner", "InlineGraph", "ThreadedGraph", "start_graph"]
 
@@ -45,10 +53,10 @@ class GraphRunner(Protocol):
     # the peak memory of this process and the graph's together while the graph ran apart (0: it ran here)
     peak_memory_mb: float
 
-    def add_node(self, time: float, local_pose, points, submaps: list[Submap], trajectory: int,
+    def add_node(self, time: float, local_pose: ArrayLike, points: np.ndarray, submaps: list[Submap], trajectory: int,
                  finished: list[bool]) -> None: ...
 
-    def add_odometry(self, time: float, pose, trajectory: int) -> None: ...
+    def add_odometry(self, time: float, pose: ArrayLike, trajectory: int) -> None: ...
 
     def join(self, abandon: bool = False) -> None:
         """Wait until the caller's graph holds every node given (``abandon``: drop the ones not started yet);
@@ -63,7 +71,7 @@ BACKLOG = 2000
 class _Background:
     """One thread running queued calls in order; the first error is raised again in the caller's thread."""
 
-    def __init__(self, timer):
+    def __init__(self, timer: StageTimer | NullTimer) -> None:
         self.timer = timer
         self._queue: queue.Queue = queue.Queue(maxsize=BACKLOG)
         self._error: BaseException | None = None
@@ -93,7 +101,7 @@ class _Background:
     def abandoned(self) -> bool:
         return self._abandoned
 
-    def submit(self, stage: str | None, fn: Callable, *args, **kwargs) -> None:
+    def submit(self, stage: str | None, fn: Callable, *args: Any, **kwargs: Any) -> None:
         self._raise()
         self._queue.put((stage, fn, args, kwargs))
 
@@ -127,7 +135,7 @@ class _GraphProcess:
     put back into the caller's graph, whose submaps are the real ones.
     """
 
-    def __init__(self, graph: PoseGraph, jobs: int, timer):
+    def __init__(self, graph: PoseGraph, jobs: int, timer: StageTimer | NullTimer) -> None:
         self.timer = timer
         self._known: dict[int, bool] = {}  # submap index -> finished grid sent
         self._odometry: list = []  # samples since the last node, sent with it
@@ -151,10 +159,10 @@ class _GraphProcess:
     def process(self):
         return self._process
 
-    def odometry(self, time: float, pose, trajectory: int) -> None:
+    def odometry(self, time: float, pose: ArrayLike, trajectory: int) -> None:
         self._odometry.append((time, pose, trajectory))
 
-    def node(self, time: float, local_pose, points, submaps: list[Submap], trajectory: int,
+    def node(self, time: float, local_pose: ArrayLike, points: np.ndarray, submaps: list[Submap], trajectory: int,
              finished: list[bool]) -> None:
         refs = []
         for submap, done in zip(submaps, finished):
@@ -165,7 +173,7 @@ class _GraphProcess:
         self._put((self._odometry, (time, local_pose, points, refs, trajectory, finished)))
         self._odometry = []
 
-    def _put(self, item) -> None:
+    def _put(self, item: tuple[list, tuple | None]) -> None:
         while True:
             try:
                 self._inbox.put(item, timeout=1.0)
@@ -221,7 +229,8 @@ class _GraphProcess:
         return CartoError(f"the pose graph's process ended unexpectedly, exit code {code}{why}")
 
 
-def _serve_graph(graph: PoseGraph, jobs: int, timer, inbox, reply, parent: int) -> None:
+def _serve_graph(graph: PoseGraph, jobs: int, timer: StageTimer | NullTimer, inbox: Queue, reply: Connection,
+                 parent: int) -> None:
     """The child's loop (see _GraphProcess): run the calls, send the graph's data back, exit."""
     die_with_parent(parent)  # its inbox's pipe is this process's too: a killed parent would leave it waiting
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C stops
@@ -280,16 +289,16 @@ class InlineGraph:
     kind = GraphPlace.INLINE
     peak_memory_mb = 0.0
 
-    def __init__(self, graph: PoseGraph, timer):
+    def __init__(self, graph: PoseGraph, timer: StageTimer | NullTimer) -> None:
         self.graph = graph
         self.timer = timer
 
-    def add_node(self, time: float, local_pose, points, submaps: list[Submap], trajectory: int,
+    def add_node(self, time: float, local_pose: ArrayLike, points: np.ndarray, submaps: list[Submap], trajectory: int,
                  finished: list[bool]) -> None:
         with self.timer.stage("global"):
             self.graph.add_node(time, local_pose, points, submaps, trajectory=trajectory, finished=finished)
 
-    def add_odometry(self, time: float, pose, trajectory: int) -> None:
+    def add_odometry(self, time: float, pose: ArrayLike, trajectory: int) -> None:
         self.graph.add_odometry(time, pose, trajectory=trajectory)
 
     def join(self, abandon: bool = False) -> None:
@@ -302,7 +311,7 @@ class ThreadedGraph:
     kind = GraphPlace.THREAD
     peak_memory_mb = 0.0
 
-    def __init__(self, graph: PoseGraph, jobs: int, timer):
+    def __init__(self, graph: PoseGraph, jobs: int, timer: StageTimer | NullTimer) -> None:
         self.graph = graph
         self.timer = timer
         self._thread = _Background(timer.concurrent("global"))
@@ -313,13 +322,13 @@ class ThreadedGraph:
         """``join(abandon=True)`` has begun: queued calls are dropped."""
         return self._thread.abandoned
 
-    def add_node(self, time: float, local_pose, points, submaps: list[Submap], trajectory: int,
+    def add_node(self, time: float, local_pose: ArrayLike, points: np.ndarray, submaps: list[Submap], trajectory: int,
                  finished: list[bool]) -> None:
         with self.timer.stage("global queue"):
             self._thread.submit("node", self.graph.add_node, time, local_pose, points, submaps,
                                 trajectory=trajectory, finished=finished)
 
-    def add_odometry(self, time: float, pose, trajectory: int) -> None:
+    def add_odometry(self, time: float, pose: ArrayLike, trajectory: int) -> None:
         # in order with the nodes: the graph reads the samples when optimizing
         with self.timer.stage("global queue"):
             self._thread.submit(None, self.graph.add_odometry, time, pose, trajectory=trajectory)
@@ -336,7 +345,7 @@ class ForkedGraph:
 
     kind = GraphPlace.PROCESS
 
-    def __init__(self, graph: PoseGraph, jobs: int, timer, trajectory: int):
+    def __init__(self, graph: PoseGraph, jobs: int, timer: StageTimer | NullTimer, trajectory: int) -> None:
         self.graph = graph
         self.timer = timer
         self.trajectory = trajectory
@@ -349,14 +358,14 @@ class ForkedGraph:
         """The graph's process (``multiprocessing.Process``)."""
         return self._process.process
 
-    def add_node(self, time: float, local_pose, points, submaps: list[Submap], trajectory: int,
+    def add_node(self, time: float, local_pose: ArrayLike, points: np.ndarray, submaps: list[Submap], trajectory: int,
                  finished: list[bool]) -> None:
         with self.timer.stage("global queue"):
             for submap in submaps:
                 self._submaps.setdefault(submap.index, submap)
             self._process.node(time, local_pose, points, submaps, trajectory, finished)
 
-    def add_odometry(self, time: float, pose, trajectory: int) -> None:
+    def add_odometry(self, time: float, pose: ArrayLike, trajectory: int) -> None:
         self._process.odometry(time, pose, trajectory)
 
     def join(self, abandon: bool = False) -> None:
@@ -369,7 +378,7 @@ class ForkedGraph:
             self.peak_memory_mb = max(process.peak_before_kb / 1024, process.peak_beside_mb)
 
 
-def start_graph(graph: PoseGraph, *, jobs: int, loop_closure: bool, process: bool, timer,
+def start_graph(graph: PoseGraph, *, jobs: int, loop_closure: bool, process: bool, timer: StageTimer | NullTimer,
                 trajectory: int) -> GraphRunner:
     """The runner for ``jobs``: inline for one job or without loop closure (the graph then only chains nodes),
     else a forked process where that is safe (``process``) or a thread."""

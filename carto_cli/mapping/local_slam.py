@@ -22,11 +22,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from carto_cli.core import kernels, transform
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.records import Imu, Odometry, Scan
-from carto_cli.core.timing import NullTimer
+from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.mapping.extrapolator import PoseExtrapolator
 from carto_cli.mapping.motion_filter import MotionFilter
 from carto_cli.mapping.submaps import ActiveSubmaps, Submap
@@ -84,7 +85,8 @@ def warm_up() -> None:
 
 
 class LocalSlam:
-    def __init__(self, options: TrajectoryBuilder2D, laser_pose=(0.0, 0.0, 0.0), timer=None):
+    def __init__(self, options: TrajectoryBuilder2D, laser_pose: ArrayLike = (0.0, 0.0, 0.0),
+                 timer: StageTimer | NullTimer | None = None) -> None:
         self.options = options
         self.laser_pose = transform.as_pose(laser_pose)
         self.timer = timer or NullTimer()

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from carto_cli.core.transform import wrap_angle_scalar
 
@@ -24,7 +25,7 @@ class MotionFilter:
         self._last_time = 0.0
         self._last_pose = np.zeros(3)
 
-    def is_similar(self, time: float, pose) -> bool:
+    def is_similar(self, time: float, pose: ArrayLike) -> bool:
         """True when the node should be dropped; a kept node becomes the new reference."""
         pose = np.asarray(pose, dtype=np.float64)
         self.num_total += 1
@@ -38,7 +39,7 @@ class MotionFilter:
         self.num_kept += 1
         return False
 
-    def keep(self, time: float, pose) -> bool:
+    def keep(self, time: float, pose: ArrayLike) -> bool:
         return not self.is_similar(time, pose)
 
     @property

@@ -19,16 +19,18 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from carto_cli.core import transform
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.parallel import Done
-from carto_cli.core.timing import NullTimer
+from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure, NodeData, SubmapData
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
 from carto_cli.mapping.optimization import NodePairs, OptimizationResult, OptimizationSummary, optimize, residuals
@@ -63,7 +65,7 @@ class _Growing:
         self._data = np.empty((capacity, width))
         self.n = 0
 
-    def append(self, row) -> int:
+    def append(self, row: ArrayLike) -> int:
         if self.n == len(self._data):
             self._data = np.concatenate([self._data, np.empty_like(self._data)])
         self._data[self.n] = row
@@ -130,8 +132,8 @@ OPTIMIZER_THREAD = "optimizer thread"
 
 
 class PoseGraph:
-    def __init__(self, options: Options, timer=None, loop_closure: bool = True, seed: int = 0,
-                 jobs: int | None = 1):
+    def __init__(self, options: Options, timer: StageTimer | NullTimer | None = None, loop_closure: bool = True,
+                 seed: int = 0, jobs: int | None = 1) -> None:
         """``jobs``: threads for loop-closure searches (None: every core); the graph is the same for any number."""
         self.options = options
         self.pg = options.pose_graph
@@ -191,8 +193,8 @@ class PoseGraph:
         )
 
     @classmethod
-    def from_state(cls, options: Options, state: PoseGraphState, *, timer=None, loop_closure: bool = True,
-                   seed: int = 0, jobs: int | None = 1) -> PoseGraph:
+    def from_state(cls, options: Options, state: PoseGraphState, *, timer: StageTimer | NullTimer | None = None,
+                   loop_closure: bool = True, seed: int = 0, jobs: int | None = 1) -> PoseGraph:
         """A graph holding ``state``, ready to grow (e.g. by a new trajectory). It owns copies of
         everything in ``state``, so building on it never changes the state or whatever it came from."""
         graph = cls(options, timer=timer, loop_closure=loop_closure, seed=seed, jobs=jobs)
@@ -284,17 +286,17 @@ class PoseGraph:
 
     # ------------------------------------------------------------------ building
 
-    def add_odometry(self, time: float, pose, trajectory: int = 0) -> None:
+    def add_odometry(self, time: float, pose: ArrayLike, trajectory: int = 0) -> None:
         """An odometry sample (tracking frame in the odometry frame); nodes get it interpolated at their time."""
         times, poses = self._odometry_samples.setdefault(trajectory, (_Growing(1), _Growing(3)))
-        pose = np.asarray(pose, dtype=np.float64).reshape(3).copy()
+        sample = np.asarray(pose, dtype=np.float64).reshape(3).copy()
         if times.n:
             if time <= times.array[-1, 0]:
                 return  # out of order or duplicate: Cartographer drops these too
             prev = poses.array[-1, 2]
-            pose[2] = transform.unwrap_angle(pose[2], prev)  # for interpolation
+            sample[2] = transform.unwrap_angle(sample[2], prev)  # for interpolation
         times.append((float(time),))
-        poses.append(pose)
+        poses.append(sample)
 
     def odometry_samples(self, trajectory: int = 0) -> np.ndarray | None:
         """(n, 4) t, x, y, yaw (unwrapped) of the odometry given for ``trajectory``; None with fewer than two."""
@@ -339,7 +341,7 @@ class PoseGraph:
             self._solver.shutdown()
             self._solver = None
 
-    def use_threads(self, jobs: int, timer=None) -> None:
+    def use_threads(self, jobs: int, timer: StageTimer | NullTimer | None = None) -> None:
         """Search on ``jobs`` threads and optimize beside the next nodes on one more (jobs > 1) from now on,
         and time the graph's work with ``timer`` (e.g. the timer of the thread it now runs on)."""
         self.close()
@@ -347,8 +349,9 @@ class PoseGraph:
         if timer is not None:
             self.timer = self.builder.timer = timer
 
-    def add_node(self, time: float, local_pose, points: np.ndarray, insertion_submaps: list[Submap],
-                 odometry_pose=None, trajectory: int = 0, finished: list[bool] | None = None) -> int:
+    def add_node(self, time: float, local_pose: ArrayLike, points: np.ndarray, insertion_submaps: list[Submap],
+                 odometry_pose: ArrayLike | None = None, trajectory: int = 0,
+                 finished: list[bool] | None = None) -> int:
         """A node local SLAM inserted into ``insertion_submaps`` (oldest first); returns its id.
         ``finished``: which of them local SLAM had finished when it made the node (default: their flags now)."""
         local_pose = transform.as_pose(local_pose)
@@ -485,7 +488,7 @@ class PoseGraph:
             (math.nan, math.nan)
         return SubmapData(index, entry.trajectory, entry.submap.grid, entry.local_pose, entry.global_pose, travel)
 
-    def _search_pairs(self, pairs) -> None:
+    def _search_pairs(self, pairs: Iterable[tuple[NodeData, SubmapData]]) -> None:
         """Start the searches of the (NodeData, SubmapData) pairs the candidate rules pick; ``flush_searches``
         adds what they find."""
         chosen = []
@@ -638,7 +641,7 @@ class PoseGraph:
             result, _ = problem.solve()
         return self._apply(result, self.num_nodes, len(self.submaps))
 
-    def _apply(self, result, num_nodes: int, num_submaps: int) -> OptimizationSummary:
+    def _apply(self, result: OptimizationResult, num_nodes: int, num_submaps: int) -> OptimizationSummary:
         """Take an optimization's poses for the first ``num_nodes`` nodes and ``num_submaps`` submaps (those it
         had); nodes and submaps added since move rigidly with their trajectory's last submap it had."""
         before = {}

@@ -11,6 +11,7 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from carto_cli.core.transform import wrap_angle
 from carto_cli.mapping.constraints import ConstraintSet
@@ -102,7 +103,7 @@ class PoseGraphState:
         )
 
 
-def odometry_at_nodes(node_odometry: np.ndarray, node_times, node_trajectories,
+def odometry_at_nodes(node_odometry: np.ndarray, node_times: ArrayLike, node_trajectories: ArrayLike,
                       samples: dict[int, tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     """(N, 3) odometry at every node: the node's own pose if it was given one, else the trajectory's odometry
     ``samples`` interpolated at the node's time (Cartographer's InterpolateOdometry), NaN outside their range."""

@@ -154,10 +154,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core import transform
 from carto_cli.core.enums import TextEnum
@@ -542,7 +543,7 @@ def _flat(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def wall_solidity(walls: ReturnIndex, points: list[np.ndarray], poses: np.ndarray, travel: np.ndarray,
-                  sensor=(0.0, 0.0), *, window: float = WINDOW_M, margin: float = MARGIN_M
+                  sensor: ArrayLike = (0.0, 0.0), *, window: float = WINDOW_M, margin: float = MARGIN_M
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(hit, passed) per cell of ``walls`` (``iy * nx + ix``), over the rays from ``sensor`` to ``points[i]``
     (node frame, placed at ``poses[i]``): the rays that end in the cell, and the rays that cross it more than
@@ -556,8 +557,8 @@ def wall_solidity(walls: ReturnIndex, points: list[np.ndarray], poses: np.ndarra
 
 
 def rays_through_walls(walls: ReturnIndex, near: ReturnIndex, points: list[np.ndarray], poses: np.ndarray,
-                       travel: np.ndarray, sensor=(0.0, 0.0), *, window: float = WINDOW_M, margin: float = MARGIN_M,
-                       radius: float = OWN_RADIUS_M, min_other: int = MIN_OTHER_NODES,
+                       travel: np.ndarray, sensor: ArrayLike = (0.0, 0.0), *, window: float = WINDOW_M,
+                       margin: float = MARGIN_M, radius: float = OWN_RADIUS_M, min_other: int = MIN_OTHER_NODES,
                        solidity: tuple[np.ndarray, np.ndarray] | None = None, share: float = SOLID_SHARE
                        ) -> tuple[np.ndarray, np.ndarray]:
     """(hits, checked) per node ``i``: rays from ``sensor`` to ``points[i]`` (node frame, placed at ``poses[i]``)
@@ -602,10 +603,10 @@ def _place(points, node, poses):
     return out
 
 
-def node_see_through(graph: PoseGraph, laser_pose=(0.0, 0.0, 0.0), *, max_nodes: int = MAX_NODES,
+def node_see_through(graph: PoseGraph, laser_pose: ArrayLike = (0.0, 0.0, 0.0), *, max_nodes: int = MAX_NODES,
                      max_rays: int = MAX_RAYS, poses: np.ndarray | None = None, solid_share: float = SOLID_SHARE,
                      solidity_nodes: int = SOLIDITY_NODES, solidity_rays: int = SOLIDITY_RAYS,
-                     near_cell: float = NEAR_CELL_M, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+                     near_cell: float = NEAR_CELL_M, **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:
     """(nodes, fraction): up to ``max_nodes`` nodes spread evenly over ``graph`` and the share of (up to
     ``max_rays`` of) each one's rays that cross walls seen from elsewhere (``rays_through_walls``, which
     ``kwargs`` go to; NaN for a node without a ray longer than the margin). Every node's returns make the walls;
@@ -639,7 +640,7 @@ def node_see_through(graph: PoseGraph, laser_pose=(0.0, 0.0, 0.0), *, max_nodes:
     return nodes, np.where(checked > 0, hits / np.maximum(checked, 1), np.nan)
 
 
-def see_through_check(graph: PoseGraph, laser_pose=(0.0, 0.0, 0.0), *,
+def see_through_check(graph: PoseGraph, laser_pose: ArrayLike = (0.0, 0.0, 0.0), *,
                       unrefined_poses: np.ndarray | None = None) -> QualityCheck | None:
     """The ``see_through`` check on the graph's poses; with ``unrefined_poses`` on those instead, as
     ``see_through_unrefined`` (the map as the system built it, before a final refinement)."""

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from carto_cli.core import transform
 from carto_cli.grid.distance_map import DistanceMap
@@ -42,7 +43,7 @@ class Slam2DResult:
 
 
 class Slam2D:
-    def __init__(self, options: Slam2DOptions | None = None, initial_pose=(0.0, 0.0, 0.0)):
+    def __init__(self, options: Slam2DOptions | None = None, initial_pose: ArrayLike = (0.0, 0.0, 0.0)) -> None:
         self.options = o = options or Slam2DOptions()
         self.maps = [DistanceMap(o.resolution, o.max_distance, o.occupied_fraction)]
         if o.multires:
@@ -56,7 +57,7 @@ class Slam2D:
     def distance_map(self) -> DistanceMap:
         return self.maps[-1]
 
-    def predict(self, odometry) -> tuple[np.ndarray, bool]:
+    def predict(self, odometry: ArrayLike) -> tuple[np.ndarray, bool]:
         """The pose odometry predicts, and whether a scan there moved enough to be processed."""
         if self._odom is None:
             return self.pose.copy(), True
@@ -64,7 +65,7 @@ class Slam2D:
         moved = math.hypot(delta[0], delta[1]) > self.options.d_thresh or abs(delta[2]) > self.options.a_thresh
         return transform.compose(self.pose, delta), moved
 
-    def add_scan(self, odometry, points, sensor_origin=(0.0, 0.0)) -> Slam2DResult:
+    def add_scan(self, odometry: ArrayLike, points: ArrayLike, sensor_origin: ArrayLike = (0.0, 0.0)) -> Slam2DResult:
         """``points`` (n, 2) returns in the tracking frame, ``odometry`` the odometry pose at the scan."""
         o = self.options
         prediction, moved = self.predict(odometry)

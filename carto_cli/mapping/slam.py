@@ -17,11 +17,12 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol, TypedDict
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from carto_cli.core.memory import give_back
 from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Imu, Odometry, Scan
-from carto_cli.core.timing import NullTimer
+from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
 from carto_cli.mapping.graph_runner import GraphPlace, GraphRunner, start_graph
 from carto_cli.mapping.local_slam import LocalSlam
@@ -115,9 +116,10 @@ class Slam:
     thread) and its searches on ``jobs`` threads; call ``finish`` or ``close`` to stop them.
     """
 
-    def __init__(self, options: Options, *, laser_pose=(0.0, 0.0, 0.0), timer=None, loop_closure: bool = True,
+    def __init__(self, options: Options, *, laser_pose: ArrayLike = (0.0, 0.0, 0.0),
+                 timer: StageTimer | NullTimer | None = None, loop_closure: bool = True,
                  graph: PoseGraph | None = None, trajectory_id: int = 0, started: float | None = None,
-                 jobs: int | None = 1, process: bool = True):
+                 jobs: int | None = 1, process: bool = True) -> None:
         self.options = options
         self.timer = timer or NullTimer()
         self.loop_closure = loop_closure

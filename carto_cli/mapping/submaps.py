@@ -10,7 +10,9 @@ finished submap covering any place the robot has been.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.grid.range_inserter import ProbabilityGridRangeDataInserter
 from carto_cli.sensor.range_filter import RangeData
@@ -28,8 +30,8 @@ class Submap:
     boundaries and one ray casting serves both (see ``ActiveSubmaps.insert``).
     """
 
-    def __init__(self, origin, *, resolution: float = 0.05, index: int = 0,
-                 initial_size: int = INITIAL_SUBMAP_SIZE):
+    def __init__(self, origin: ArrayLike, *, resolution: float = 0.05, index: int = 0,
+                 initial_size: int = INITIAL_SUBMAP_SIZE) -> None:
         origin = np.asarray(origin, dtype=np.float64)[:2]
         self.index = index
         self.local_pose = np.array([origin[0], origin[1], 0.0])
@@ -39,7 +41,7 @@ class Submap:
         self.finished = False
 
     @classmethod
-    def stand_in(cls, index: int, local_pose) -> Submap:
+    def stand_in(cls, index: int, local_pose: ArrayLike) -> Submap:
         """A submap known by its index and pose alone until it is given its finished grid: the pose graph's
         copy in a process of its own, which reads a submap's grid only once it is finished."""
         submap = cls.__new__(cls)
@@ -96,7 +98,7 @@ class ActiveSubmaps:
         """The submap scans are matched against: the older active one."""
         return self.submaps[0] if self.submaps else None
 
-    def insert(self, range_data: RangeData, timer=None) -> list[Submap]:
+    def insert(self, range_data: RangeData, timer: StageTimer | NullTimer | None = None) -> list[Submap]:
         """Insert range data (local frame) into every active submap; returns those submaps.
 
         The front submap of the returned list may have just been finished:
@@ -114,7 +116,7 @@ class ActiveSubmaps:
             self.submaps[0].finish()
         return inserted
 
-    def _add_submap(self, origin) -> None:
+    def _add_submap(self, origin: ArrayLike) -> None:
         if len(self.submaps) >= 2:
             # The front one was finished on the previous insertion; only the pose graph keeps it now.
             assert self.submaps[0].finished

@@ -34,6 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.transform import wrap_angle
@@ -41,6 +42,7 @@ from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY
 from carto_cli.matching.correlative import search_parameters
 from carto_cli.matching.kernels import discretize
 from carto_cli.matching.precomputation import PrecomputationGridStack, cell_value_to_probability
+from carto_cli.sensor.range_filter import Pose
 
 
 class MatchResult(NamedTuple):
@@ -321,7 +323,7 @@ def _bounds(discrete, window, nx, ny):
 # ------------------------------------------------------------------------------- set-up
 
 
-def angular_step(points, resolution: float) -> float:
+def angular_step(points: ArrayLike, resolution: float) -> float:
     """Cartographer's step: the farthest point (at least 3 cells out) moves at most ``resolution``.
 
     The same as the real-time matcher's.
@@ -344,8 +346,8 @@ class _Problem(NamedTuple):
     bounds: np.ndarray  # (num_scans, 4) offsets to search for each scan
 
 
-def _prepare(stack: PrecomputationGridStack, points: np.ndarray, estimate, step: float, angle_index: np.ndarray,
-             window) -> _Problem:
+def _prepare(stack: PrecomputationGridStack, points: np.ndarray, estimate: Pose, step: float, angle_index: np.ndarray,
+             window: Sequence[int]) -> _Problem:
     x0, y0, th0 = (float(v) for v in estimate)
     angle_index = np.ascontiguousarray(angle_index, dtype=np.int64)
     # Computed once here, so every search rotating by index a uses the very same float angle.
@@ -356,7 +358,8 @@ def _prepare(stack: PrecomputationGridStack, points: np.ndarray, estimate, step:
     return _Problem((x0, y0, th0), step, angle_index, discrete, bbox, bounds)
 
 
-def _window_problem(stack, points, estimate, linear_search_window, angular_search_window) -> _Problem:
+def _window_problem(stack: PrecomputationGridStack, points: np.ndarray, estimate: Pose, linear_search_window: float,
+                    angular_search_window: float) -> _Problem:
     """The candidate set of :func:`match`: every angular step and every cell within the windows."""
     step = angular_step(points, stack.resolution)
     num_angular = _cells(angular_search_window, step)
@@ -365,7 +368,7 @@ def _window_problem(stack, points, estimate, linear_search_window, angular_searc
                     (-num_linear, num_linear, -num_linear, num_linear))
 
 
-def _points(points) -> np.ndarray:
+def _points(points: ArrayLike) -> np.ndarray:
     return np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
 
 
@@ -378,12 +381,13 @@ def _threshold(min_score: float, n: int) -> int:
     return int(math.floor(mean * n + 1e-9 * max(n, 1)))
 
 
-def _not_found(estimate) -> MatchResult:
+def _not_found(estimate: Pose) -> MatchResult:
     x0, y0, th0 = (float(v) for v in estimate)
     return MatchResult(False, 0.0, np.array([x0, y0, wrap_angle(th0)]))
 
 
-def _result(problem: _Problem, stack, found, a, x, y, s, n) -> MatchResult:
+def _result(problem: _Problem, stack: PrecomputationGridStack, found: bool, a: int, x: int, y: int, s: int,
+            n: int) -> MatchResult:
     if not found:
         return _not_found(problem.estimate)
     x0, y0, th0 = problem.estimate
@@ -395,7 +399,8 @@ def _result(problem: _Problem, stack, found, a, x, y, s, n) -> MatchResult:
 _NO_EXCLUSION = np.zeros((0, 6), dtype=np.int64)
 
 
-def _run_bnb(stack, problem: _Problem, top: int, leaf: int, thr: int, scored=None, excl=None):
+def _run_bnb(stack: PrecomputationGridStack, problem: _Problem, top: int, leaf: int, thr: int,
+             scored: np.ndarray | None = None, excl: np.ndarray | None = None) -> tuple[bool, int, int, int, int]:
     if scored is None:
         scored = np.zeros(stack.depth, dtype=np.int64)
     return _branch_and_bound(stack.data, stack.starts, stack.level_widths, stack.level_heights, stack.pads,
@@ -408,7 +413,8 @@ def _run_bnb(stack, problem: _Problem, top: int, leaf: int, thr: int, scored=Non
 SPLIT_MIN_ANGLES = 128
 
 
-def _run_bnb_split(stack, problem: _Problem, top: int, leaf: int, thr: int, excl, jobs: int | None):
+def _run_bnb_split(stack: PrecomputationGridStack, problem: _Problem, top: int, leaf: int, thr: int,
+                   excl: np.ndarray, jobs: int | None) -> tuple[bool, int, int, int, int]:
     """:func:`_run_bnb`'s answer, the angles dealt to ``jobs`` threads (every ``jobs``-th angle to each, so that
     every share holds angles near the best and prunes as early). Each share's best is exact and the kernel
     orders leaves totally (sum, then |angle|, distance, angle, x, y: :func:`_may_beat`), so the best of the
@@ -419,7 +425,7 @@ def _run_bnb_split(stack, problem: _Problem, top: int, leaf: int, thr: int, excl
     if parts < 2 or len(problem.angle_index) < SPLIT_MIN_ANGLES:
         return _run_bnb(stack, problem, top, leaf, thr, excl=excl)
 
-    def share(j: int):
+    def share(j: int) -> tuple[bool, int, int, int, int]:
         rows = np.arange(j, len(problem.angle_index), parts)
         sub = problem._replace(angle_index=np.ascontiguousarray(problem.angle_index[rows]),
                                discrete=np.ascontiguousarray(problem.discrete[rows]),
@@ -445,7 +451,7 @@ class SearchCost(NamedTuple):
         return float(self.scored.sum()) / max(self.window, 1)
 
 
-def search_cost(stack: PrecomputationGridStack, points, initial_pose_estimate, *,
+def search_cost(stack: PrecomputationGridStack, points: ArrayLike, initial_pose_estimate: Pose, *,
                 linear_search_window: float = 7.0, angular_search_window: float = math.radians(30.0),
                 min_score: float = 0.55) -> SearchCost:
     """The same search as :func:`match`, reporting how much of its window the bounds let it skip."""
@@ -470,8 +476,9 @@ def full_submap_center(stack: PrecomputationGridStack) -> np.ndarray:
 # ------------------------------------------------------------------------------- public API
 
 
-def match(stack: PrecomputationGridStack, points, initial_pose_estimate, *, linear_search_window: float = 7.0,
-          angular_search_window: float = math.radians(30.0), min_score: float = 0.55) -> MatchResult:
+def match(stack: PrecomputationGridStack, points: ArrayLike, initial_pose_estimate: Pose, *,
+          linear_search_window: float = 7.0, angular_search_window: float = math.radians(30.0),
+          min_score: float = 0.55) -> MatchResult:
     """Best pose within ±windows of ``initial_pose_estimate`` (Cartographer's Match).
 
     ``points`` (n, 2) are in the scan's own frame; the estimate and the
@@ -487,7 +494,7 @@ def match(stack: PrecomputationGridStack, points, initial_pose_estimate, *, line
     return _result(problem, stack, found, a, x, y, s, n)
 
 
-def match_full_submap(stack: PrecomputationGridStack, points, *, min_score: float = 0.55) -> MatchResult:
+def match_full_submap(stack: PrecomputationGridStack, points: ArrayLike, *, min_score: float = 0.55) -> MatchResult:
     """Search the whole submap at every angle (Cartographer's MatchFullSubmap): no prior needed."""
     nx, ny = stack.num_cells
     return match(stack, points, full_submap_center(stack),
@@ -495,7 +502,7 @@ def match_full_submap(stack: PrecomputationGridStack, points, *, min_score: floa
                  min_score=min_score)
 
 
-def exhaustive_match(stack: PrecomputationGridStack, points, initial_pose_estimate, *,
+def exhaustive_match(stack: PrecomputationGridStack, points: ArrayLike, initial_pose_estimate: Pose, *,
                      linear_search_window: float = 7.0, angular_search_window: float = math.radians(30.0),
                      min_score: float = 0.55) -> MatchResult:
     """Same candidates and preference order as :func:`match`, every one scored on level 0.
@@ -514,10 +521,11 @@ def exhaustive_match(stack: PrecomputationGridStack, points, initial_pose_estima
     return _result(problem, stack, found, a, x, y, s, n)
 
 
-def peaks(stack: PrecomputationGridStack, points, initial_pose_estimate, *, linear_search_window: float,
-          angular_search_window: float, min_score: float, levels: Sequence[tuple[float, int]], count: int,
-          distinct_xy: float, distinct_yaw: float, exclude: Sequence[np.ndarray] = (), tries: int | None = None,
-          coarse_min_score: float | None = None, jobs: int | None = 1) -> list[MatchResult]:
+def peaks(stack: PrecomputationGridStack, points: ArrayLike, initial_pose_estimate: Pose, *,
+          linear_search_window: float, angular_search_window: float, min_score: float,
+          levels: Sequence[tuple[float, int]], count: int, distinct_xy: float, distinct_yaw: float,
+          exclude: Sequence[np.ndarray] = (), tries: int | None = None, coarse_min_score: float | None = None,
+          jobs: int | None = 1) -> list[MatchResult]:
     """Up to ``count`` best poses of the window at *different places* (pairwise farther apart than
     ``distinct_xy`` or ``distinct_yaw``, and from every pose of ``exclude``), best first; none below ``min_score``.
 
@@ -555,13 +563,13 @@ def peaks(stack: PrecomputationGridStack, points, initial_pose_estimate, *, line
     da = int(math.ceil(distinct_yaw / step))
     dxy = int(math.ceil(distinct_xy / res))
 
-    def box(pose) -> list[int]:
+    def box(pose: np.ndarray) -> list[int]:
         a = int(round(float(wrap_angle(pose[2] - th0)) / step))
         x = int(round((pose[0] - x0) / res))
         y = int(round((pose[1] - y0) / res))
         return [a - da, a + da, x - dxy, x + dxy, y - dxy, y + dxy]
 
-    def same_place(p, q) -> bool:
+    def same_place(p: np.ndarray, q: np.ndarray) -> bool:
         return bool(math.hypot(p[0] - q[0], p[1] - q[1]) <= distinct_xy
                     and abs(float(wrap_angle(p[2] - q[2]))) <= distinct_yaw)
 
@@ -609,7 +617,7 @@ def default_levels(depth: int) -> tuple[tuple[float, int], ...]:
     return ((1.0, min(3, depth - 1)), (0.0, 0))
 
 
-def match_multilevel(stack: PrecomputationGridStack, points, initial_pose_estimate, *,
+def match_multilevel(stack: PrecomputationGridStack, points: ArrayLike, initial_pose_estimate: Pose, *,
                      linear_search_window: float = 7.0, angular_search_window: float = math.radians(30.0),
                      min_score: float = 0.55, levels: Sequence[tuple[float, int]] | None = None,
                      coarse_min_score: float | None = None) -> MatchResult:

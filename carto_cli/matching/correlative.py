@@ -23,9 +23,10 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core.transform import wrap_angle_scalar
-from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
+from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY, ProbabilityGrid
 from carto_cli.matching.kernels import discretize
 
 
@@ -44,7 +45,7 @@ class SearchParameters(NamedTuple):
         return (2 * self.num_linear_perturbations + 1) ** 2 * (2 * self.num_angular_perturbations + 1)
 
 
-def search_parameters(points, resolution: float, linear_search_window: float,
+def search_parameters(points: ArrayLike, resolution: float, linear_search_window: float,
                       angular_search_window: float) -> SearchParameters:
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     # At least a few cells, so acos stays defined for tiny or empty scans.
@@ -112,7 +113,7 @@ def _search(grid_cells, table, discrete, num_linear, num_angular, angular_step, 
     return best_k, best_dx, best_dy, best_score
 
 
-def match(grid, points, initial_pose, *, linear_search_window: float = 0.1,
+def match(grid: ProbabilityGrid, points: ArrayLike, initial_pose: ArrayLike, *, linear_search_window: float = 0.1,
           angular_search_window: float = math.radians(20.0), translation_delta_cost_weight: float = 1e-1,
           rotation_delta_cost_weight: float = 1e-1, unknown_probability: float | None = None) -> CorrelativeResult:
     """Best pose within ±``linear_search_window`` × ±``angular_search_window`` of ``initial_pose``.
@@ -129,7 +130,7 @@ def match(grid, points, initial_pose, *, linear_search_window: float = 0.1,
     return _result(grid, initial_pose, params, *found)
 
 
-def _candidates(grid, points, initial_pose, linear_search_window: float,
+def _candidates(grid: ProbabilityGrid, points: ArrayLike, initial_pose: ArrayLike, linear_search_window: float,
                 angular_search_window: float) -> tuple[SearchParameters, np.ndarray]:
     """The search's parameters and the scan's cells at every candidate angle (``discretize``)."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
@@ -140,7 +141,8 @@ def _candidates(grid, points, initial_pose, linear_search_window: float,
     return params, discretize(pts, angles, x0, y0, grid.origin[0], grid.origin[1], 1.0 / grid.resolution)
 
 
-def _result(grid, initial_pose, params: SearchParameters, k: int, dx: int, dy: int, score: float) -> CorrelativeResult:
+def _result(grid: ProbabilityGrid, initial_pose: ArrayLike, params: SearchParameters, k: int, dx: int, dy: int,
+            score: float) -> CorrelativeResult:
     """The pose of candidate (angle ``k``, offset ``dx``, ``dy`` cells) and its score."""
     x0, y0, th0 = (float(v) for v in np.asarray(initial_pose, dtype=np.float64))
     dtheta = (k - params.num_angular_perturbations) * params.angular_step
@@ -162,7 +164,7 @@ class CoarseGrid(NamedTuple):
     unknown: float
 
 
-def coarse_grid(grid, unknown_probability: float | None = None) -> CoarseGrid:
+def coarse_grid(grid: ProbabilityGrid, unknown_probability: float | None = None) -> CoarseGrid:
     """``grid``'s :class:`CoarseGrid`, never-observed cells scored as ``unknown_probability`` (None: 0.1)."""
     table = VALUE_TO_PROBABILITY if unknown_probability is None else _score_table(float(unknown_probability))
     probabilities, block_max, by_parity = _coarse(grid.cells, table)
@@ -188,8 +190,8 @@ def _coarse(cells, table):
     return p, m, by_parity
 
 
-def match_pruned(grid, coarse: CoarseGrid, points, initial_pose, *, linear_search_window: float,
-                 angular_search_window: float, translation_delta_cost_weight: float = 1e-1,
+def match_pruned(grid: ProbabilityGrid, coarse: CoarseGrid, points: ArrayLike, initial_pose: ArrayLike, *,
+                 linear_search_window: float, angular_search_window: float, translation_delta_cost_weight: float = 1e-1,
                  rotation_delta_cost_weight: float = 1e-1) -> CorrelativeResult:
     """:func:`match`'s answer (the same pose and score, bit for bit), found by scoring 2 x 2 blocks of
     translations first with each point's best cell in the block, then in full the block with the best bound

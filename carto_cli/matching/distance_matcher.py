@@ -23,10 +23,12 @@ the same number of cells of truncation sees 4x as far).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from collections.abc import Iterable
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.grid.distance_map import DistanceMap, distance_and_gradient
@@ -162,8 +164,8 @@ def _covariance(information: np.ndarray) -> np.ndarray:
         return np.linalg.pinv(information)
 
 
-def match(dmap: DistanceMap, points, initial_pose, *, loss_scale: float = DEFAULT_LOSS_SCALE,
-          prior_pose=None, translation_weight: float = 0.0, rotation_weight: float = 0.0,
+def match(dmap: DistanceMap, points: ArrayLike, initial_pose: ArrayLike, *, loss_scale: float = DEFAULT_LOSS_SCALE,
+          prior_pose: ArrayLike | None = None, translation_weight: float = 0.0, rotation_weight: float = 0.0,
           max_iterations: int = 100, translation_tolerance: float = 1e-4,
           rotation_tolerance: float = 1e-4) -> DistanceMatchResult:
     """Refine ``initial_pose`` (x, y, theta) so that ``points`` (n, 2, in the scan's frame) fall on obstacles of
@@ -182,7 +184,8 @@ def match(dmap: DistanceMap, points, initial_pose, *, loss_scale: float = DEFAUL
                                _covariance(h), rms)
 
 
-def match_multires(dmaps, points, initial_pose, **kwargs) -> DistanceMatchResult:
+def match_multires(dmaps: Iterable[DistanceMap], points: ArrayLike, initial_pose: ArrayLike,
+                   **kwargs: Any) -> DistanceMatchResult:
     """``match`` on each map of ``dmaps`` in turn (coarsest first), each starting where the previous ended;
     the result of the last (finest), with the iterations of all."""
     pose = np.asarray(initial_pose, dtype=np.float64).reshape(3)
@@ -197,8 +200,9 @@ def match_multires(dmaps, points, initial_pose, **kwargs) -> DistanceMatchResult
     return result._replace(iterations=iterations)
 
 
-def evaluate(dmap: DistanceMap, points, pose, *, loss_scale: float = DEFAULT_LOSS_SCALE, prior_pose=None,
-             translation_weight: float = 0.0, rotation_weight: float = 0.0):
+def evaluate(dmap: DistanceMap, points: ArrayLike, pose: ArrayLike, *, loss_scale: float = DEFAULT_LOSS_SCALE,
+             prior_pose: ArrayLike | None = None, translation_weight: float = 0.0,
+             rotation_weight: float = 0.0) -> tuple[float, np.ndarray, np.ndarray]:
     """(cost, J^T W J, J^T W r) at ``pose``: the quantities the solver uses, for tests."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     x = np.asarray(pose, dtype=np.float64).reshape(3)

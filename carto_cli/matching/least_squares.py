@@ -22,11 +22,14 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core.transform import wrap_angle_scalar
-from carto_cli.grid.probability_grid import VALUE_TO_CORRESPONDENCE_COST
+from carto_cli.grid.probability_grid import VALUE_TO_CORRESPONDENCE_COST, ProbabilityGrid
 from carto_cli.matching.interpolation import cost_and_gradient
 from carto_cli.matching.kernels import solve3
+from carto_cli.options.schema import ConstraintCeresScanMatcher, LocalCeresScanMatcher
+from carto_cli.sensor.range_filter import Pose
 
 
 class LeastSquaresResult(NamedTuple):
@@ -49,12 +52,13 @@ class CeresScanMatcher:
     max_num_iterations: int
 
     @classmethod
-    def from_options(cls, options) -> CeresScanMatcher:
+    def from_options(cls, options: LocalCeresScanMatcher | ConstraintCeresScanMatcher) -> CeresScanMatcher:
         """``options``: a ``ceres_scan_matcher`` section (``carto_cli.options`` Local/ConstraintCeresScanMatcher)."""
         return cls(float(options.occupied_space_weight), float(options.translation_weight),
                    float(options.rotation_weight), int(options.ceres_solver_options.max_num_iterations))
 
-    def match(self, grid, points, initial_pose, target_translation=None) -> LeastSquaresResult:
+    def match(self, grid: ProbabilityGrid, points: ArrayLike, initial_pose: ArrayLike,
+              target_translation: Pose | None = None) -> LeastSquaresResult:
         """:func:`match` with these weights: ``points`` refined from ``initial_pose``, the translation pulled
         towards ``target_translation`` (default: the initial pose's)."""
         return match(grid, points, initial_pose, target_translation, occupied_space_weight=self.occupied_space_weight,
@@ -181,7 +185,8 @@ def _levenberg_marquardt(cells, table, ox, oy, inv_res, points, x0, y0, th_init,
     return pose, cost, iterations, converged, initial_cost
 
 
-def match(grid, points, initial_pose, target_translation=None, *, occupied_space_weight: float = 1.0,
+def match(grid: ProbabilityGrid, points: ArrayLike, initial_pose: ArrayLike, target_translation: Pose | None = None,
+          *, occupied_space_weight: float = 1.0,
           translation_weight: float = 10.0, rotation_weight: float = 40.0, max_num_iterations: int = 20,
           function_tolerance: float = 1e-6, gradient_tolerance: float = 1e-10,
           parameter_tolerance: float = 1e-8) -> LeastSquaresResult:
@@ -202,8 +207,10 @@ def match(grid, points, initial_pose, target_translation=None, *, occupied_space
     return LeastSquaresResult(pose, float(cost), int(iterations), bool(converged), float(initial_cost))
 
 
-def evaluate(grid, points, pose, target_translation=None, initial_angle=None, *, occupied_space_weight: float = 1.0,
-             translation_weight: float = 10.0, rotation_weight: float = 40.0):
+def evaluate(grid: ProbabilityGrid, points: ArrayLike, pose: ArrayLike, target_translation: Pose | None = None,
+             initial_angle: float | None = None, *, occupied_space_weight: float = 1.0,
+             translation_weight: float = 10.0,
+             rotation_weight: float = 40.0) -> tuple[float, np.ndarray, np.ndarray]:
     """(cost, J^T J, J^T r) at ``pose``: the quantities the solver works with (for tests and diagnostics)."""
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     pose = np.asarray(pose, dtype=np.float64)
@@ -218,8 +225,8 @@ def evaluate(grid, points, pose, target_translation=None, initial_angle=None, *,
     return float(cost), h, g
 
 
-def covariance(grid, points, pose, *, min_sigma_xy: float = 0.0, min_sigma_yaw: float = 0.0,
-               max_sigma_xy: float = 10.0, max_sigma_yaw: float = math.pi) -> np.ndarray:
+def covariance(grid: ProbabilityGrid, points: ArrayLike, pose: ArrayLike, *, min_sigma_xy: float = 0.0,
+               min_sigma_yaw: float = 0.0, max_sigma_xy: float = 10.0, max_sigma_yaw: float = math.pi) -> np.ndarray:
     """3x3 covariance of ``pose`` (x, y, yaw) from the scan's residuals alone (no prior terms).
 
     Gauss-Newton's: every point's cost residual an independent measurement whose variance is the residuals'

@@ -26,10 +26,14 @@ rather than O(cells × 4^d) (naive) or O(cells × 2^d) (naive separable).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
-from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY, VALUE_TO_PROBABILITY
+from carto_cli.grid.probability_grid import MAX_PROBABILITY, MIN_PROBABILITY, VALUE_TO_PROBABILITY, ProbabilityGrid
+from carto_cli.options.schema import FastCorrelativeScanMatcher, Relocalization
 
 # Refuse stacks bigger than this rather than exhaust memory.
 MAX_STACK_BYTES = 1 << 30
@@ -39,7 +43,7 @@ MAX_STACK_BYTES = 1 << 30
 _VALUE_MASK = 0x7FFF
 
 
-def probability_to_cell_value(p) -> np.ndarray:
+def probability_to_cell_value(p: ArrayLike) -> np.ndarray:
     """Cartographer's ComputeCellValue: [MIN_PROBABILITY, MAX_PROBABILITY] -> 0..255 (rounded)."""
     scaled = (np.asarray(p, dtype=np.float64) - MIN_PROBABILITY) * (255.0 / (MAX_PROBABILITY - MIN_PROBABILITY))
     return np.clip(np.floor(scaled + 0.5), 0, 255).astype(np.uint8)
@@ -131,7 +135,7 @@ def _level_shapes(nx: int, ny: int, depth: int) -> tuple[np.ndarray, np.ndarray,
     return pads, int(nx) + pads, int(ny) + pads
 
 
-def stack_bytes(num_cells, depth: int) -> int:
+def stack_bytes(num_cells: Sequence[int], depth: int) -> int:
     """Bytes of the levels of a depth-``depth`` stack over a grid of ``num_cells`` (nx, ny), without building it."""
     _, widths, heights = _level_shapes(num_cells[0], num_cells[1], depth)
     return int((widths * heights).sum())
@@ -145,7 +149,7 @@ class PrecomputationGridStack:
     Cell (ix, iy) covers ``origin + (ix, iy) * resolution`` as in the grid.
     """
 
-    def __init__(self, grid, depth: int = 7):
+    def __init__(self, grid: ProbabilityGrid, depth: int = 7) -> None:
         depth = int(depth)
         if depth < 1:
             raise ValueError(f"branch_and_bound_depth must be >= 1, got {depth}")
@@ -174,7 +178,8 @@ class PrecomputationGridStack:
             self.data[self.starts[d]:self.starts[d] + sizes[d]] = level.ravel()
 
     @classmethod
-    def from_options(cls, grid, options) -> PrecomputationGridStack:
+    def from_options(cls, grid: ProbabilityGrid,
+                     options: FastCorrelativeScanMatcher | Relocalization) -> PrecomputationGridStack:
         """``options``: a ``FastCorrelativeScanMatcher`` options section (or anything with
         ``branch_and_bound_depth``)."""
         return cls(grid, options.branch_and_bound_depth)
@@ -191,7 +196,7 @@ class PrecomputationGridStack:
     def pad(self, d: int) -> int:
         return int(self.pads[d])
 
-    def values(self, d: int, cells) -> np.ndarray:
+    def values(self, d: int, cells: ArrayLike) -> np.ndarray:
         """uint8 level-``d`` values of the blocks starting at submap cells (n, 2) (ix, iy); 0 beyond storage."""
         c = np.asarray(cells, dtype=np.int64).reshape(-1, 2) + self.pad(d)
         lv = self.level(d)

@@ -16,10 +16,11 @@ import math
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core import transform
 from carto_cli.core.kernels import register_warm_up
-from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY
+from carto_cli.grid.probability_grid import VALUE_TO_PROBABILITY, ProbabilityGrid
 
 __all__ = ["WALL_MARGIN", "WALL_PROBABILITY", "see_through_fraction"]
 
@@ -60,8 +61,8 @@ def _see_through(cells, table, ox, oy, resolution, sx, sy, points, occupied, mar
     return hits, checked
 
 
-def see_through_fraction(grid, points: np.ndarray, pose, sensor=(0.0, 0.0), *, occupied: float = WALL_PROBABILITY,
-                         margin: float = WALL_MARGIN) -> float:
+def see_through_fraction(grid: ProbabilityGrid, points: np.ndarray, pose: ArrayLike, sensor: ArrayLike = (0.0, 0.0), *,
+                         occupied: float = WALL_PROBABILITY, margin: float = WALL_MARGIN) -> float:
     """Share of the rays from ``sensor`` to ``points`` (both in the frame ``pose`` places in ``grid``) that
     cross a cell with probability >= ``occupied`` more than ``margin`` (m) before their endpoint.
 

@@ -12,14 +12,14 @@ from numba import njit
 
 from carto_cli.core import transform
 from carto_cli.core.kernels import register_warm_up
-from carto_cli.grid.probability_grid import UNKNOWN_VALUE, VALUE_TO_PROBABILITY
+from carto_cli.grid.probability_grid import UNKNOWN_VALUE, VALUE_TO_PROBABILITY, ProbabilityGrid
 
 __all__ = ["UNKNOWN_SCORE", "fit_scores", "inlier_fraction", "known_score", "score_at"]
 
 UNKNOWN_SCORE = 0.1  # what a point on a never-observed cell adds to score_at's mean
 
 
-def score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
+def score_at(grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray) -> float:
     """Mean occupancy probability under ``points`` placed at ``pose`` (unknown cells count as ``UNKNOWN_SCORE``)."""
     if len(points) == 0:
         return 0.0
@@ -28,7 +28,7 @@ def score_at(grid, points: np.ndarray, pose: np.ndarray) -> float:
     return float(np.mean(np.where(np.isnan(p), UNKNOWN_SCORE, p)))
 
 
-def known_score(grid, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
+def known_score(grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
     """(share of ``points`` at ``pose`` that fall in known cells, their mean occupancy probability)."""
     if len(points) == 0:
         return 0.0, 0.0
@@ -38,7 +38,8 @@ def known_score(grid, points: np.ndarray, pose: np.ndarray) -> tuple[float, floa
     return n / len(p), (float(p[known].mean()) if n else 0.0)
 
 
-def inlier_fraction(grid, points: np.ndarray, pose: np.ndarray, *, min_probability: float = 0.5) -> float:
+def inlier_fraction(grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray, *,
+                    min_probability: float = 0.5) -> float:
     """Share of ``points`` at ``pose`` on a wall: a cell of the 3 x 3 around the point's reaches
     ``min_probability`` (a cell's slack, as a scan's own noise and the grid's quantisation put a good point
     beside the wall's cell as often as on it)."""
@@ -52,7 +53,7 @@ def inlier_fraction(grid, points: np.ndarray, pose: np.ndarray, *, min_probabili
 _NEIGHBOURS = np.array([[dx, dy] for dx in (-1, 0, 1) for dy in (-1, 0, 1)], dtype=np.int64)
 
 
-def _nine_cells(grid, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+def _nine_cells(grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """(n, 9) probabilities of every point's nine cells at ``pose`` (NaN where unknown), in one lookup: nine
     lookups were a fifth of a tracked scan's judging."""
     cells = grid.cell_index(transform.apply(pose, points))
@@ -60,7 +61,7 @@ def _nine_cells(grid, points: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return np.asarray(grid.probability(around), dtype=np.float64).reshape(len(cells), 9)
 
 
-def fit_scores(grid, points: np.ndarray, pose: np.ndarray, *,
+def fit_scores(grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray, *,
                min_probability: float = 0.5) -> tuple[float, float, float, float]:
     """(:func:`score_at`, :func:`known_score`'s share and mean, :func:`inlier_fraction`) of ``points`` at
     ``pose``, the same numbers from one placement and one look at every point's nine cells, in one kernel: what

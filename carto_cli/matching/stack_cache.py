@@ -10,6 +10,7 @@ import time
 from collections import OrderedDict
 
 from carto_cli.core.memory import give_back
+from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.matching.precomputation import PrecomputationGridStack
 
 __all__ = ["StackCache"]
@@ -42,7 +43,7 @@ class StackCache:
         self._dropped_bytes = 0  # evicted since memory was last given back
         self._lock = threading.Lock()
 
-    def get(self, index: int, grid) -> PrecomputationGridStack:
+    def get(self, index: int, grid: ProbabilityGrid) -> PrecomputationGridStack:
         with self._lock:
             stack = self._stacks.get(index)
             if stack is not None:

@@ -454,7 +454,7 @@ class BlockSystem:
     def factor_nnz(self) -> int:
         return 9 * len(self.li)
 
-    def linearize(self, x: np.ndarray, edges: Edges, huber: float):
+    def linearize(self, x: np.ndarray, edges: Edges, huber: float) -> tuple[float, np.ndarray, np.ndarray]:
         """(cost, H upper blocks, -g) at x, both in the permuted order."""
         cx = np.empty((len(self.ci), 3, 3))
         rhs = np.empty((self.nb, 3))
@@ -462,7 +462,7 @@ class BlockSystem:
                                 self.pos_ee, self.pos_off, self.transposed, cx, rhs)
         return cost, cx, rhs
 
-    def solve(self, h: np.ndarray, rhs: np.ndarray, radius: float = math.inf):
+    def solve(self, h: np.ndarray, rhs: np.ndarray, radius: float = math.inf) -> np.ndarray | None:
         """δ (permuted) for (H + D) δ = rhs, or None when the factorisation fails (not positive definite).
 
         ``h`` is in the layout of :meth:`linearize`'s H (upper block triangle, permuted); D is Ceres'

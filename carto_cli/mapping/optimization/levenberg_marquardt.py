@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from carto_cli.core.transform import wrap_angle
 from carto_cli.mapping.constraints import ConstraintSet
@@ -75,9 +76,9 @@ class OptimizationResult:
     summary: OptimizationSummary
 
 
-def optimize(node_poses, submap_poses, constraints: ConstraintSet, odometry: NodePairs | None = None,
-             local_slam: NodePairs | None = None, *, huber_scale: float | None = 1e1,
-             max_num_iterations: int = 50, fixed_submaps=(0,), fixed_nodes=(),
+def optimize(node_poses: ArrayLike, submap_poses: ArrayLike, constraints: ConstraintSet,
+             odometry: NodePairs | None = None, local_slam: NodePairs | None = None, *, huber_scale: float | None = 1e1,
+             max_num_iterations: int = 50, fixed_submaps: ArrayLike = (0,), fixed_nodes: ArrayLike = (),
              function_tolerance: float = FUNCTION_TOLERANCE,
              gradient_tolerance: float = GRADIENT_TOLERANCE,
              parameter_tolerance: float = PARAMETER_TOLERANCE) -> OptimizationResult:

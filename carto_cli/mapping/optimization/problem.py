@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+from numpy.typing import ArrayLike
 
 from carto_cli.core.transform import relative as relative_pose
 from carto_cli.core.transform import wrap_angle
@@ -71,8 +72,8 @@ class NodePairs:
         return len(self.first)
 
     @classmethod
-    def consecutive(cls, poses, trajectory_ids=None, *, translation_weight: float,
-                    rotation_weight: float, node_indices=None) -> NodePairs:
+    def consecutive(cls, poses: ArrayLike, trajectory_ids: ArrayLike | None = None, *, translation_weight: float,
+                    rotation_weight: float, node_indices: ArrayLike | None = None) -> NodePairs:
         """Link node i to node i+1 with the relative pose between ``poses[i]`` and ``poses[i+1]``.
 
         ``poses`` are per-node local SLAM poses, or odometry poses interpolated at the
@@ -91,7 +92,7 @@ class NodePairs:
         if node_indices is not None:
             idx = np.asarray(node_indices, dtype=np.int64)
             keep &= idx[1:] == idx[:-1] + 1
-        finite = np.isfinite(poses).all(axis=1)
+        finite = np.all(np.isfinite(poses), axis=1)
         keep &= finite[1:] & finite[:-1]
         first = np.flatnonzero(keep)
         second = first + 1
@@ -172,7 +173,7 @@ def build_edges(num_nodes: int, num_submaps: int, constraints: ConstraintSet,
     return edges
 
 
-def unscaled_error(x: np.ndarray, edges: Edges):
+def unscaled_error(x: np.ndarray, edges: Edges) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """measured ⊖ h for every block, plus the cos/sin/h terms the Jacobian reuses."""
     a = x[edges.start]
     b = x[edges.end]
@@ -399,7 +400,8 @@ def connected_parts(start, end, n):
     return label
 
 
-def residuals(node_poses, submap_poses, constraints: ConstraintSet, *, scaled: bool = False) -> np.ndarray:
+def residuals(node_poses: ArrayLike, submap_poses: ArrayLike, constraints: ConstraintSet, *,
+              scaled: bool = False) -> np.ndarray:
     """Per-constraint error (K, 3) = measured ⊖ (inverse(submap) ∘ node), in the submap frame.
 
     Unscaled (metres, radians) by default, to judge loop closures after optimisation;
