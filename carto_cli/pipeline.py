@@ -373,7 +373,7 @@ def _map_once(plan: Plan, configured: Configured, timer: Any,
     quality = None
     if core.graph is not None:
         with slam.timer.stage("quality"):
-            quality = assess(core, core.graph.odometry_samples(trajectory_id))
+            quality = assess(core, core.graph.odometry.samples(trajectory_id))
     fields = {f.name: getattr(core, f.name) for f in dataclasses.fields(SlamResult)}
     return MapResult(**(fields | {"stats": stats}), laser_pose_source=plan.mount_source, selection=plan.selection,
                      regime=configured.regime, auto=configured.auto, quality=quality,

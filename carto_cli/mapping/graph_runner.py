@@ -29,13 +29,15 @@ from carto_cli.core.memory import give_back, peak_kb, reset_peak, status_kb
 from carto_cli.core.parallel import die_with_parent, fork_safe
 from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping.pose_graph_state import SubmapEntry
 from carto_cli.mapping.submaps import Submap
 
 if TYPE_CHECKING:
     from multiprocessing.connection import Connection
     from multiprocessing.queues import Queue
 
-__all__ = ["BACKLOG", "ForkedGraph", "GraphPlace", "GraphRunner", "InlineGraph", "ThreadedGraph", "start_graph"]
+__all__ = ["BACKLOG", "ForkedGraph", "GraphPlace", "GraphRunner", "InlineGraph", "ThreadedGraph", "export_graph",
+           "import_graph", "start_graph"]
 
 
 class GraphPlace(TextEnum):
@@ -264,7 +266,7 @@ def _serve_graph(graph: PoseGraph, jobs: int, timer: StageTimer | NullTimer, inb
         # No search follows: the stacks go back before the graph is pickled (as Slam.finish does inline).
         graph.builder.stacks.clear()
         give_back()
-        payload = pickle.dumps({"graph": graph.export_data(), "timer": timer.export_tree()},
+        payload = pickle.dumps({"graph": export_graph(graph), "timer": timer.export_tree()},
                                protocol=pickle.HIGHEST_PROTOCOL)
         export_added_mb = max(0, status_kb("VmRSS") - inherited_kb) / 1024
         reply.send(("ok", {"peak_added_mb": peak_added_mb, "export_added_mb": export_added_mb}))
@@ -373,7 +375,7 @@ class ForkedGraph:
         with self.timer.stage("global wait"):
             data = process.join(abandon)
         if data is not None:
-            self.graph.import_data(data["graph"], self._submaps, self.trajectory)
+            import_graph(self.graph, data["graph"], self._submaps, self.trajectory)
             process.timer.import_tree(data["timer"])
             self.peak_memory_mb = max(process.peak_before_kb / 1024, process.peak_beside_mb)
 
@@ -387,3 +389,28 @@ def start_graph(graph: PoseGraph, *, jobs: int, loop_closure: bool, process: boo
             return ForkedGraph(graph, jobs, timer, trajectory)
         return ThreadedGraph(graph, jobs, timer)
     return InlineGraph(graph, timer)
+
+
+def export_graph(graph: PoseGraph) -> dict:
+    """Everything ``graph`` holds but its options, timer, threads and stacks, as one picklable value: the graph of
+    a process of its own handing its work back (:func:`import_graph`). What goes is what ``PoseGraph.EXPORTED``
+    names; submaps go by key, not grid; the constraint builder as what it learnt."""
+    graph.settle()
+    graph.close()
+    data = {name: getattr(graph, name) for name in PoseGraph.EXPORTED}
+    data["submaps"] = [(e.trajectory, e.submap.index, e.global_pose, e.nodes, e.searched) for e in graph.submaps]
+    data["builder"] = graph.builder.export_data()
+    return data
+
+
+def import_graph(graph: PoseGraph, data: dict, submaps: dict[int, Submap], trajectory: int) -> None:
+    """Make ``graph`` the graph :func:`export_graph` gave, whose submaps of ``trajectory`` are ``submaps`` (by
+    index) and whose other submaps are ``graph``'s own."""
+    data = dict(data)
+    own = {(e.trajectory, e.submap.index): e.submap for e in graph.submaps}
+    entries = [SubmapEntry(submaps[index] if t == trajectory and index in submaps else own[(t, index)], t, pose,
+                           nodes, searched) for t, index, pose, nodes, searched in data.pop("submaps")]
+    graph.builder.import_data(data.pop("builder"))
+    for name in PoseGraph.EXPORTED:
+        setattr(graph, name, data[name])
+    graph.submaps = entries

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
+from carto_cli.core import transform
 from carto_cli.core.transform import wrap_angle
 from carto_cli.mapping.constraints import ConstraintSet
 from carto_cli.mapping.submaps import Submap
@@ -39,6 +40,10 @@ class SubmapEntry:
     @property
     def finished(self) -> bool:
         return self.submap.finished
+
+    def local_to_global(self) -> np.ndarray:
+        """The correction carrying the submap's trajectory-local frame into the map frame, via this submap."""
+        return transform.compose(self.global_pose, transform.inverse(self.local_pose))
 
 
 @dataclass

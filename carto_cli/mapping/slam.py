@@ -19,6 +19,7 @@ from typing import Any, Protocol, TypedDict
 import numpy as np
 from numpy.typing import ArrayLike
 
+from carto_cli.core import transform
 from carto_cli.core.memory import give_back
 from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Imu, Odometry, Scan
@@ -208,10 +209,10 @@ class Slam:
         give_back()
         submaps = [entry.submap for entry in graph.submaps]
         local_arr = np.array(self._local_poses)
-        poses = graph.scan_poses(local_arr, np.asarray(self._scan_node) + self._first_node)
+        poses = _scan_poses(graph, local_arr, np.asarray(self._scan_node) + self._first_node)
         submap_poses = graph.submap_global_poses
         with timer.stage("assemble map"):
-            corrections = [graph.local_to_global(i) for i in range(len(graph.submaps))]
+            corrections = [entry.local_to_global() for entry in graph.submaps]
             image = AssembledImage([sm.grid for sm in submaps], corrections)
             if image.shape[0] * image.shape[1] <= EAGER_CELLS:
                 image.probability  # noqa: B018 - assembled now, in this stage; a larger map as it is written
@@ -226,7 +227,7 @@ class Slam:
             "scans_per_s": n_scans / wall if wall > 0 else float("nan"),
             "empty_scans": self.local.stats.empty_scans,
             "constraints": len(graph.constraints),
-            "loop_closures": graph.num_loop_closures,
+            "loop_closures": graph.constraints.num_loop_closures,
             "optimizations": graph.stats.optimizations,
             "optimization_time_s": graph.stats.optimization_time_s,
             "loop_closure_searches": graph.builder.stats.searched,
@@ -238,5 +239,27 @@ class Slam:
         return SlamResult(
             times=np.array(self._times), poses=poses, local_poses=local_arr,
             node_scans=np.array(self._node_scans, int), submaps=submaps, submap_poses=submap_poses, image=image,
-            laser_pose=self.laser_pose, stats=stats, loop_closures=graph.loop_closure_segments(), graph=graph,
+            laser_pose=self.laser_pose, stats=stats, loop_closures=_closure_segments(graph), graph=graph,
         )
+
+
+def _scan_poses(graph: PoseGraph, scan_local: np.ndarray, scan_node: np.ndarray) -> np.ndarray:
+    """Global poses of scans given their local poses and the latest node at or before each.
+
+    A scan between nodes takes the correction of the node before it, which is what the robot would have reported
+    at that moment had it known the optimized graph.
+    """
+    g = graph.global_poses[scan_node]
+    local = graph.local_poses[scan_node]
+    correction = transform.compose(g, transform.inverse(local))
+    return transform.compose(correction, scan_local)
+
+
+def _closure_segments(graph: PoseGraph) -> np.ndarray:
+    """(K, 4) node xy → submap origin xy in the map frame of every loop closure, for drawing."""
+    mask = graph.constraints.is_loop_closure
+    if not mask.any():
+        return np.zeros((0, 4))
+    nodes = graph.constraints.node[mask]
+    subs = graph.constraints.submap[mask]
+    return np.concatenate([graph.global_poses[nodes, :2], graph.submap_global_poses[subs, :2]], axis=1)

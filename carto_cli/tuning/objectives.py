@@ -269,7 +269,7 @@ def map_quality(result, recording=None, max_scans: int | None = None) -> dict[st
     entropy = float(np.mean(-(occ * np.log2(occ) + (1 - occ) * np.log2(1 - occ)))) if occ.size else 1.0
     residual = 0.0
     graph = getattr(result, "graph", None)
-    if graph is not None and graph.num_loop_closures:
+    if graph is not None and graph.constraints.num_loop_closures:
         res = graph.loop_closure_residuals()
         residual = float(np.mean(res)) if res.size else 0.0
     out = {"crispness": crisp, "occupied_entropy": entropy, "loop_closure_residual_m": residual}

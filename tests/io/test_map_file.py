@@ -107,7 +107,7 @@ def test_round_trip_of_a_real_map_is_exact(mapped):
     graph = result.graph
     assert len(graph.submaps) >= 4 and any(e.finished for e in graph.submaps)
     assert not all(e.finished for e in graph.submaps)
-    assert graph.num_loop_closures > 0
+    assert graph.constraints.num_loop_closures > 0
 
     loaded = load_map(path)
     assert loaded.options == options

@@ -11,6 +11,7 @@ from carto_cli.core import transform
 from carto_cli.evaluation.metrics import ate
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.constraints import ConstraintKind
+from carto_cli.mapping.graph_runner import export_graph, import_graph
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.pose_graph_state import PoseGraphState
 from carto_cli.options import load_options
@@ -54,12 +55,12 @@ def test_odometry_is_interpolated_at_node_times_including_samples_after_the_node
 
 def test_odometry_samples_are_returned_as_given_with_yaw_unwrapped():
     g = _graph()
-    assert g.odometry_samples() is None
+    assert g.odometry.samples() is None
     g.add_odometry(0.0, (0.0, 0.0, math.radians(170)))
     g.add_odometry(1.0, (1.0, 0.5, math.radians(-170)))
-    np.testing.assert_allclose(g.odometry_samples(), [[0.0, 0.0, 0.0, math.radians(170)],
+    np.testing.assert_allclose(g.odometry.samples(), [[0.0, 0.0, 0.0, math.radians(170)],
                                                       [1.0, 1.0, 0.5, math.radians(190)]], atol=1e-12)
-    assert g.odometry_samples(trajectory=1) is None
+    assert g.odometry.samples(trajectory=1) is None
 
 
 def test_odometry_interpolation_unwraps_yaw_across_pi():
@@ -117,7 +118,7 @@ def test_loop_closures_the_optimized_graph_disagrees_with_are_removed():
     res = g.loop_closure_residuals()
     assert res[0] < 0.1 and res[1] > 1.0
     assert g.remove_bad_loop_closures(0.5) == 1
-    assert g.num_loop_closures == 1
+    assert g.constraints.num_loop_closures == 1
     assert g.removed_loop_closures[0][:2] == (8, 0)
 
 
@@ -133,11 +134,11 @@ def test_confirmed_loop_closures_need_an_agreeing_neighbour():
         return LoopClosure(node, 0, np.array([xy[0], xy[1], 0.0]), 0.6, False)
 
     g._add_loop_closure(closure(9, (4.5, 0.0)))
-    assert g.num_loop_closures == 0 and g.unconfirmed_loop_closures == 1  # alone: waits
+    assert g.constraints.num_loop_closures == 0 and g.confirmation.unconfirmed == 1  # alone: waits
     g._add_loop_closure(closure(7, (3.5, 1.0)))  # 1 m off what local SLAM says between nodes 7 and 9
-    assert g.num_loop_closures == 0 and g.unconfirmed_loop_closures == 2
+    assert g.constraints.num_loop_closures == 0 and g.confirmation.unconfirmed == 2
     g._add_loop_closure(closure(8, (4.0, 0.0)))  # agrees with node 9's: both count, 7's still waits
-    assert g.num_loop_closures == 2 and g.unconfirmed_loop_closures == 1
+    assert g.constraints.num_loop_closures == 2 and g.confirmation.unconfirmed == 1
     assert sorted(g.constraints.node[g.constraints.is_loop_closure].tolist()) == [8, 9]
 
 
@@ -340,12 +341,12 @@ def test_a_periodic_optimization_is_taken_a_period_later_and_carries_the_nodes_a
     for i in range(8, 15):
         add(i)
     before = graph.global_poses.copy()
-    correction_before = graph.local_to_global(2)  # submap 2: the trajectory's last one the optimization had
+    correction_before = graph.submaps[2].local_to_global()  # submap 2: the trajectory's last one the optimization had
     graph.settle()
     assert graph.stats.optimizations == 1
     after = graph.global_poses
     assert np.abs(after[:8] - before[:8]).max() > 1e-3  # the optimization moved its nodes
-    move = transform.compose(graph.local_to_global(2), transform.inverse(correction_before))
+    move = transform.compose(graph.submaps[2].local_to_global(), transform.inverse(correction_before))
     np.testing.assert_allclose(after[8:], transform.compose(move, before[8:]), atol=1e-12)
     for a, b in ((8, 9), (9, 14)):
         np.testing.assert_allclose(transform.relative(after[a], after[b]), transform.relative(local[a], local[b]),
@@ -357,14 +358,14 @@ def test_a_periodic_optimization_is_taken_a_period_later_and_carries_the_nodes_a
 
 
 def test_what_a_graph_hands_back_from_its_process_names_every_attribute():
-    """export_data / import_data go by PoseGraph.EXPORTED; with NOT_EXPORTED it must name everything a graph holds,
+    """graph_runner's export_graph / import_graph go by PoseGraph.EXPORTED; with NOT_EXPORTED it must name everything a graph holds,
     so that a new attribute is handed back (or left out) on purpose."""
     graph = _graph(loop_closure=True)
     exported, kept = set(PoseGraph.EXPORTED), set(PoseGraph.NOT_EXPORTED)
     assert not exported & kept
     assert set(vars(graph)) == exported | kept
-    data = graph.export_data()
+    data = export_graph(graph)
     assert set(data) == exported | {"submaps", "builder"}
     other = _graph(loop_closure=True)
-    other.import_data(data, {}, trajectory=0)
+    import_graph(other, data, {}, trajectory=0)
     assert all(getattr(other, name) is data[name] for name in exported)
