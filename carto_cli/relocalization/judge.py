@@ -42,9 +42,9 @@ DISTINCT_YAW = math.radians(10.0)
 MIN_KNOWN_FRACTION = 0.5
 
 
-@dataclass
+@dataclass(frozen=True, slots=True, eq=False)
 class Candidate:
-    """A search's best pose in one submap, before refinement."""
+    """A search's best pose in one submap, before refinement (told from the others by identity, not value)."""
 
     submap: int
     grid_pose: np.ndarray  # B&B pose in the submap's grid frame
