@@ -7,7 +7,8 @@ import io
 import itertools
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar, cast
@@ -22,9 +23,9 @@ from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
 from carto_cli.io.loaded_map import LoadedMap
 from carto_cli.io.map_file import load_map
 from carto_cli.io.map_server import is_map_server_yaml, load_map_server
-from carto_cli.io.recording import ReadOptions
+from carto_cli.io.recording import ReadOptions, Recording
 from carto_cli.io.sources.open import open_recording
-from carto_cli.io.topics import select_topics, selected_records
+from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options, apply_overrides, load_options
 from carto_cli.pipeline import resolve_laser_pose
@@ -39,7 +40,6 @@ from carto_cli.relocalization import (
     read_queries,
     relocalize_many,
     scan_at,
-    select_scan_topic,
     write_results_csv,
 )
 from carto_cli.relocalization.auto import AutoRelocalization, choose_for_map, choose_for_scans
@@ -47,8 +47,8 @@ from carto_cli.relocalization.queries import CONTEXT_SECONDS
 from carto_cli.relocalization.result import PoseVerdict
 from carto_cli.relocalization.tracking import TRACK_COLUMNS, TrackedScan, Tracker, TrackSummary, summarize_track
 
-__all__ = ["TRACK_OUTPUTS", "RelocalizeRun", "TrackRun", "apply_map_auto", "default_track_dir",
-           "load_relocalization_map", "relocalization_options", "run_relocalize", "run_track"]
+__all__ = ["TRACK_OUTPUTS", "Prepared", "RelocalizeRun", "TrackRun", "apply_map_auto", "default_track_dir",
+           "load_relocalization_map", "prepare", "relocalization_options", "run_relocalize", "run_track"]
 
 
 def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -> LoadedMap:
@@ -122,6 +122,42 @@ def relocalization_options(map_options: Options, profile_options: Options) -> Op
     import dataclasses
 
     return dataclasses.replace(map_options, relocalization=profile_options.relocalization)
+
+
+@dataclass(frozen=True, slots=True)
+class Prepared:
+    """What a relocalization and a track both start from (``prepare``)."""
+
+    relocalizer: Relocalizer
+    recording: Recording  # open while ``prepare``'s context lasts
+    selection: TopicSelection  # the scan topic, and the odometry (a topic or TF) that moves a scan's neighbours
+    mount: np.ndarray | None  # the laser mount read from the recording (a map that does not know it), else None
+    auto: AutoRelocalization | None  # what auto chose from the map (map.carto) or the scans (map_server)
+    warnings: list[str]  # the map's and the recording's, each already told to ``on_warning``
+
+
+@contextmanager
+def prepare(map_file: Path, recording: Path, *, profile: str | Path | None, overrides: Sequence[str] | None,
+            read: ReadOptions | None, scan_topic: str | None, odom_topic: str | None, odom_frame: str | None,
+            base_frame: str | None, jobs: int | None,
+            on_warning: Callable[[str], None] | None) -> Iterator[Prepared]:
+    """The map loaded (``load_relocalization_map``, with ``profile``) and its settings chosen (``apply_map_auto``),
+    the recording opened and its topics chosen, the relocalizer built (``overrides`` over the map's options;
+    ``jobs`` its threads), for as long as the context lasts (the recording stays open). A map that knows the laser
+    mount gets its relocalizer before the recording is read, so that its warnings come first; one that does not
+    (a map_server image) takes the mount, and without a profile its settings, from the recording (``_from_scans``)."""
+    loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
+    auto = apply_map_auto(loaded, profile)
+    warnings: list[str] = []
+    relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning, jobs)
+    with open_recording(recording, read) as rec:
+        _tell(rec.warnings, warnings, on_warning)
+        selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
+        mount = None
+        if relocalizer is None:
+            mount, auto = _from_scans(loaded, rec, selection.scan, profile)
+            relocalizer = _relocalizer(loaded, overrides, warnings, on_warning, jobs)
+        yield Prepared(relocalizer, rec, selection, mount, auto, warnings)
 
 
 @dataclass
@@ -225,17 +261,11 @@ def run_relocalize(
         if csv_out.exists() and not force:
             raise CartoError("exists; --force replaces it, or give another --csv", csv_out)
 
-    loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
-    run = RelocalizeRun(auto=apply_map_auto(loaded, profile))
-    # Built before the recording is read when the map holds all it needs, so its warnings come first.
-    relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, run.warnings, on_warning, jobs)
-    with open_recording(recording, read) as rec:
-        _tell(rec.warnings, run.warnings, on_warning)
-        mount = None
-        if relocalizer is None:
-            mount, run.auto = _from_scans(loaded, rec, select_scan_topic(rec, scan_topic), profile)
-            relocalizer = _relocalizer(loaded, overrides, run.warnings, on_warning, jobs)
-        selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
+    with prepare(map_file, recording, profile=profile, overrides=overrides, read=read, scan_topic=scan_topic,
+                 odom_topic=odom_topic, odom_frame=odom_frame, base_frame=base_frame, jobs=jobs,
+                 on_warning=on_warning) as p:
+        relocalizer, rec, selection, mount = p.relocalizer, p.recording, p.selection, p.mount
+        run = RelocalizeRun(warnings=p.warnings, auto=p.auto)
         if queries is not None:
             qs = read_queries(queries)
             with progress("relocalizing", len(qs), quiet, unit="queries") as bar:
@@ -324,22 +354,15 @@ def run_track(
         raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
     prior = parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose
     t0 = time.perf_counter()
-    loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
-    auto = apply_map_auto(loaded, profile)
-    warnings: list[str] = []
-    relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning)
-    with open_recording(recording, read) as rec:
-        _tell(rec.warnings, warnings, on_warning)
-        selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
+    with prepare(map_file, recording, profile=profile, overrides=overrides, read=read, scan_topic=scan_topic,
+                 odom_topic=odom_topic, odom_frame=odom_frame, base_frame=base_frame, jobs=None,
+                 on_warning=on_warning) as p:
+        selection = p.selection
         if on_total is not None:
-            on_total(sum(t.count for t in rec.topics() if t.name == selection.scan))
-        mount = None
-        if relocalizer is None:
-            mount, auto = _from_scans(loaded, rec, selection.scan, profile)
-            relocalizer = _relocalizer(loaded, overrides, warnings, on_warning)
-        tracker = Tracker(relocalizer, laser_pose=mount, max_jump=max_jump)
+            on_total(sum(t.count for t in p.recording.topics() if t.name == selection.scan))
+        tracker = Tracker(p.relocalizer, laser_pose=p.mount, max_jump=max_jump)
         topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
-        scans = list(tracker.track(selected_records(rec, selection, topics), initial_pose=prior,
+        scans = list(tracker.track(selected_records(p.recording, selection, topics), initial_pose=prior,
                                    sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, on_scan=on_scan))
     if not scans:
         raise CartoError(f"no scans on {selection.scan}", recording)
@@ -355,4 +378,4 @@ def run_track(
         write_trajectory(staging / "trajectory.tum", Trajectory.from_poses(np.array([s.time for s in ok]), poses))
         write_text_atomic(staging / "track.csv", buf.getvalue())
         write_text_atomic(staging / "track.json", json.dumps(summary.to_dict(), indent=1) + "\n")
-    return TrackRun(outdir, summary, warnings, auto)
+    return TrackRun(outdir, summary, p.warnings, p.auto)

@@ -2,7 +2,7 @@
 
 :func:`follow` is one step of tracking: the scan's pose predicted from a pose the map already trusts (moved by
 odometry, or by the previous motion and a small correlative search), refined by least squares against the map
-grid nearest the prediction and judged like a relocalization (``Relocalizer.judge``), with the slide from the
+grid nearest the prediction and judged like a relocalization (``Judge.fit``), with the slide from the
 prediction bounded. The tracker (``tracking.py``) takes it for every scan of a recording.
 
 :func:`check_context` takes it for the scans around a relocalization answer (``ScanContext``: the records of
@@ -23,39 +23,17 @@ import math
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.records import Odometry, Record, Scan
 from carto_cli.matching import correlative
+from carto_cli.relocalization.judge import Judge
 from carto_cli.relocalization.queries import ScanContext
 from carto_cli.relocalization.result import Fit
 
-if TYPE_CHECKING:
-    from carto_cli.matching.least_squares import CeresScanMatcher
-    from carto_cli.options.schema import Relocalization
-
-__all__ = ["ContextCheck", "Followed", "MapToFollow", "check_context", "follow"]
-
-
-class MapToFollow(Protocol):
-    """What following a scan needs of the map it follows in (``Relocalizer`` is one): its grids and their frames,
-    the scan preparation and the judgement of relocalization, so that both judge a pose alike."""
-
-    grids: list
-    map_to_grid: np.ndarray  # (M, 3) each submap's grid frame seen from the map frame
-    grid_to_map: np.ndarray
-    ceres: CeresScanMatcher
-    ro: Relocalization
-
-    def preprocess(self, scan: Scan, laser_pose=None, *, search: bool = True) -> tuple[np.ndarray, np.ndarray]: ...
-
-    def nearest_submap(self, xy) -> int: ...
-
-    def judge(self, submap: int, points: np.ndarray, grid_pose: np.ndarray, threshold: float, *,
-              known_ok: bool = False, sensor=(0.0, 0.0)) -> Fit: ...
+__all__ = ["ContextCheck", "Followed", "check_context", "follow"]
 
 
 # Without odometry the prediction is the previous motion repeated, and least squares from it alone is held back
@@ -84,7 +62,7 @@ class Followed:
     reason: str
 
 
-def follow(reloc: MapToFollow, scan: Scan, predicted: np.ndarray, mount: np.ndarray, min_score: float, *,
+def follow(judge: Judge, scan: Scan, predicted: np.ndarray, mount: np.ndarray, min_score: float, *,
            correlate: bool, max_slide: float, timings: dict[str, float] | None = None) -> Followed | None:
     """``scan`` refined from ``predicted`` (map frame) in the submap nearest it and judged: its fit (score or
     known-cell score against ``min_score``, see-through, on-wall share, laser on a known cell) and a slide of at
@@ -100,20 +78,21 @@ def follow(reloc: MapToFollow, scan: Scan, predicted: np.ndarray, mount: np.ndar
             timings[stage] += (now - t) * 1e3
         t = now
 
-    search, fine = reloc.preprocess(scan, mount, search=correlate)
+    index = judge.index
+    search, fine = index.preprocess(scan, mount, search=correlate)
     lap("preprocessing")
     if len(fine) == 0:
         return None
-    submap = reloc.nearest_submap(predicted[:2])
-    grid = reloc.grids[submap]
-    start = transform.compose(reloc.map_to_grid[submap], predicted)
+    submap = index.nearest_submap(predicted[:2])
+    grid = index.grids[submap]
+    start = transform.compose(index.map_to_grid[submap], predicted)
     if correlate and len(search):
         start = correlative.match(grid, search, start, linear_search_window=CORRELATIVE_WINDOW_M,
                                   angular_search_window=CORRELATIVE_WINDOW_RAD).pose
-    grid_pose = reloc.ceres.match(grid, fine, start, target_translation=start[:2]).pose
-    found = transform.compose(reloc.grid_to_map[submap], grid_pose)
+    grid_pose = judge.ceres.match(grid, fine, start, target_translation=start[:2]).pose
+    found = transform.compose(index.grid_to_map[submap], grid_pose)
     lap("refinement")
-    fit = reloc.judge(submap, fine, grid_pose, min_score, known_ok=True, sensor=mount[:2])
+    fit = judge.fit(submap, fine, grid_pose, min_score, known_ok=True, sensor=mount[:2])
     ok, reason = fit.ok, fit.reason
     slide = math.hypot(*(found[:2] - predicted[:2]))
     if ok and slide > max_slide:
@@ -178,7 +157,7 @@ def _moved(a: Odometry, b: Odometry) -> bool:
     return math.hypot(b.x - a.x, b.y - a.y) >= CONTEXT_STEP_M or turn >= CONTEXT_STEP_RAD
 
 
-def check_context(reloc: MapToFollow, context: ScanContext, pose, mount: np.ndarray, min_score: float,
+def check_context(judge: Judge, context: ScanContext, pose, mount: np.ndarray, min_score: float,
                   scans: int, max_through_walls: int, *, max_slide: float = 0.3) -> ContextCheck:
     """Follow up to ``scans`` neighbours each way from ``pose`` (the answer for the scan between ``context``'s
     ``before`` and ``after``), one each ``CONTEXT_STEP_M`` / ``CONTEXT_STEP_RAD`` of odometry (every scan without
@@ -188,7 +167,7 @@ def check_context(reloc: MapToFollow, context: ScanContext, pose, mount: np.ndar
     stand where the map never saw, or with no returns, says nothing and is not counted: the robot may have come
     from a part of the building the map leaves out."""
     out = ContextCheck()
-    limit = reloc.ro.max_see_through
+    limit = judge.ro.max_see_through
     odom0 = _odometry_at_end(context.before)
     left = 2 * scans  # neighbours still to try, both ways
 
@@ -215,7 +194,7 @@ def check_context(reloc: MapToFollow, context: ScanContext, pose, mount: np.ndar
             taken += 1
             left -= 1
             taken_odom = odom
-            f = follow(reloc, scan, predicted, mount, min_score, correlate=not with_odometry, max_slide=max_slide)
+            f = follow(judge, scan, predicted, mount, min_score, correlate=not with_odometry, max_slide=max_slide)
             here_odom = odom
             if f is None or not f.fit.laser_seen:
                 here = predicted

@@ -33,7 +33,7 @@ __all__ = [
 
 @dataclass(frozen=True)
 class Fit:
-    """How well a scan fits the map at a pose (``Relocalizer.judge``), and whether that is good enough."""
+    """How well a scan fits the map at a pose (``Judge.fit``), and whether that is good enough."""
 
     ok: bool
     reason: str  # '' when ok
@@ -42,7 +42,7 @@ class Fit:
     known_score: float  # their mean probability
     see_through: float  # share of the rays crossing a wall before their end
     inlier_fraction: float  # share of the points on a wall (within a cell)
-    laser_seen: bool = True  # the laser stands on a cell the map knows (``Relocalizer.seen``)
+    laser_seen: bool = True  # the laser stands on a cell the map knows (``MapIndex.seen``)
 
 
 class SearchPath(TextEnum):

@@ -151,7 +151,7 @@ class Tracker:
             return self._search(scan, index, None, None, None, f"{failures} scans lost; windowed search failed")
         with_odometry = prev_odom is not None and odom is not None
         self._add("preprocessing", t)  # the prediction's share
-        f = follow(self.reloc, scan, predicted, self.mount, self.min_score, correlate=not with_odometry,
+        f = follow(self.reloc.judge, scan, predicted, self.mount, self.min_score, correlate=not with_odometry,
                    max_slide=self.max_slide, timings=self.timings)
         if f is None:
             return TrackedScan(index, scan.time, predicted, PoseVerdict.LOST, "none", reason="no returns in range")

@@ -69,9 +69,9 @@ def test_the_check_alone(relocalizer, second_pass_records):
     scan, own = _around(records, QUERY_T)
     pose = np.asarray(ref[round(scan.time, 6)])
     mount, min_score = relocalizer.laser_pose, relocalizer.ro.min_score
-    right = check_context(relocalizer, own, pose, mount, min_score, 4, 2)
+    right = check_context(relocalizer.judge, own, pose, mount, min_score, 4, 2)
     # Stopped once the neighbours left (8 - checked) could no longer make more than 2 see through walls: after 6
     assert right.checked == 6 and right.through_walls == 0 and not right.vetoes(2)
-    turned = check_context(relocalizer, own, pose + [0.0, 0.0, 0.35], mount, min_score, 4, 2)
+    turned = check_context(relocalizer.judge, own, pose + [0.0, 0.0, 0.35], mount, min_score, 4, 2)
     assert turned.through_walls == 3 and turned.vetoes(2) and turned.lost >= 3  # stopped at the third
-    assert check_context(relocalizer, ScanContext(), pose, mount, min_score, 4, 2).checked == 0
+    assert check_context(relocalizer.judge, ScanContext(), pose, mount, min_score, 4, 2).checked == 0
