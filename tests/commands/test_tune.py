@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 
 from carto_cli.commands.tune import StudyRequest, run_tune, summary_line
-from carto_cli.sim import loop_building, loop_trajectory, simulate
+from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 from carto_cli.tuning.study import TuneResult
 
 pytest.importorskip("optuna")
@@ -12,7 +12,7 @@ pytest.importorskip("optuna")
 
 def test_default_space_is_the_profiles(tmp_path):
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=8.0, scan_rate=5.0, beams=180)
+    sim = simulate(world, loop_trajectory(world), duration=8.0, scan_rate=5.0, lidar=Lidar(beams=180))
     result = run_tune(StudyRequest([sim.recording()], tmp_path / "t.yaml", trials=1, ground_truth=[sim.ground_truth],
                                    profile="sparse", seed=0, max_scans=20))
     assert result.n_trials == 1 and result.profile_path.is_file()
@@ -49,7 +49,7 @@ def test_summary_line():
 @pytest.fixture(scope="module")
 def small_sim():
     world = loop_building()
-    return simulate(world, loop_trajectory(world), duration=4.0, scan_rate=5.0, beams=90)
+    return simulate(world, loop_trajectory(world), duration=4.0, scan_rate=5.0, lidar=Lidar(beams=90))
 
 
 def _interrupting(monkeypatch, signals_at: dict[int, list]):

@@ -16,13 +16,14 @@ from carto_cli.core.errors import CartoError
 SCRIPT = """
 import sys
 from pathlib import Path
+from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
 from carto_cli.tuning.study import StudyRequest, tune
 
 world = loop_building()
-sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, beams=180)
+sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, lidar=Lidar(beams=180))
 space = {"trajectory_builder_2d.ceres_scan_matcher.translation_weight": {"low": 0.1, "high": 1.0e4, "log": True}}
 seen = []
 request = StudyRequest([sim.recording()], Path(sys.argv[1]), space=space, trials=int(sys.argv[3]),

@@ -110,13 +110,14 @@ def test_tune_rejects_bad_inputs(sim, tmp_path):
 PARALLEL_SCRIPT = """
 import sys
 from pathlib import Path
+from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
 from carto_cli.tuning.study import StudyRequest, tune
 
 world = loop_building()
-sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, beams=180)
+sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, lidar=Lidar(beams=180))
 space = {"trajectory_builder_2d.ceres_scan_matcher.translation_weight": {"low": 0.1, "high": 1.0e4, "log": True}}
 seen = []
 request = StudyRequest([sim.recording()], Path(sys.argv[1]), space=space, trials=4, n_jobs=2,
