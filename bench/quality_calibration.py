@@ -41,6 +41,7 @@ from carto_cli.mapping.constraint_builder import ConstraintBuilder
 from carto_cli.mapping.quality import assess
 from carto_cli.options import load_options
 from carto_cli.pipeline import build, read_options
+from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.world import Material
 
 SHARED = Path(os.environ.get("CARTO_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -172,8 +173,8 @@ SIM = {
     "sim/courtyard": ("courtyard", {}, {}),
     "sim/courtyard-r10": ("courtyard", {"seed": 1, "hedges": Material(0.5, reach=10.0),
                                         "cars": Material(0.6, reach=10.0), "glass": Material(0.3)}, {}),
-    "sim/courtyard-keyscans": ("courtyard", {"seed": 2}, {"scan_rate": 2.0, "beams": 181, "fov": 3.141592653589793,
-                                                         "max_range": 80.0}),
+    "sim/courtyard-keyscans": ("courtyard", {"seed": 2},
+                               {"scan_rate": 2.0, "lidar": Lidar(beams=181, fov=3.141592653589793, max_range=80.0)}),
 }
 
 

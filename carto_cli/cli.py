@@ -827,7 +827,7 @@ def tune_(
     max_z: float | None = MAP_MAX_Z,
 ):
     """Search options against a measured objective (Optuna TPE) and write the best as a profile."""
-    from carto_cli.commands.tune import run_tune, summary_line
+    from carto_cli.commands.tune import StudyRequest, run_tune, summary_line
     from carto_cli.core.progress import progress
 
     with progress("tuning", trials, state.quiet, unit="trials") as bar:
@@ -836,10 +836,11 @@ def tune_(
             if best is not None:
                 bar.set_description(f"tuning (best {best:.4g})")
 
-        result = run_tune(recordings, out, space=space, trials=trials, objective=objective, relations=relations,
-                          ground_truth=ground_truth, profile=profile, overrides=_with_z(overrides, min_z, max_z),
-                          time_weight=time_weight, storage=storage, study=study, n_jobs=n_jobs, seed=seed,
-                          max_scans=max_scans, on_trial=on_trial, algorithm=algorithm, force=force)
+        request = StudyRequest(recordings, out, space=space, trials=trials, objective=objective, relations=relations,
+                               ground_truth=ground_truth, profile=profile, overrides=_with_z(overrides, min_z, max_z),
+                               time_weight=time_weight, storage=storage, study_name=study, n_jobs=n_jobs, seed=seed,
+                               max_scans=max_scans, algorithm=algorithm)
+        result = run_tune(request, on_trial=on_trial, force=force)
     typer.echo(summary_line(result))
     if result.interrupted:
         typer.echo("carto: tune: interrupted; the profile holds the best trial so far", err=True)

@@ -106,9 +106,9 @@ def write_carmen_log(sim, path: Path, *, robotlaser: bool = False, no_return: fl
 
 def sim_carmen_log(path: Path, duration: float = 8.0, gz: bool = False) -> Path:
     """A CARMEN log of the simulated loop that maps in a second: ODOM at 10 Hz, FLASER (181 beams) at 5 Hz."""
-    from carto_cli.sim import loop_building, loop_trajectory, simulate
+    from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=duration, beams=181, fov=math.pi, scan_rate=5.0,
-                   odom_rate=10.0, imu_rate=0.0, dropout=0.0)
+    sim = simulate(world, loop_trajectory(world), duration=duration, lidar=Lidar(beams=181, fov=math.pi, dropout=0.0),
+                   scan_rate=5.0, odom_rate=10.0, imu_rate=0.0)
     return write_carmen_log(sim, path, gz=gz)

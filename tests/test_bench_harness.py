@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import pytest
 
 from carto_cli.io.recording_writers import write_recording
+from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
@@ -35,7 +36,7 @@ def test_algorithm_option(harness, capsys):
 
 def test_run_case_maps_with_the_algorithm_and_records_it(harness, tmp_path):
     world = loop_building()
-    rec = simulate(world, loop_trajectory(world), duration=6.0, beams=180).recording()
+    rec = simulate(world, loop_trajectory(world), duration=6.0, lidar=Lidar(beams=180)).recording()
     bag = tmp_path / "drive.bag"
     write_recording(rec.records(), bag, "ros1", static_transforms=rec.static_transforms(),
                     topics={t.name: t.msgtype for t in rec.topics()})

@@ -404,12 +404,12 @@ def _interrupt_log(path, *, dense: bool):
 
     from support import write_carmen_log
 
-    from carto_cli.sim import loop_building, loop_trajectory, simulate
+    from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 
     world = loop_building()
     sim = simulate(world, loop_trajectory(world, laps=2 if dense else 1), duration=None if dense else 40.0,
-                   beams=360 if dense else 181, fov=1.5 * math.pi if dense else math.pi,
-                   scan_rate=10.0 if dense else 1.0, odom_rate=10.0, imu_rate=0.0, dropout=0.0)
+                   lidar=Lidar(beams=360 if dense else 181, fov=1.5 * math.pi if dense else math.pi, dropout=0.0),
+                   scan_rate=10.0 if dense else 1.0, odom_rate=10.0, imu_rate=0.0)
     return write_carmen_log(sim, path, robotlaser=dense, no_return=30.0)
 
 

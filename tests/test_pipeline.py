@@ -18,13 +18,13 @@ from carto_cli.pipeline import (
     read_options,
     resolve_laser_pose,
 )
-from carto_cli.sim import loop_building, loop_trajectory, simulate
+from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 
 
 @pytest.fixture(scope="module")
 def sim_bag(tmp_path_factory):
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=3.0, beams=90, laser_pose=(0.15, -0.05, 0.1))
+    sim = simulate(world, loop_trajectory(world), duration=3.0, lidar=Lidar(beams=90), laser_pose=(0.15, -0.05, 0.1))
     rec = sim.recording()
     path = tmp_path_factory.mktemp("sim") / "sim.bag"
     write_recording(rec.records(), path, "ros1", static_transforms=rec.static_transforms(),

@@ -8,7 +8,7 @@ from carto_cli.io.topics import select_topics
 from carto_cli.options import load_options
 from carto_cli.pipeline import Auto, Configured, MapRequest, resolve
 from carto_cli.regime import Regime, choose, survey
-from carto_cli.sim import follow_route, loop_building, loop_trajectory, office, simulate
+from carto_cli.sim import Lidar, follow_route, loop_building, loop_trajectory, office, simulate
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +22,7 @@ def _survey(sim, **kw):
 
 
 def test_a_10hz_recording_with_odometry_is_dense_and_gets_the_wheeled_profile(world):
-    sim = simulate(world, loop_trajectory(world), duration=20.0, beams=180)
+    sim = simulate(world, loop_trajectory(world), duration=20.0, lidar=Lidar(beams=180))
     regime, _ = _survey(sim)
     assert regime.motion_source == "odometry" and regime.odometry
     assert not regime.sparse and regime.step_median < 0.1
@@ -38,7 +38,7 @@ def test_a_10hz_recording_with_odometry_is_dense_and_gets_the_wheeled_profile(wo
 def test_key_scans_are_recognised_by_motion_not_by_timestamps(world):
     # One scan every 2 s of driving, stamped 1 ms apart in the log's own clock would read as 1000 Hz;
     # here the robot moves ~1 m between scans, which is what decides.
-    sim = simulate(world, loop_trajectory(world), duration=60.0, scan_rate=0.5, odom_rate=0.5, beams=180)
+    sim = simulate(world, loop_trajectory(world), duration=60.0, scan_rate=0.5, odom_rate=0.5, lidar=Lidar(beams=180))
     regime, _ = _survey(sim)
     assert regime.sparse and regime.step_median > 0.25
     # With odometry, key scans go to GMapping (docs/gmapping.md), its range set below the no-return reading.
@@ -64,7 +64,7 @@ def test_without_odometry_the_motion_comes_from_scan_matching():
     # Key scans without odometry are not covered: one-scan grids underestimate a 0.6 m step along a
     # corridor by a factor of 3 (see the issue 12 note); a 10 Hz recording is measured within a factor 2.
     world = office()
-    sim = simulate(world, follow_route(world), duration=60.0, odom_rate=0.0, beams=180)
+    sim = simulate(world, follow_route(world), duration=60.0, odom_rate=0.0, lidar=Lidar(beams=180))
     regime, _ = _survey(sim, max_scans=100)
     assert not regime.odometry and regime.motion_source == "scan matching"
     gt = sim.ground_truth[:100]
@@ -117,7 +117,7 @@ def test_describe_says_what_was_detected():
 
 
 def test_configure_layers_the_users_overrides_over_the_auto_choice(world):
-    sim = simulate(world, loop_trajectory(world), duration=10.0, beams=90)
+    sim = simulate(world, loop_trajectory(world), duration=10.0, lidar=Lidar(beams=90))
     rec = sim.recording()
     sel = select_topics(rec)
     got = resolve(MapRequest(rec, Auto(("trajectory_builder_2d.max_range=12.5",))), rec, sel).configured

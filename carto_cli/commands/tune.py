@@ -2,50 +2,32 @@
 ``--algorithm gmapping``), then ``tuning.tune``."""
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from pathlib import Path
+from collections.abc import Callable
+from dataclasses import replace
 
 from carto_cli.gmapping import GMAPPING_PIPELINE
 from carto_cli.tuning.space import default_space_path, spaces_dir
-from carto_cli.tuning.study import TuneResult, tune
+from carto_cli.tuning.study import StudyRequest, TuneResult, tune
 
-__all__ = ["run_tune", "summary_line"]
+__all__ = ["StudyRequest", "run_tune", "summary_line"]
 
 
 def run_tune(
-    recordings: Sequence,
-    out: Path,
+    request: StudyRequest,
     *,
-    space: Path | None = None,
-    trials: int = 20,
-    objective: str = "auto",
-    relations: Sequence | None = None,
-    ground_truth: Sequence | None = None,
-    profile: str | None = None,
-    overrides: Sequence[str] = (),
-    time_weight: float = 0.0,
-    storage: str | None = None,
-    study: str | None = None,
-    n_jobs: int = 1,
-    seed: int | None = None,
-    max_scans: int | None = None,
     on_trial: Callable[[int, float | None, float | None], None] | None = None,
-    algorithm: str = "cartographer",
     force: bool = False,
 ) -> TuneResult:
-    """Run (or resume) the study and write the tuned profile ``out`` with its CSV and report PNG; every trial
-    maps with ``algorithm``."""
-    if space is not None:
-        space_path = space
-    elif algorithm in GMAPPING_PIPELINE:
+    """Run (or resume) the study and write the tuned profile ``request.out`` with its CSV and report PNG; every
+    trial maps with ``request.algorithm``."""
+    if request.space is not None:
+        space_path = request.space
+    elif request.algorithm in GMAPPING_PIPELINE:
         # A profile's space varies Cartographer's options, which a gmapping trial would not use.
         space_path = spaces_dir() / "gmapping.yaml"
     else:
-        space_path = default_space_path(profile)
-    return tune(recordings, space_path, trials=trials, out=out, objective=objective, relations=relations,
-                ground_truth=ground_truth, base_profile=profile, overrides=list(overrides),
-                time_weight=time_weight, storage=storage, study_name=study, n_jobs=n_jobs, seed=seed,
-                max_scans=max_scans, on_trial=on_trial, algorithm=algorithm, force=force)
+        space_path = default_space_path(request.profile)
+    return tune(replace(request, space=space_path), on_trial=on_trial, force=force)
 
 
 def summary_line(result: TuneResult) -> str:

@@ -85,6 +85,7 @@ class GMappingSlam:
         most = int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]  # set at import from the cores
         numba.set_num_threads(min(max(1, int(jobs)), most) if jobs is not None else most)
         self.g = options.gmapping
+        self._climb = matcher.ClimbSettings.of(self.g)
         self.timer = timer or NullTimer()
         kernels.warm_up(self.timer, systems=("gmapping",))
         self.laser_pose = transform.as_pose(laser_pose)
@@ -246,9 +247,7 @@ class GMappingSlam:
         # instead of metres; docs/gmapping.md).
         sweeps = np.minimum(g.sweepSigmas * world_sigma[:, 2], MAX_SWEEP)
         with timer.stage("scan matching"):
-            modes, scores = matcher.climb(maps.table, maps.state, maps.mean, ox, oy, g.delta,
-                                          beams.points, lx, ly, self.poses, g.kernelSize, g.sigma, g.lstep,
-                                          g.astep, g.iterations, sweeps)
+            modes, scores = matcher.climb(maps, g.delta, beams.points, lx, ly, self.poses, sweeps, self._climb)
             if g.minimumScore > 0:
                 weak = scores < g.minimumScore
                 modes[weak] = self.poses[weak]

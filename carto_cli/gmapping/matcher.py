@@ -13,6 +13,7 @@ particle's pose from the Gaussian those weights make, and adds the log of their 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
@@ -20,6 +21,7 @@ from numba import njit, prange
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.transform import wrap_angle_kernel
 from carto_cli.gmapping.maps import MEAN_SCALE, SEEN, TILE, TILE_BITS, TILE_MASK, UNKNOWN, WALL, TiledMaps
+from carto_cli.options.schema import GMapping
 
 INV_MEAN_SCALE = 1.0 / MEAN_SCALE  # a wall cell's mean endpoint: (cell + stored * this) * res
 FREE_STEP = math.sqrt(2.0)  # cells back along the beam to the cell that must not be a wall
@@ -213,14 +215,32 @@ def _walls(table, p, h, w, state, flat_state, flat_mean, ox, oy, res, ix, iy, bx
     return count, known
 
 
-def climb(table, state, mean, ox, oy, res, points, lx, ly, poses, kernel, sigma, lstep, astep, iterations,
-          sweeps):
-    """Hill-climb every particle's pose on its own map, first trying headings every astep / 2 within
-    +-``sweeps[p]`` of its own (0: none). Returns (poses, scores)."""
+@dataclass(frozen=True, slots=True)
+class ClimbSettings:
+    """The climb's settings (gmapping's kernelSize, sigma, lstep, astep, iterations): a run's, the same at every
+    scan, so built once rather than passed one by one at each."""
+
+    kernel: int  # cells searched around an endpoint for a wall
+    sigma: float  # m: a beam scores exp(-d^2 / 2 sigma^2)
+    lstep: float  # m: the first translational step
+    astep: float  # rad: the first rotational step
+    iterations: int  # times the steps are halved
+
+    @classmethod
+    def of(cls, g: GMapping) -> ClimbSettings:
+        return cls(g.kernelSize, g.sigma, g.lstep, g.astep, g.iterations)
+
+
+def climb(maps: TiledMaps, res: float, points: np.ndarray, lx: float, ly: float, poses: np.ndarray,
+          sweeps: np.ndarray, settings: ClimbSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Hill-climb every particle's pose on its own map of ``maps`` (cells of ``res``), first trying headings every
+    astep / 2 within +-``sweeps[p]`` of its own (0: none). Returns (poses, scores)."""
+    ox, oy = maps.tile_origin
+    c = settings
     # The maps' cells come flat from here: reshaping in the kernel compiled numba's shape checks and their
     # messages (several seconds of a fresh install's compiling)
-    return _climb(table, state, state.reshape(-1), mean.reshape(-1), ox, oy, res, points, lx, ly, poses, kernel, sigma,
-                  lstep, astep, iterations, sweeps)
+    return _climb(maps.table, maps.state, maps.state.reshape(-1), maps.mean.reshape(-1), ox, oy, res, points, lx, ly,
+                  poses, c.kernel, c.sigma, c.lstep, c.astep, c.iterations, sweeps)
 
 
 @njit(cache=True, parallel=True)
@@ -484,8 +504,7 @@ def _toy_map():
 def warm_up_climb() -> None:
     """The climb's kernels (a warm-up of its own: a fresh install compiles it beside the proposal's)."""
     maps, points = _toy_map()
-    climb(maps.table, maps.state, maps.mean, 0, 0, 0.05, points, 0.0, 0.0, np.zeros((2, 3)), 1, 0.05, 0.05, 0.05, 1,
-          np.full(2, 0.05))
+    climb(maps, 0.05, points, 0.0, 0.0, np.zeros((2, 3)), np.full(2, 0.05), ClimbSettings(1, 0.05, 0.05, 0.05, 1))
 
 
 @register_warm_up(system="gmapping")

@@ -176,30 +176,23 @@ def simulate(
     scan_rate: float = 10.0,
     odom_rate: float = 50.0,
     imu_rate: float = 100.0,
-    beams: int = 360,
-    fov: float = 2 * math.pi * 0.75,
-    max_range: float = 30.0,
-    noise: float = 0.01,
-    dropout: float = 0.01,
+    lidar: Lidar = Lidar(),
     odom_noise: OdometryModel = OdometryModel(),
     imu_noise: ImuModel = ImuModel(),
     seed: int = 0,
     laser_pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
     start_time: float = 1000.0,
-    lidar: Lidar | None = None,
 ) -> Simulation:
-    """Simulate a robot driving ``trajectory`` in ``world`` for ``duration`` s (default: all of it).
+    """Simulate a robot driving ``trajectory`` in ``world`` for ``duration`` s (default: all of it), scanning with
+    ``lidar`` (its beams, field of view, range and noise model).
 
     Sample times are ``start_time + k / rate``; a rate of 0 turns a sensor off.
     The clock starts at ``start_time`` rather than 0 so that code treating 0 as
-    "no time" is caught. ``lidar`` replaces the scanner built from ``beams`` ..
-    ``dropout`` (for range-proportional noise or another dropout value).
+    "no time" is caught.
     """
     duration = trajectory.duration if duration is None else float(duration)
     if duration <= 0:
         raise ValueError("duration must be positive")
-    if lidar is None:
-        lidar = Lidar(beams=beams, fov=fov, max_range=max_range, noise=noise, dropout=dropout)
     _, odom_seed, imu_seed = np.random.SeedSequence(seed).spawn(3)
     odom_t = _sample_times(duration, odom_rate)
     odom = wheel_odometry(trajectory, odom_t, odom_noise, np.random.default_rng(odom_seed))

@@ -20,7 +20,7 @@ import multiprocessing as mp
 import os
 import signal
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,7 @@ from carto_cli.tuning.objectives import Case, check_space, evaluate_options, mak
 from carto_cli.tuning.report import draw_report, write_profile, write_trials_csv
 from carto_cli.tuning.space import Param, base_values, load_space, suggest_params
 
-__all__ = ["TuneResult", "tune"]
+__all__ = ["StudyRequest", "TuneResult", "tune"]
 
 
 @dataclass
@@ -183,66 +183,89 @@ def _default_storage(out: Path) -> str:
     return "sqlite:///" + str(out.resolve().with_name(out.stem + ".optuna.db"))
 
 
+@dataclass(frozen=True, slots=True)
+class StudyRequest:
+    """One study, as ``carto tune`` asks for it: what to map, which options to vary (``space``), what to score
+    them by and where the trials are kept. Built once (by the CLI, or a library caller) and handed to
+    :func:`carto_cli.commands.tune.run_tune` / :func:`tune`.
+
+    ``recordings`` are paths (or Recording objects); ``relations`` / ``ground_truth`` one per recording (paths;
+    ground truths may also be (m, 4) t x y yaw arrays). ``space`` is a search-space file or dict (see
+    ``tuning.space``); None lets ``run_tune`` take the base profile's (gmapping's with ``algorithm`` gmapping).
+    ``storage`` defaults to ``sqlite:///<out dir>/<out stem>.optuna.db`` and ``study_name`` to the out stem, so
+    the same request resumes. Every trial maps with ``algorithm`` (``carto_cli.gmapping.ALGORITHMS``).
+
+    The values that can be judged without reading anything are checked here (CartoError), so a bad request
+    fails before any recording is opened.
+    """
+
+    recordings: Sequence
+    out: Path
+    _: KW_ONLY
+    space: Path | str | dict | None = None
+    trials: int = 20
+    objective: str = "auto"
+    relations: Sequence | None = None
+    ground_truth: Sequence | None = None
+    profile: str | Path | None = None
+    overrides: Sequence[str] | dict = ()
+    time_weight: float = 0.0
+    storage: str | None = None
+    study_name: str | None = None
+    n_jobs: int = 1
+    seed: int | None = None
+    max_scans: int | None = None
+    algorithm: str = "cartographer"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "out", Path(self.out))
+        if self.trials < 1:
+            raise CartoError(f"--trials must be at least 1, got {self.trials}")
+        if self.n_jobs < 1:
+            raise CartoError(f"--n-jobs must be at least 1, got {self.n_jobs}")
+        if self.time_weight < 0 or not math.isfinite(self.time_weight):
+            raise CartoError(f"--time-weight must be a non-negative number, got {self.time_weight}")
+        if self.max_scans is not None and self.max_scans < 1:
+            raise CartoError(f"--max-scans must be at least 1, got {self.max_scans}")
+        if self.algorithm not in ALGORITHMS:
+            raise CartoError(f"--algorithm: unknown algorithm '{self.algorithm}' "
+                             f"(choose from {', '.join(ALGORITHMS)})")
+
+
 def tune(
-    recordings: Sequence,
-    space: Path | str | dict,
+    request: StudyRequest,
     *,
-    trials: int,
-    out: Path,
-    objective: str = "auto",
-    relations: Sequence | None = None,
-    ground_truth: Sequence | None = None,
-    base_profile: str | Path | None = None,
-    overrides: Sequence[str] | dict = (),
-    time_weight: float = 0.0,
-    storage: str | None = None,
-    study_name: str | None = None,
-    n_jobs: int = 1,
-    seed: int | None = None,
-    max_scans: int | None = None,
     on_trial: Callable[[int, float | None, float | None], None] | None = None,
-    algorithm: str = "cartographer",
     force: bool = False,
 ) -> TuneResult:
-    """Run (or resume) a study of ``trials`` more trials and write the tuned profile ``out``,
-    ``<out stem>.trials.csv`` and ``<out stem>.report.png`` next to it. Every trial maps with
-    ``algorithm`` (``carto_cli.gmapping.ALGORITHMS``); a study keeps the algorithm it was started with.
+    """Run (or resume) the study ``request`` of ``request.trials`` more trials and write the tuned profile
+    ``request.out``, ``<out stem>.trials.csv`` and ``<out stem>.report.png`` next to it; a study keeps the
+    algorithm it was started with.
 
-    ``recordings`` are paths (or Recording objects); ``relations`` / ``ground_truth`` one per
-    recording (paths; ground truths may also be (m, 4) t x y yaw arrays). ``space`` is a
-    search-space file or dict (see ``tuning.space``). ``storage`` defaults to
-    ``sqlite:///<out dir>/<out stem>.optuna.db`` and ``study_name`` to the out stem, so the same
-    command resumes. ``on_trial(number, value or None, best value or None)`` is called after
-    every trial this process runs. Raises CartoError for bad inputs and when no trial completed. An
-    existing ``out`` is replaced when it belongs to the study being resumed, or with ``force``.
+    ``on_trial(number, value or None, best value or None)`` is called after every trial this process runs.
+    Raises CartoError for bad inputs and when no trial completed. An existing ``out`` is replaced when it belongs
+    to the study being resumed, or with ``force``.
     """
     import optuna
 
-    out = Path(out)
-    if trials < 1:
-        raise CartoError(f"--trials must be at least 1, got {trials}")
-    if n_jobs < 1:
-        raise CartoError(f"--n-jobs must be at least 1, got {n_jobs}")
-    if time_weight < 0 or not math.isfinite(time_weight):
-        raise CartoError(f"--time-weight must be a non-negative number, got {time_weight}")
-    if max_scans is not None and max_scans < 1:
-        raise CartoError(f"--max-scans must be at least 1, got {max_scans}")
-    if algorithm not in ALGORITHMS:
-        raise CartoError(f"--algorithm: unknown algorithm '{algorithm}' (choose from {', '.join(ALGORITHMS)})")
-    params = load_space(space)
+    if request.space is None:
+        raise ValueError("tune needs a search space (run_tune picks the base profile's)")
+    out, trials, n_jobs, algorithm = request.out, request.trials, request.n_jobs, request.algorithm
+    base_profile, overrides = request.profile, request.overrides
+    params = load_space(request.space)
     base = load_options(base_profile, []) if isinstance(overrides, dict) else load_options(base_profile, overrides)
     if isinstance(overrides, dict):
         base = apply_overrides(base, overrides)
-    cases = make_cases(recordings, relations, ground_truth)
-    objective = resolve_objective(objective, cases)
+    cases = make_cases(request.recordings, request.relations, request.ground_truth)
+    objective = resolve_objective(request.objective, cases)
     check_space(objective, [p.name for p in params], algorithm)
-    prepare(cases, objective, base, max_scans, algorithm)
-    if time_weight > 0:
+    prepare(cases, objective, base, request.max_scans, algorithm)
+    if request.time_weight > 0:
         # Kernels load (or compile) before the first trial, so its time is not the compiler's.
         kernels.warm_up()
 
-    storage = storage or _default_storage(out)
-    study_name = study_name or out.stem
+    storage = request.storage or _default_storage(out)
+    study_name = request.study_name or out.stem
     out.parent.mkdir(parents=True, exist_ok=True)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     if out.exists() and not force and not _has_trials(storage, study_name):
@@ -268,8 +291,8 @@ def tune(
         baseline = base_values(base, params)
         if baseline:
             study.enqueue_trial(baseline, user_attrs={"baseline": True})
-    job = _Job(storage, study_name, params, base, cases, objective, time_weight, max_scans, seed,
-               startup=max(3, min(10, trials // 2)), algorithm=algorithm)
+    job = _Job(storage, study_name, params, base, cases, objective, request.time_weight, request.max_scans,
+               request.seed, startup=max(3, min(10, trials // 2)), algorithm=algorithm)
 
     _STOP["requested"] = False
     _STOP["announce"] = True

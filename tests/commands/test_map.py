@@ -14,6 +14,7 @@ from carto_cli.io.map_file import load_map
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.io.trajectory import read_trajectory
 from carto_cli.pipeline import MapRequest
+from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
@@ -25,7 +26,7 @@ FAST = ["--set", "trajectory_builder_2d.submaps.num_range_data=20"]
 @pytest.fixture(scope="module")
 def sim_bag(tmp_path_factory):
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=20.0, beams=270, laser_pose=(0.15, 0.0, 0.0))
+    sim = simulate(world, loop_trajectory(world), duration=20.0, lidar=Lidar(beams=270), laser_pose=(0.15, 0.0, 0.0))
     rec = sim.recording()
     path = tmp_path_factory.mktemp("sim") / "sim.bag"
     write_recording(rec.records(), path, "ros1", static_transforms=rec.static_transforms(),

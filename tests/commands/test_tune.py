@@ -3,8 +3,8 @@ from pathlib import Path
 
 import pytest
 
-from carto_cli.commands.tune import run_tune, summary_line
-from carto_cli.sim import loop_building, loop_trajectory, simulate
+from carto_cli.commands.tune import StudyRequest, run_tune, summary_line
+from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 from carto_cli.tuning.study import TuneResult
 
 pytest.importorskip("optuna")
@@ -12,9 +12,9 @@ pytest.importorskip("optuna")
 
 def test_default_space_is_the_profiles(tmp_path):
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=8.0, scan_rate=5.0, beams=180)
-    result = run_tune([sim.recording()], tmp_path / "t.yaml", trials=1, ground_truth=[sim.ground_truth],
-                      profile="sparse", seed=0, max_scans=20)
+    sim = simulate(world, loop_trajectory(world), duration=8.0, scan_rate=5.0, lidar=Lidar(beams=180))
+    result = run_tune(StudyRequest([sim.recording()], tmp_path / "t.yaml", trials=1, ground_truth=[sim.ground_truth],
+                                   profile="sparse", seed=0, max_scans=20))
     assert result.n_trials == 1 and result.profile_path.is_file()
     from carto_cli.tuning.space import default_space_path, load_space
 
@@ -28,10 +28,10 @@ def test_gmapping_tunes_the_gmapping_space_unless_given_one(monkeypatch, tmp_pat
     from carto_cli.tuning.space import default_space_path, spaces_dir
 
     calls = []
-    monkeypatch.setattr(command, "tune", lambda recordings, space, **kw: calls.append((space, kw["algorithm"])))
-    run_tune(["r.bag"], tmp_path / "t.yaml", algorithm="gmapping")
-    run_tune(["r.bag"], tmp_path / "t.yaml", algorithm="gmapping", space=tmp_path / "mine.yaml")
-    run_tune(["r.bag"], tmp_path / "t.yaml", profile="sparse")
+    monkeypatch.setattr(command, "tune", lambda request, **kw: calls.append((request.space, request.algorithm)))
+    run_tune(StudyRequest(["r.bag"], tmp_path / "t.yaml", algorithm="gmapping"))
+    run_tune(StudyRequest(["r.bag"], tmp_path / "t.yaml", algorithm="gmapping", space=tmp_path / "mine.yaml"))
+    run_tune(StudyRequest(["r.bag"], tmp_path / "t.yaml", profile="sparse"))
     assert calls == [(spaces_dir() / "gmapping.yaml", "gmapping"), (tmp_path / "mine.yaml", "gmapping"),
                      (default_space_path("sparse"), "cartographer")]
 
@@ -49,7 +49,7 @@ def test_summary_line():
 @pytest.fixture(scope="module")
 def small_sim():
     world = loop_building()
-    return simulate(world, loop_trajectory(world), duration=4.0, scan_rate=5.0, beams=90)
+    return simulate(world, loop_trajectory(world), duration=4.0, scan_rate=5.0, lidar=Lidar(beams=90))
 
 
 def _interrupting(monkeypatch, signals_at: dict[int, list]):
@@ -78,8 +78,8 @@ def test_a_stop_signal_finishes_the_running_trial_and_writes_the_best_so_far(tmp
     sig = getattr(signal, sig_name)
     before = signal.getsignal(sig)
     calls = _interrupting(monkeypatch, {2: [sig]})
-    result = run_tune([small_sim.recording()], tmp_path / "t.yaml", trials=6, ground_truth=[small_sim.ground_truth],
-                      profile="sparse", seed=0)
+    result = run_tune(StudyRequest([small_sim.recording()], tmp_path / "t.yaml", trials=6,
+                                   ground_truth=[small_sim.ground_truth], profile="sparse", seed=0))
     assert result.interrupted and len(calls) == 2  # the trial under way finished; no third one started
     assert (result.n_trials, result.n_complete, result.n_failed) == (2, 2, 0)
     assert result.profile_path.is_file() and result.csv_path.is_file()
@@ -93,8 +93,8 @@ def test_a_second_ctrl_c_stops_the_trial_at_once_and_records_no_failure(tmp_path
     import optuna
 
     calls = _interrupting(monkeypatch, {2: [signal.SIGINT, signal.SIGINT]})
-    result = run_tune([small_sim.recording()], tmp_path / "t.yaml", trials=6, ground_truth=[small_sim.ground_truth],
-                      profile="sparse", seed=0)
+    result = run_tune(StudyRequest([small_sim.recording()], tmp_path / "t.yaml", trials=6,
+                                   ground_truth=[small_sim.ground_truth], profile="sparse", seed=0))
     assert result.interrupted and len(calls) == 2
     assert (result.n_complete, result.n_pruned, result.n_failed) == (1, 1, 0)
     study = optuna.load_study(study_name=result.study_name, storage=result.storage)
@@ -108,8 +108,8 @@ def test_stopped_before_any_trial_completed_writes_nothing(tmp_path, monkeypatch
 
     _interrupting(monkeypatch, {1: [signal.SIGINT, signal.SIGINT]})
     with pytest.raises(KeyboardInterrupt):
-        run_tune([small_sim.recording()], tmp_path / "t.yaml", trials=3, ground_truth=[small_sim.ground_truth],
-                 profile="sparse", seed=0)
+        run_tune(StudyRequest([small_sim.recording()], tmp_path / "t.yaml", trials=3,
+                              ground_truth=[small_sim.ground_truth], profile="sparse", seed=0))
     assert not (tmp_path / "t.yaml").exists() and not (tmp_path / "t.trials.csv").exists()
 
 
@@ -134,13 +134,14 @@ def test_an_existing_output_is_kept_unless_it_is_the_studys_own(tmp_path, monkey
     _interrupting(monkeypatch, {})
     out = tmp_path / "t.yaml"
     out.write_text("# someone's hand-made profile\n")
-    kwargs = dict(trials=2, ground_truth=[small_sim.ground_truth], profile="sparse", seed=0)
+    request = StudyRequest([small_sim.recording()], out, trials=2, ground_truth=[small_sim.ground_truth],
+                           profile="sparse", seed=0)
     with pytest.raises(CartoError, match="not the output of study 't'.*--force"):
-        run_tune([small_sim.recording()], out, **kwargs)
+        run_tune(request)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.yaml"]  # refused without touching anything
     assert out.read_text() == "# someone's hand-made profile\n"
-    first = run_tune([small_sim.recording()], out, force=True, **kwargs)
-    resumed = run_tune([small_sim.recording()], out, **kwargs)  # the same study: resuming rewrites its profile
+    first = run_tune(request, force=True)
+    resumed = run_tune(request)  # the same study: resuming rewrites its profile
     assert (first.n_trials, resumed.n_trials) == (2, 4)
 
 
@@ -188,8 +189,9 @@ def test_the_profile_csv_and_report_are_written_together(tmp_path, monkeypatch, 
 
     _interrupting(monkeypatch, {})
     out = tmp_path / "t.yaml"
-    kwargs = dict(trials=2, ground_truth=[small_sim.ground_truth], profile="sparse", seed=0)
-    run_tune([small_sim.recording()], out, **kwargs)
+    request = StudyRequest([small_sim.recording()], out, trials=2, ground_truth=[small_sim.ground_truth],
+                           profile="sparse", seed=0)
+    run_tune(request)
     names = ("t.yaml", "t.trials.csv", "t.report.png")
     before = {n: (tmp_path / n).read_bytes() for n in names}
 
@@ -200,6 +202,6 @@ def test_the_profile_csv_and_report_are_written_together(tmp_path, monkeypatch, 
     from carto_cli.core.errors import CartoError
 
     with pytest.raises(CartoError, match="No space left on device"):
-        run_tune([small_sim.recording()], out, **kwargs)  # the same study, resumed
+        run_tune(request)  # the same study, resumed
     assert {n: (tmp_path / n).read_bytes() for n in names} == before
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []

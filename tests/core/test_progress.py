@@ -100,12 +100,13 @@ def test_quiet_and_not_a_terminal(monkeypatch):
 @pytest.fixture(scope="module")
 def sim_400(tmp_path_factory):
     from carto_cli.io.recording_writers import write_recording
+    from carto_cli.sim.lidar import Lidar
     from carto_cli.sim.recording import simulate
     from carto_cli.sim.trajectory import loop_trajectory
     from carto_cli.sim.world import loop_building
 
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=40.0, beams=90, imu_rate=0, odom_rate=10)
+    sim = simulate(world, loop_trajectory(world), duration=40.0, lidar=Lidar(beams=90), imu_rate=0, odom_rate=10)
     assert sim.counts()["/scan"] == 400
     rec = sim.recording()
     path = tmp_path_factory.mktemp("progress") / "sim.bag"

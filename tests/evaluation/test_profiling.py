@@ -13,6 +13,7 @@ from carto_cli.evaluation.gates import accuracy_gates, calibration_scale, compar
 from carto_cli.evaluation.profiling import SCHEMA_PATH, build_report, calibrate
 from carto_cli.options import load_options
 from carto_cli.pipeline import build
+from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
@@ -21,7 +22,7 @@ from carto_cli.sim.world import loop_building
 @pytest.fixture(scope="module")
 def report():
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=15.0, beams=270)
+    sim = simulate(world, loop_trajectory(world), duration=15.0, lidar=Lidar(beams=270))
     options = load_options(None, ["trajectory_builder_2d.submaps.num_range_data=20"])
     timer = StageTimer()
     result = build(sim.recording(), options, timer=timer, jobs=1)  # one thread: every level sums to its parent
@@ -31,7 +32,7 @@ def report():
 
 def test_with_threads_the_graphs_thread_is_a_concurrent_branch_outside_the_sum():
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=15.0, beams=270)
+    sim = simulate(world, loop_trajectory(world), duration=15.0, lidar=Lidar(beams=270))
     options = load_options(None, ["trajectory_builder_2d.submaps.num_range_data=20"])
     timer = StageTimer()
     result = build(sim.recording(), options, timer=timer, jobs=2)

@@ -10,7 +10,7 @@ from carto_cli.evaluation.metrics import ate
 from carto_cli.gmapping.filter import GMappingSlam
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.options import load_options
-from carto_cli.sim import OdometryModel, loop_trajectory, room, simulate
+from carto_cli.sim import Lidar, OdometryModel, loop_trajectory, room, simulate
 
 # Small and quick: 5 cm cells, a scan processed every 25 cm or 0.4 rad, beams cut at 10 m (the room's
 # diagonal), so the loop below is about 70 processed scans.
@@ -24,8 +24,8 @@ def drive():
     base, 50 Hz odometry whose heading drifts 2 degrees per metre (on top of the default noise): by the
     end of the lap odometry's heading is off by some 40 degrees and its position by over 2 m."""
     world = room(8.0, 6.0)
-    sim = simulate(world, loop_trajectory(world), scan_rate=5.0, beams=180, seed=0, laser_pose=(0.15, 0.0, 0.0),
-                   odom_noise=OdometryModel(heading_bias=math.radians(2.0)))
+    sim = simulate(world, loop_trajectory(world), scan_rate=5.0, lidar=Lidar(beams=180), seed=0,
+                   laser_pose=(0.15, 0.0, 0.0), odom_noise=OdometryModel(heading_bias=math.radians(2.0)))
     return sim, list(sim.records(["/scan", "/odom"]))
 
 

@@ -10,7 +10,7 @@ from carto_cli.evaluation.metrics import ate
 from carto_cli.gmapping.front_end import ScanToMapSlam
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.options import load_options
-from carto_cli.sim import OdometryModel, loop_trajectory, room, simulate
+from carto_cli.sim import Lidar, OdometryModel, loop_trajectory, room, simulate
 
 FAST = ["gmapping.delta=0.05", "gmapping.maxUrange=10", "gmapping.maxRange=12", "gmapping.linearUpdate=0.25",
         "gmapping.angularUpdate=0.4"]
@@ -20,8 +20,8 @@ FAST = ["gmapping.delta=0.05", "gmapping.maxUrange=10", "gmapping.maxRange=12", 
 def drive():
     """tests/gmapping/test_filter.py's lap: odometry's heading drifts 2 degrees per metre, 2 m off by the end."""
     world = room(8.0, 6.0)
-    sim = simulate(world, loop_trajectory(world), scan_rate=5.0, beams=180, seed=0, laser_pose=(0.15, 0.0, 0.0),
-                   odom_noise=OdometryModel(heading_bias=math.radians(2.0)))
+    sim = simulate(world, loop_trajectory(world), scan_rate=5.0, lidar=Lidar(beams=180), seed=0,
+                   laser_pose=(0.15, 0.0, 0.0), odom_noise=OdometryModel(heading_bias=math.radians(2.0)))
     return sim, list(sim.records(["/scan", "/odom"]))
 
 

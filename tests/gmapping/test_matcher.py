@@ -45,10 +45,9 @@ def _map(particles, pose, points):
 
 
 def _climb(maps, points, starts, sweep=0.0):
-    ox, oy = maps.tile_origin
     starts = np.ascontiguousarray(starts, dtype=np.float64)
-    return matcher.climb(maps.table, maps.state, maps.mean, ox, oy, RES, points, MOUNT[0], MOUNT[1],
-                         starts, KERNEL, SIGMA, LSTEP, ASTEP, ITERATIONS, np.full(len(starts), sweep))
+    return matcher.climb(maps, RES, points, MOUNT[0], MOUNT[1], starts, np.full(len(starts), sweep),
+                         matcher.ClimbSettings(KERNEL, SIGMA, LSTEP, ASTEP, ITERATIONS))
 
 
 def _propose(maps, points, modes, means, sigmas, normals, lin=(0.01, 0.01), ang=(0.005, 0.005),
@@ -244,9 +243,8 @@ def test_an_endpoint_without_a_wall_costs_by_what_the_map_knows_there(room_map):
 def _beams_finding_a_wall(maps, points, pose):
     """How many of ``points`` seen from ``pose`` find a wall: with sigma 100 km each such beam scores
     exp(-d^2 / 2 sigma^2) = 1 to within 1e-12 and the others 0, and steps of 1e-12 leave the pose where it is."""
-    ox, oy = maps.tile_origin
-    _, score = matcher.climb(maps.table, maps.state, maps.mean, ox, oy, RES, points, MOUNT[0], MOUNT[1],
-                             np.ascontiguousarray(pose[None, :]), KERNEL, 1e5, 1e-12, 1e-12, 0, np.zeros(1))
+    _, score = matcher.climb(maps, RES, points, MOUNT[0], MOUNT[1], np.ascontiguousarray(pose[None, :]), np.zeros(1),
+                             matcher.ClimbSettings(KERNEL, 1e5, 1e-12, 1e-12, 0))
     return float(score[0])
 
 

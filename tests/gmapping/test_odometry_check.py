@@ -6,7 +6,7 @@ from carto_cli.core import transform
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.gmapping.odometry_check import MIN_STEP, odometry_error
 from carto_cli.options import Options
-from carto_cli.sim import OdometryModel, loop_trajectory, room, simulate
+from carto_cli.sim import Lidar, OdometryModel, loop_trajectory, room, simulate
 
 MODELS = {
     "perfect": OdometryModel.perfect(),
@@ -21,8 +21,8 @@ def drive(request):
     the base, and odometry of the given quality; with the true per-metre error of that odometry, as the check
     measures it (median over steps of at least MIN_STEP)."""
     world = room(8.0, 6.0)
-    sim = simulate(world, loop_trajectory(world), scan_rate=1.0, beams=180, seed=0, laser_pose=(0.15, 0.0, 0.0),
-                   odom_noise=MODELS[request.param])
+    sim = simulate(world, loop_trajectory(world), scan_rate=1.0, lidar=Lidar(beams=180), seed=0,
+                   laser_pose=(0.15, 0.0, 0.0), odom_noise=MODELS[request.param])
     records = list(sim.records(["/scan", "/odom"]))
     scans = [r for r in records if isinstance(r, Scan)]
     odometry = [r for r in records if isinstance(r, Odometry)]

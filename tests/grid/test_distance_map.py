@@ -92,11 +92,11 @@ def test_removing_every_obstacle_leaves_nothing_near():
 
 @pytest.mark.slow_without_jit
 def test_scan_insertion_keeps_field_exact_and_counts_decide_obstacles():
-    from carto_cli.sim import loop_building, loop_trajectory, simulate
+    from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=6.0, beams=360, fov=2 * math.pi, scan_rate=5.0,
-                   odom_rate=10.0, imu_rate=0.0, dropout=0.0)
+    sim = simulate(world, loop_trajectory(world), duration=6.0, lidar=Lidar(beams=360, fov=2 * math.pi, dropout=0.0),
+                   scan_rate=5.0, odom_rate=10.0, imu_rate=0.0)
     dm = DistanceMap(resolution=0.05, max_distance=0.5)
     angles = sim.lidar.angles()
     changes = []

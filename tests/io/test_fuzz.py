@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli.io.recording_writers import FORMATS, write_recording
-from carto_cli.sim import loop_building, loop_trajectory, simulate
+from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 
 PER_SEED = 100  # x 11 seeds
 MEMORY_LIMIT = 2 * 2**30
@@ -28,7 +28,7 @@ WORKER = Path(__file__).with_name("fuzz_worker.py")
 
 def _seeds(root: Path) -> list[dict]:
     world = loop_building()
-    sim = simulate(world, loop_trajectory(world), duration=3.0, scan_rate=5.0, beams=90)
+    sim = simulate(world, loop_trajectory(world), duration=3.0, scan_rate=5.0, lidar=Lidar(beams=90))
     rec = sim.recording()
     topics = {t.name: t.msgtype for t in rec.topics()}
     entries = []

@@ -28,7 +28,7 @@ from carto_cli.mapping.quality import (
 )
 from carto_cli.options import load_options
 from carto_cli.pipeline import build
-from carto_cli.sim import Limits, loop_trajectory, simulate
+from carto_cli.sim import Lidar, Limits, loop_trajectory, simulate
 from carto_cli.sim.world import World, box, merge
 from tests.support import draws
 
@@ -43,7 +43,8 @@ def mapped():
                   box(6.5, 6.0, 0.3, 1.2))
     world = World(walls, route=np.array([(1.2, 1.2), (8.8, 1.2), (8.8, 6.8), (1.2, 6.8)]), closed=True,
                   name="two-lap room")
-    simulation = simulate(world, loop_trajectory(world, laps=2, limits=Limits(v_max=1.0)), beams=180, seed=1)
+    simulation = simulate(world, loop_trajectory(world, laps=2, limits=Limits(v_max=1.0)), lidar=Lidar(beams=180),
+                          seed=1)
     with simulation.recording() as rec:
         result = build(rec, load_options("wheeled"))
         odometry = np.array([(r.time, r.x, r.y, r.yaw) for r in rec.records() if isinstance(r, Odometry)])
@@ -396,7 +397,7 @@ def _nodes_at(world, *, rate=4.0, beams=180, seed=0):
     from carto_cli.sim import follow_route
 
     trajectory = follow_route(world, laps=2 if world.closed else 1, limits=Limits(v_max=1.0))
-    sim = simulate(world, trajectory, scan_rate=rate, odom_rate=0.0, imu_rate=0.0, beams=beams, seed=seed)
+    sim = simulate(world, trajectory, scan_rate=rate, odom_rate=0.0, imu_rate=0.0, lidar=Lidar(beams=beams), seed=seed)
     truth = sim.trajectory.poses(sim.scan_times - sim.start_time)
     angles = sim.lidar.angles()
     points = []

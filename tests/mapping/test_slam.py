@@ -13,7 +13,7 @@ from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.slam import Slam
 from carto_cli.options import load_options
 from carto_cli.pipeline import build
-from carto_cli.sim import loop_building, loop_trajectory, simulate
+from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +21,7 @@ def simulation():
     # The graph's warm-up adds nodes: run it before a test replaces PoseGraph.add_node, whichever test runs first.
     kernels.warm_up(systems=("cartographer",))
     world = loop_building()
-    return simulate(world, loop_trajectory(world), duration=15.0, beams=270, laser_pose=(0.15, 0.0, 0.0))
+    return simulate(world, loop_trajectory(world), duration=15.0, lidar=Lidar(beams=270), laser_pose=(0.15, 0.0, 0.0))
 
 
 def test_fed_by_hand_it_maps_exactly_as_the_pipeline(simulation):

@@ -6,7 +6,7 @@ import pytest
 from carto_cli.core import transform
 from carto_cli.grid.distance_map import DistanceMap
 from carto_cli.matching.distance_matcher import evaluate, match, match_multires
-from carto_cli.sim import World, loop_building, loop_trajectory, simulate
+from carto_cli.sim import Lidar, World, loop_building, loop_trajectory, simulate
 
 RES = 0.05
 
@@ -20,8 +20,9 @@ def _scenario(shift: float):
     true poses, and the (pose, points) of later ones."""
     base = loop_building()
     world = World(base.segments + shift, route=base.route + shift, closed=base.closed, name=base.name)
-    sim = simulate(world, loop_trajectory(world), duration=20.0, beams=720, fov=2 * math.pi, scan_rate=2.0,
-                   odom_rate=10.0, imu_rate=0.0, noise=0.0, dropout=0.0)
+    sim = simulate(world, loop_trajectory(world), duration=20.0,
+                   lidar=Lidar(beams=720, fov=2 * math.pi, noise=0.0, dropout=0.0), scan_rate=2.0, odom_rate=10.0,
+                   imu_rate=0.0)
     angles = sim.lidar.angles()
     scans = []
     for pose, ranges in zip(sim.laser_poses(sim.scan_times), sim.scan_ranges()):

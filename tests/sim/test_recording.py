@@ -9,7 +9,16 @@ import pytest
 from carto_cli.core.errors import TopicError
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.io.recording import Recording
-from carto_cli.sim import ImuModel, OdometryModel, SimulatedRecording, loop_building, loop_trajectory, room, simulate
+from carto_cli.sim import (
+    ImuModel,
+    Lidar,
+    OdometryModel,
+    SimulatedRecording,
+    loop_building,
+    loop_trajectory,
+    room,
+    simulate,
+)
 from carto_cli.sim.odometry import relative_motion
 from carto_cli.sim.recording import compose
 from carto_cli.sim.trajectory import Trajectory, wrap_angle
@@ -90,7 +99,7 @@ def test_reading_again_or_in_part_gives_the_same_data(short):
 def test_ground_truth_is_exact(building, lap):
     # Scan points placed with the ground truth and the laser mount land on the walls.
     mount = (0.15, -0.05, 0.1)
-    sim = simulate(building, lap, duration=60.0, noise=0.0, dropout=0.0, laser_pose=mount, seed=2)
+    sim = simulate(building, lap, duration=60.0, lidar=Lidar(noise=0.0, dropout=0.0), laser_pose=mount, seed=2)
     gt = sim.ground_truth
     assert gt.shape == (600, 4)
     np.testing.assert_allclose(gt[:, 0], [s.time for s in sim.records(["/scan"])])
@@ -173,7 +182,7 @@ def test_a_few_thousand_scans(building):
 def test_room_and_a_full_circle_laser():
     w = room(6, 4)
     tr = Trajectory.follow([(1, 1), (5, 1), (5, 3)])
-    sim = simulate(w, tr, fov=2 * math.pi, beams=720, max_range=10.0, dropout=0.0, noise=0.0)
+    sim = simulate(w, tr, lidar=Lidar(fov=2 * math.pi, beams=720, max_range=10.0, dropout=0.0, noise=0.0))
     scan = next(sim.records(["/scan"]))
     assert scan.num_beams == 720 and np.isfinite(scan.ranges).all()
     assert scan.ranges.min() == pytest.approx(1.0, abs=1e-4)  # 1 m from two walls at the start

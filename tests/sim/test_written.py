@@ -4,6 +4,7 @@ import pytest
 from carto_cli.core.records import Imu, Scan
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.io.sources.open import open_recording
+from carto_cli.sim import Lidar
 from carto_cli.sim import recording as simrec
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
@@ -20,7 +21,8 @@ def same(a, b):
                                       ("ros2-mcap", "sim_mcap"), ("mcap", "sim.mcap")])
 def test_simulation_round_trips_through_every_writer(tmp_path, fmt, name):
     world = loop_building()
-    sim = simrec.simulate(world, loop_trajectory(world), duration=3.0, beams=120, laser_pose=(0.1, 0.0, 0.0))
+    sim = simrec.simulate(world, loop_trajectory(world), duration=3.0, lidar=Lidar(beams=120),
+                          laser_pose=(0.1, 0.0, 0.0))
     rec = sim.recording()
     out = tmp_path / name
     n = write_recording(rec.records(), out, fmt, static_transforms=rec.static_transforms(),

@@ -1,13 +1,13 @@
 """What the tuning tests share: a simulated drive, and option values that map it poorly."""
 import pytest
 
-from carto_cli.sim import loop_building, loop_trajectory, simulate
+from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 
 
 @pytest.fixture(scope="package")
 def sim():
     world = loop_building()
-    return simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, beams=180)
+    return simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, lidar=Lidar(beams=180))
 
 
 @pytest.fixture(scope="session")

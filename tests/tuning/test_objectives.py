@@ -6,7 +6,7 @@ from carto_cli.core.errors import CartoError
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.options import apply_overrides, load_options
 from carto_cli.pipeline import build
-from carto_cli.sim import loop_building, loop_trajectory, simulate
+from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
 from carto_cli.tuning.objectives import (
     check_space,
     evaluate_options,
@@ -77,7 +77,7 @@ def test_relocalization_objective():
     # The held-out last 30 % must revisit mapped places: most of two laps, scans at 2 Hz.
     world = loop_building()
     traj = loop_trajectory(world, laps=2)
-    sim = simulate(world, traj, duration=0.7 * traj.duration, scan_rate=2.0, beams=180)
+    sim = simulate(world, traj, duration=0.7 * traj.duration, scan_rate=2.0, lidar=Lidar(beams=180))
     from carto_cli.tuning.objectives import prepare
 
     cases = make_cases([sim.recording()], ground_truth=[sim.ground_truth])

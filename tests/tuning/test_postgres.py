@@ -16,18 +16,20 @@ from carto_cli.core.errors import CartoError
 SCRIPT = """
 import sys
 from pathlib import Path
+from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
-from carto_cli.tuning.study import tune
+from carto_cli.tuning.study import StudyRequest, tune
 
 world = loop_building()
-sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, beams=180)
+sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, lidar=Lidar(beams=180))
 space = {"trajectory_builder_2d.ceres_scan_matcher.translation_weight": {"low": 0.1, "high": 1.0e4, "log": True}}
 seen = []
-result = tune([sim.recording()], space, trials=int(sys.argv[3]), n_jobs=int(sys.argv[4]), ground_truth=[sim.ground_truth],
-              seed=0, max_scans=40, out=Path(sys.argv[1]), storage=sys.argv[2], study_name="shared",
-              on_trial=lambda n, v, b: seen.append(n))
+request = StudyRequest([sim.recording()], Path(sys.argv[1]), space=space, trials=int(sys.argv[3]),
+                       n_jobs=int(sys.argv[4]), ground_truth=[sim.ground_truth], seed=0, max_scans=40,
+                       storage=sys.argv[2], study_name="shared")
+result = tune(request, on_trial=lambda n, v, b: seen.append(n))
 print(result.n_trials, result.n_complete, len(seen))
 """
 
@@ -76,12 +78,13 @@ def test_workers_share_a_postgres_study_and_a_third_process_resumes_it(postgres,
 def test_a_missing_database_driver_is_named(sim, tmp_path, monkeypatch):
     import optuna
 
-    from carto_cli.tuning.study import tune
+    from carto_cli.tuning.study import StudyRequest, tune
 
     def no_driver(*args, **kwargs):
         raise ModuleNotFoundError("No module named 'psycopg'", name="psycopg")
 
     monkeypatch.setattr(optuna, "create_study", no_driver)
     with pytest.raises(CartoError, match=r"the database driver 'psycopg' is not installed .*carto-slam\[postgres\]"):
-        tune([sim.recording()], {"pose_graph.constraint_builder.min_score": {"low": 0.5, "high": 0.7}}, trials=1,
-             out=tmp_path / "x.yaml", storage="postgresql://u@/db?host=/nowhere")
+        tune(StudyRequest([sim.recording()], tmp_path / "x.yaml",
+                          space={"pose_graph.constraint_builder.min_score": {"low": 0.5, "high": 0.7}}, trials=1,
+                          storage="postgresql://u@/db?host=/nowhere"))

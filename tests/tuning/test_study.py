@@ -10,7 +10,7 @@ import pytest
 from carto_cli.core.errors import CartoError
 from carto_cli.options import apply_overrides, load_options
 from carto_cli.tuning.objectives import evaluate_options, make_cases
-from carto_cli.tuning.study import tune
+from carto_cli.tuning.study import StudyRequest, tune
 
 optuna = pytest.importorskip("optuna")
 
@@ -26,8 +26,9 @@ SPACE = {
 def poor_study(sim, tmp_path_factory, poor):
     out = tmp_path_factory.mktemp("tune") / "tuned.yaml"
     seen = []
-    result = tune([sim.recording()], SPACE, trials=6, ground_truth=[sim.ground_truth], overrides=poor, seed=1,
-                  out=out, on_trial=lambda n, v, b: seen.append((n, v, b)))
+    request = StudyRequest([sim.recording()], out, space=SPACE, trials=6, ground_truth=[sim.ground_truth],
+                           overrides=poor, seed=1)
+    result = tune(request, on_trial=lambda n, v, b: seen.append((n, v, b)))
     return result, seen
 
 
@@ -70,11 +71,12 @@ def test_csv_and_report(poor_study):
 
 def test_rerunning_resumes_the_study(sim, tmp_path, poor):
     out = tmp_path / "resume.yaml"
-    kwargs = dict(objective="map-quality", overrides=poor, seed=3, out=out, max_scans=60)
-    first = tune([sim.recording()], SPACE, trials=3, **kwargs)
+    request = StudyRequest([sim.recording()], out, space=SPACE, trials=3, objective="map-quality", overrides=poor,
+                           seed=3, max_scans=60)
+    first = tune(request)
     assert first.n_trials == 3
     assert (tmp_path / "resume.optuna.db").is_file()
-    second = tune([sim.recording()], SPACE, trials=3, **kwargs)
+    second = tune(request)
     assert second.n_trials == 6
     assert second.best_value <= first.best_value
     with open(second.csv_path, newline="") as f:
@@ -85,8 +87,8 @@ def test_failing_trials_are_recorded_not_raised(sim, tmp_path):
     # min_range above max_range for some draws: the options check rejects them inside the trial.
     space = {"trajectory_builder_2d.min_range": {"low": 0.0, "high": 60.0},
              "trajectory_builder_2d.max_range": {"low": 20.0, "high": 30.0}}
-    result = tune([sim.recording()], space, trials=4, objective="map-quality", seed=0, out=tmp_path / "f.yaml",
-                  max_scans=30)
+    result = tune(StudyRequest([sim.recording()], tmp_path / "f.yaml", space=space, trials=4, objective="map-quality",
+                               seed=0, max_scans=30))
     assert result.n_trials == 4
     assert result.n_failed + result.n_complete == 4
     assert result.n_failed >= 1
@@ -95,30 +97,32 @@ def test_failing_trials_are_recorded_not_raised(sim, tmp_path):
 def test_tune_rejects_bad_inputs(sim, tmp_path):
     rec = sim.recording()
     with pytest.raises(CartoError, match="no such search-space file"):
-        tune([rec], tmp_path / "missing.yaml", trials=1, out=tmp_path / "x.yaml")
+        tune(StudyRequest([rec], tmp_path / "x.yaml", space=tmp_path / "missing.yaml", trials=1))
     with pytest.raises(CartoError, match="one --relations file per recording"):
-        tune([rec, rec], SPACE, trials=1, relations=[tmp_path / "r.txt"], out=tmp_path / "x.yaml")
+        tune(StudyRequest([rec, rec], tmp_path / "x.yaml", space=SPACE, trials=1, relations=[tmp_path / "r.txt"]))
     with pytest.raises(CartoError, match="unknown objective"):
-        tune([rec], SPACE, trials=1, objective="speed", out=tmp_path / "x.yaml")
+        tune(StudyRequest([rec], tmp_path / "x.yaml", space=SPACE, trials=1, objective="speed"))
     grid_space = {"trajectory_builder_2d.submaps.grid_options_2d.resolution": {"low": 0.03, "high": 0.1}}
     with pytest.raises(CartoError, match="map-quality"):
-        tune([rec], grid_space, trials=1, out=tmp_path / "x.yaml")
+        tune(StudyRequest([rec], tmp_path / "x.yaml", space=grid_space, trials=1))
 
 
 PARALLEL_SCRIPT = """
 import sys
 from pathlib import Path
+from carto_cli.sim.lidar import Lidar
 from carto_cli.sim.recording import simulate
 from carto_cli.sim.trajectory import loop_trajectory
 from carto_cli.sim.world import loop_building
-from carto_cli.tuning.study import tune
+from carto_cli.tuning.study import StudyRequest, tune
 
 world = loop_building()
-sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, beams=180)
+sim = simulate(world, loop_trajectory(world), duration=20.0, scan_rate=5.0, lidar=Lidar(beams=180))
 space = {"trajectory_builder_2d.ceres_scan_matcher.translation_weight": {"low": 0.1, "high": 1.0e4, "log": True}}
 seen = []
-result = tune([sim.recording()], space, trials=4, n_jobs=2, ground_truth=[sim.ground_truth], seed=0,
-              max_scans=40, out=Path(sys.argv[1]), on_trial=lambda n, v, b: seen.append(n))
+request = StudyRequest([sim.recording()], Path(sys.argv[1]), space=space, trials=4, n_jobs=2,
+                       ground_truth=[sim.ground_truth], seed=0, max_scans=40)
+result = tune(request, on_trial=lambda n, v, b: seen.append(n))
 print(result.n_trials, result.n_complete, len(seen))
 """
 
@@ -136,15 +140,16 @@ def test_a_gmapping_study_maps_every_trial_with_gmapping_and_keeps_to_it(sim, tm
     monkeypatch.setattr(carto_cli.pipeline, "build", spy)
     space = {"gmapping.srr": {"low": 0.01, "high": 0.4, "log": True}, "gmapping.sigma": {"low": 0.02, "high": 0.1}}
     out = tmp_path / "gm.yaml"
-    result = tune([sim.recording()], space, trials=2, objective="map-quality", overrides=["gmapping.particles=5"],
-                  seed=0, out=out, max_scans=30, algorithm="gmapping")
+    result = tune(StudyRequest([sim.recording()], out, space=space, trials=2, objective="map-quality",
+                               overrides=["gmapping.particles=5"], seed=0, max_scans=30, algorithm="gmapping"))
     assert result.n_complete == 2 and seen == ["gmapping", "gmapping"]
     assert "# algorithm: gmapping (map with --algorithm gmapping --profile gm.yaml)" in out.read_text()
     carto_space = {"pose_graph.constraint_builder.min_score": {"low": 0.5, "high": 0.7}}
     with pytest.raises(CartoError, match="maps with gmapping, not cartographer"):
-        tune([sim.recording()], carto_space, trials=1, objective="map-quality", out=out, max_scans=30)
+        tune(StudyRequest([sim.recording()], out, space=carto_space, trials=1, objective="map-quality",
+                          max_scans=30))
     with pytest.raises(CartoError, match="unknown algorithm 'ekf'"):
-        tune([sim.recording()], carto_space, trials=1, out=tmp_path / "x.yaml", algorithm="ekf")
+        StudyRequest([sim.recording()], tmp_path / "x.yaml", space=carto_space, trials=1, algorithm="ekf")
     assert seen == ["gmapping", "gmapping"]
 
 
