@@ -147,11 +147,6 @@ class ProbabilityGrid:
     def is_packed(self) -> bool:
         return self._packed is not None
 
-    @property
-    def packed_bytes(self) -> int:
-        """Bytes the cells take at rest (packed or not)."""
-        return len(self._packed[0]) if self._packed is not None else int(self.cells.nbytes)
-
     def __init__(self, resolution: float = 0.05, origin: ArrayLike = (0.0, 0.0),
                  num_cells: Sequence[int] = (100, 100)) -> None:
         nx, ny = int(num_cells[0]), int(num_cells[1])
@@ -267,12 +262,6 @@ class ProbabilityGrid:
         self.known_box[:2] = np.minimum(self.known_box[:2], c.min(axis=0))
         self.known_box[2:] = np.maximum(self.known_box[2:], c.max(axis=0))
         self.version += 1
-
-    def to_probability_image(self) -> np.ndarray:
-        """float32 (ny, nx) probabilities, NaN where unknown; row 0 is the lowest y."""
-        img = VALUE_TO_PROBABILITY[self.cells].astype(np.float32)
-        img[self.cells == UNKNOWN_VALUE] = np.nan
-        return img
 
     def copy(self) -> ProbabilityGrid:
         g = ProbabilityGrid.__new__(ProbabilityGrid)

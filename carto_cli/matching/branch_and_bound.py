@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -521,12 +522,26 @@ def exhaustive_match(stack: PrecomputationGridStack, points: ArrayLike, initial_
     return _result(problem, stack, found, a, x, y, s, n)
 
 
-def peaks(stack: PrecomputationGridStack, points: ArrayLike, initial_pose_estimate: Pose, *,
-          linear_search_window: float, angular_search_window: float, min_score: float,
-          levels: Sequence[tuple[float, int]], count: int, distinct_xy: float, distinct_yaw: float,
-          exclude: Sequence[np.ndarray] = (), tries: int | None = None, coarse_min_score: float | None = None,
-          jobs: int | None = 1) -> list[MatchResult]:
-    """Up to ``count`` best poses of the window at *different places* (pairwise farther apart than
+@dataclass(frozen=True, slots=True)
+class PeakSearch:
+    """What :func:`peaks` looks for: the window (m, rad) around the estimate, the lowest score kept, the (window
+    scale, level) stages, how many places, how far apart two places are, and at most ``tries`` coarse leaves
+    (None: count + 2) scoring at least ``coarse_min_score`` (None: ``min_score``)."""
+
+    linear_search_window: float
+    angular_search_window: float
+    min_score: float
+    levels: Sequence[tuple[float, int]]
+    count: int
+    distinct_xy: float
+    distinct_yaw: float
+    tries: int | None = None
+    coarse_min_score: float | None = None
+
+
+def peaks(stack: PrecomputationGridStack, points: ArrayLike, initial_pose_estimate: Pose, *, search: PeakSearch,
+          exclude: Sequence[np.ndarray] = (), jobs: int | None = 1) -> list[MatchResult]:
+    """Up to ``search.count`` best poses of the window at *different places* (pairwise farther apart than
     ``distinct_xy`` or ``distinct_yaw``, and from every pose of ``exclude``), best first; none below ``min_score``.
 
     :func:`match_multilevel` bets on the best leaf of its first, coarse stage. Here that stage is repeated with
@@ -537,7 +552,10 @@ def peaks(stack: PrecomputationGridStack, points: ArrayLike, initial_pose_estima
     so keeps its second place (the answer's rival, and the right answer when the best coarse block was not).
     ``jobs``: threads for each coarse stage (None: every core), the same answer for any number.
     """
-    levels = [(float(sc), int(lv)) for sc, lv in levels]
+    linear_search_window, angular_search_window = search.linear_search_window, search.angular_search_window
+    min_score, count, tries, coarse_min_score = search.min_score, search.count, search.tries, search.coarse_min_score
+    distinct_xy, distinct_yaw = search.distinct_xy, search.distinct_yaw
+    levels = [(float(sc), int(lv)) for sc, lv in search.levels]
     if not levels or levels[-1][1] != 0:
         raise ValueError("the last level must be 0 (full resolution)")
     pts = _points(points)
@@ -697,5 +715,5 @@ def warm_up() -> None:
     match(stack, points, estimate, linear_search_window=0.2, angular_search_window=0.1)
     match_multilevel(stack, points, estimate, linear_search_window=0.2, angular_search_window=0.1)
     match_full_submap(stack, points)
-    peaks(stack, points, estimate, linear_search_window=0.5, angular_search_window=0.2, min_score=0.1,
-          levels=((1.0, 2), (0.0, 0)), count=2, distinct_xy=0.2, distinct_yaw=0.1)
+    peaks(stack, points, estimate, search=PeakSearch(0.5, 0.2, 0.1, ((1.0, 2), (0.0, 0)), count=2, distinct_xy=0.2,
+                                                     distinct_yaw=0.1))

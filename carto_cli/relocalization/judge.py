@@ -204,9 +204,10 @@ class Judge:
             stack = self.cache.get(cand.submap, self.index.grids[cand.submap])
             grid_pose = transform.compose(self.index.map_to_grid[cand.submap], pose)
             ps = branch_and_bound.peaks(
-                stack, q.search_pts, cand.estimate, linear_search_window=cand.lin, angular_search_window=cand.ang,
-                min_score=max(q.search_floor * 0.8, 0.1), levels=cand.levels, count=1, distinct_xy=DISTINCT_XY,
-                distinct_yaw=DISTINCT_YAW, exclude=[grid_pose, cand.grid_pose], jobs=q.jobs)
+                stack, q.search_pts, cand.estimate,
+                search=branch_and_bound.PeakSearch(cand.lin, cand.ang, max(q.search_floor * 0.8, 0.1), cand.levels,
+                                                   count=1, distinct_xy=DISTINCT_XY, distinct_yaw=DISTINCT_YAW),
+                exclude=[grid_pose, cand.grid_pose], jobs=q.jobs)
             r = ps[0] if ps else None
         if r is not None and cand.score > 0 and r.score / cand.score > best[0]:
             p = transform.compose(self.index.grid_to_map[cand.submap], r.pose)

@@ -117,10 +117,9 @@ class Searches:
                 # coarse leaf (match_multilevel), which missed right answers scoring 0.8 on bench-dense's images;
                 # the second place found is the answer's rival.
                 levels = global_levels(stack.depth)
-                ps = branch_and_bound.peaks(stack, points, estimate, linear_search_window=lin,
-                                            angular_search_window=math.pi, min_score=min_score, levels=levels,
-                                            count=2, distinct_xy=DISTINCT_XY, distinct_yaw=DISTINCT_YAW,
-                                            tries=tries, coarse_min_score=min_score, jobs=jobs)
+                ps = branch_and_bound.peaks(stack, points, estimate, search=branch_and_bound.PeakSearch(
+                    lin, math.pi, min_score, levels, count=2, distinct_xy=DISTINCT_XY, distinct_yaw=DISTINCT_YAW,
+                    tries=tries, coarse_min_score=min_score), jobs=jobs)
                 tm.add("pose search", t)
                 if ps and ps[0].score > floor:
                     found.append(Candidate(i, ps[0].pose, ps[0].score, estimate, lin, math.pi, levels,

@@ -211,18 +211,17 @@ def test_peaks_answers_the_same_on_any_number_of_threads(building, monkeypatch):
     for trial in range(25):
         stack, pts, initial, kw = random_problem(rng, ties=trial % 2 == 0)
         kw["angular_search_window"] = float(rng.uniform(0.3, math.pi))
-        cases.append((stack, pts, initial, kw, [(1.0, min(2, stack.depth - 1)), (0.0, 0)]))
+        window = (kw["linear_search_window"], kw["angular_search_window"], kw["min_score"])
+        cases.append((stack, pts, initial, window, [(1.0, min(2, stack.depth - 1)), (0.0, 0)]))
     world, grid, stack = building
     for k, truth in enumerate(TRUTHS):
         pts = scan(world, truth, np.random.default_rng(20 + k))
         centre = bnb.full_submap_center(stack)
         nx, ny = stack.num_cells
-        cases.append((stack, pts, centre, dict(linear_search_window=(nx + ny) * grid.resolution,
-                                               angular_search_window=math.pi, min_score=0.4),
-                      [(1.0, 3), (0.0, 0)]))
-    for stack, pts, initial, kw, levels in cases:
-        answers = [bnb.peaks(stack, pts, initial, levels=levels, count=2, distinct_xy=0.3, distinct_yaw=0.3,
-                             tries=4, jobs=jobs, **kw) for jobs in (1, 2, 3)]
+        cases.append((stack, pts, centre, ((nx + ny) * grid.resolution, math.pi, 0.4), [(1.0, 3), (0.0, 0)]))
+    for stack, pts, initial, window, levels in cases:
+        search = bnb.PeakSearch(*window, levels=levels, count=2, distinct_xy=0.3, distinct_yaw=0.3, tries=4)
+        answers = [bnb.peaks(stack, pts, initial, search=search, jobs=jobs) for jobs in (1, 2, 3)]
         for other in answers[1:]:
             assert len(other) == len(answers[0])
             for a, b in zip(answers[0], other):
