@@ -315,13 +315,14 @@ def requirement(run: Run, m: dict) -> str | None:
 
 def grid_values(run: Run, m: dict, cache: Path, regrid: bool) -> dict:
     """see_through (the larger of refined and unrefined) per ``GRID`` pair, and the worst level of the other
-    checks; cached per run and version of quality.py."""
+    checks; cached per run and version of quality.py and see_through.py."""
     import hashlib
     import json
 
-    from carto_cli.mapping import quality
+    from carto_cli.mapping import quality, see_through
 
-    version = hashlib.sha256(Path(quality.__file__).read_bytes()).hexdigest()[:12]
+    code = b"".join(Path(m.__file__).read_bytes() for m in (quality, see_through))
+    version = hashlib.sha256(code).hexdigest()[:12]
     path = cache / f"grid-{_slug(run.name)}-{version}.json"
     if path.exists() and not regrid:
         return json.loads(path.read_text())
@@ -332,7 +333,7 @@ def grid_values(run: Run, m: dict, cache: Path, regrid: bool) -> dict:
         for poses in (None, res.unrefined_node_poses):
             if poses is None and worst:
                 continue
-            _, f = quality.node_see_through(res.graph, res.laser_pose, poses=poses, solid_share=share, radius=radius)
+            _, f = see_through.node_see_through(res.graph, res.laser_pose, poses=poses, solid_share=share, radius=radius)
             f = f[np.isfinite(f)]
             worst = max(worst, 100.0 * float(np.mean(f > quality.NODE_SHARE)) if f.size else 0.0)
         values[f"{share}/{radius}"] = worst

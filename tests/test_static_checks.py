@@ -26,7 +26,7 @@ KERNEL_TESTS = [["tests/matching", "tests/mapping/test_optimization.py", "tests/
                 ["tests/sensor", "tests/grid", "tests/mapping/test_quality.py", "tests/gmapping/test_maps.py",
                  "tests/gmapping/test_matcher.py", "tests/gmapping/test_motion.py", "tests/gmapping/test_resampling.py"]]
 KERNEL_PACKAGES = ["carto_cli.sensor", "carto_cli.grid", "carto_cli.matching", "carto_cli.mapping.optimization",
-                   "carto_cli.mapping.quality", "carto_cli.gmapping.maps", "carto_cli.gmapping.matcher",
+                   "carto_cli.mapping.see_through", "carto_cli.gmapping.maps", "carto_cli.gmapping.matcher",
                    "carto_cli.gmapping.motion", "carto_cli.gmapping.resampling", "carto_cli.io.sources.decimals"]
 
 

@@ -9,7 +9,7 @@ segment; the lidar lets the rays it does not return pass on): glass, returning s
 meet it near its normal; a hedge, a bush or a parked car's body, returning some rays and, being lower
 than a scan plane tilted a little up, none from afar. ``glass_office`` and ``courtyard`` are built of
 such things on purpose, with walls one line thick seen from both sides and doors, for judging a map's
-walls (``mapping/quality.py``); the other builders have opaque walls only (``materials`` None), and their
+walls (``mapping/see_through.py``); the other builders have opaque walls only (``materials`` None), and their
 recordings are what they always were.
 """
 from __future__ import annotations

@@ -16,16 +16,12 @@ from carto_cli.mapping.quality import (
     SEE_THROUGH_FAILED,
     MapQuality,
     QualityCheck,
-    ReturnIndex,
     assess,
-    node_see_through,
-    node_travel,
     odometry_check,
     odometry_disagreement,
-    rays_through_walls,
     see_through_check,
-    wall_solidity,
 )
+from carto_cli.mapping.see_through import ReturnIndex, node_see_through, node_travel, rays_through_walls, wall_solidity
 from carto_cli.options import load_options
 from carto_cli.pipeline import build
 from carto_cli.sim import Lidar, Limits, loop_trajectory, simulate

@@ -21,15 +21,9 @@ write the same laser as both ROBOTLASER1 and RAWLASER1, and converted logs
 often carry FLASER and ROBOTLASER1 side by side: taking all would duplicate
 every scan.
 
-Beam angles follow CARMEN's own reader (``carmen_laser_guess_fov`` and
-``carmen_laser_guess_angle_increment`` in ``readlog.c``): FLASER / RLASER
-start at -pi/2 with an increment of 1 deg for 180 or 181 beams, 0.5 deg for
-360 or 361, 0.25 deg for 400 or 401, and pi / (n - 1) otherwise. So 181 and
-361 beams span exactly 180 deg, while 180 and 360 beams stop one increment
-short of +pi/2 (CARMEN drops the last beam, it does not stretch the others).
-ROBOTLASER / RAWLASER state their start angle and increment. The rear laser
-gets the same angles in its own frame (``laser_rear``), which the static
-transform turns by pi.
+Beam angles: CARMEN's own reader's (``carmen_lines``). The rear laser gets the
+same angles in its own frame (``laser_rear``), which the static transform
+turns by pi.
 
 Odometry inside laser lines: FLASER / RLASER carry the odometry pose of the
 robot when the scan was taken and ROBOTLASER the robot pose plus tv / rv.
@@ -55,10 +49,9 @@ older than a record already delivered is dropped and counted in
 ``CarmenRecording.dropped`` (the Radish corrected logs hold one such ODOM per
 scan, stamped 0). ``topics()`` counts what ``records()`` delivers.
 
-Strictness: every line read is checked field by field (counts derived from
-the beam / remission counts, numeric fields, finite timestamp) and a failure
-is a ``FormatError`` naming the file and line: bad content is an error wherever
-it is. A file cut short is not bad content: as a bag or an MCAP file cut short,
+Strictness: every line read is checked field by field (``carmen_lines``): bad
+content is a ``FormatError`` naming the file and line wherever it is. A file
+cut short is not bad content: as a bag or an MCAP file cut short,
 it is read up to the cut with one warning in ``Recording.warnings`` (the
 messages recovered). The cut is where the file ends: a last line without its
 end of line that does not parse (a cut anywhere loses at least one field,
@@ -85,10 +78,19 @@ from carto_cli.core.errors import CartoError, FormatError, TopicError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, yaw_quaternion
 from carto_cli.core.transform import wrap_angle_scalar
 from carto_cli.io.recording import SCAN_TIME_ODOMETRY, ReadOptions, Recording, TopicInfo
+from carto_cli.io.sources.carmen_lines import (
+    TRAILER,
+    LineError,
+    LogLines,
+    OdomLine,
+    diagnose,
+    first_token,
+    is_gzip,
+    line_time,
+    parse_line,
+)
 from carto_cli.io.sources.decimals import decimals
 
-GZIP_MAGIC = b"\x1f\x8b"
-FLASER_MAX_RANGE = 80.0  # what CARMEN's reader assumes for FLASER / RLASER
 REORDER_WINDOW = 2.0  # s; the Radish logs step back by up to ~0.9 s
 POSE_PROBE = 20  # laser lines inspected for the mount transform
 MOUNT_TOLERANCE = 0.01  # m and rad; the Radish logs print poses with 6 digits
@@ -119,79 +121,6 @@ KNOWN_OTHER = frozenset({
     "VECTORMOVE", "ROBOTVELOCITY", "FOLLOWTRAJECTORY", "BASEVELOCITY", "LASER1", "LASER2", "LASER3", "LASER4",
     "REMISSIONLASER1", "REMISSIONLASER2",
 })
-
-# Trailing tokens after the numeric payload: timestamp host logger_timestamp.
-_TRAILER = 3
-
-
-# ---------------------------------------------------------------- reading lines
-
-def _is_gzip(path: Path) -> bool:
-    with open(path, "rb") as f:
-        return f.read(2) == GZIP_MAGIC
-
-
-class _Lines:
-    """(line number, text) of every line, decompressing on the fly; ``truncated`` once they are over if a gzip
-    stream ended before its end marker (the lines before the cut are whole: only the partial one is lost).
-
-    latin-1 decodes any byte, so a stray host name never stops the reader;
-    only the numeric fields matter and they are ASCII.
-    """
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.truncated = False
-        self.count = 0
-
-    def __iter__(self) -> Iterator[tuple[int, str]]:
-        path = self.path
-        gz = _is_gzip(path)
-        f = gzip.open(path, "rt", encoding="latin-1") if gz else open(path, encoding="latin-1")
-        lineno = 0
-        try:
-            with f:
-                for lineno, line in enumerate(f, 1):
-                    yield lineno, line
-        except EOFError:
-            # A copy or a logger cut short, as a plain file ending mid-line: the survey warns, nothing is wrong
-            # with what came before.
-            self.truncated = True
-        except (zlib.error, gzip.BadGzipFile) as e:
-            raise FormatError(f"compressed data corrupt after line {lineno} ({e})", path) from None
-        except OSError as e:
-            raise FormatError(f"cannot read after line {lineno} ({e})", path) from None
-        self.count = lineno
-
-
-def _first_token(line: str) -> str:
-    parts = line.split(None, 1)
-    return parts[0] if parts else ""
-
-
-def _cut_mid_message(kind: str, line: str) -> bool:
-    """Whether the file's last line, which has no end of line, is a message the file ends inside: one carto reads
-    that does not parse, or a cut-off name of one. (A cut inside the final logger timestamp loses nothing carto
-    reads and parses.)"""
-    if kind in SUPPORTED:
-        try:
-            _parse(kind, line)
-        except _LineError:
-            return True
-        return False
-    return bool(kind) and any(name.startswith(kind) for name in SUPPORTED)
-
-
-def _line_time(kind: str, line: str, lineno: int, path: Path) -> float:
-    """The timestamp of a line that is not otherwise parsed (the survey, unselected topics)."""
-    parts = line.rsplit(None, _TRAILER)
-    try:
-        t = float(parts[-_TRAILER]) if len(parts) > _TRAILER else math.nan
-    except ValueError:
-        t = math.nan
-    if not math.isfinite(t):
-        raise FormatError(_diagnose(kind, line, lineno), path)
-    return t
 
 
 # ---------------------------------------------------------------- time order
@@ -229,197 +158,6 @@ class _TimeOrder:
         return kind, item
 
 
-# ---------------------------------------------------------------- parsing
-
-@dataclass
-class _Laser:
-    time: float
-    ranges: np.ndarray
-    start: float
-    increment: float
-    max_range: float
-    remissions: np.ndarray | None = None
-    laser_pose: tuple[float, float, float] | None = None
-    robot_pose: tuple[float, float, float] | None = None
-    tv: float = 0.0
-    rv: float = 0.0
-
-
-@dataclass
-class _Odom:
-    time: float
-    x: float
-    y: float
-    theta: float
-    tv: float
-    rv: float
-
-
-def carmen_beam_geometry(n: int) -> tuple[float, float]:
-    """(start angle, increment) CARMEN assumes for a FLASER / RLASER of ``n`` beams."""
-    if n in (180, 181):
-        inc = math.pi / 180.0
-    elif n in (360, 361):
-        inc = math.pi / 360.0
-    elif n in (400, 401):
-        inc = math.pi / 720.0
-    else:
-        inc = math.pi / max(n - 1, 1)
-    return -math.pi / 2.0, inc
-
-
-class _LineError(Exception):
-    """Raised by the fast path; ``_diagnose`` turns it into a precise FormatError."""
-
-
-def _floats(text: str) -> np.ndarray:
-    # numpy >= 2 raises on a non-numeric token; older versions stop early with a
-    # warning, which the callers' length checks catch.
-    try:
-        return decimals(text)
-    except (ValueError, DeprecationWarning):
-        raise _LineError from None
-
-
-def _f32(values: np.ndarray) -> np.ndarray:
-    # A range beyond float32 is no real reading; it becomes inf, like any return out of range.
-    with np.errstate(over="ignore"):
-        return values.astype(np.float32)
-
-
-def _count(value: float) -> int:
-    if not (math.isfinite(value) and value >= 0 and value == int(value)):
-        raise _LineError
-    return int(value)
-
-
-def _split_payload(line: str) -> tuple[str, float]:
-    """(numeric payload after the message name, timestamp)."""
-    parts = line.split(None, 1)
-    if len(parts) < 2:
-        raise _LineError
-    body = parts[1].rsplit(None, _TRAILER)
-    if len(body) != _TRAILER + 1:
-        raise _LineError
-    try:
-        t = float(body[1])
-        float(body[3])
-    except ValueError:
-        raise _LineError from None
-    if not math.isfinite(t):
-        raise _LineError
-    return body[0], t
-
-
-def _parse_flaser(line: str) -> _Laser:
-    payload, t = _split_payload(line)
-    v = _floats(payload)
-    if len(v) < 1:
-        raise _LineError
-    n = _count(v[0])
-    if len(v) != 1 + n + 6:
-        raise _LineError
-    start, inc = carmen_beam_geometry(n)
-    return _Laser(
-        t, _f32(v[1:1 + n]), start, inc, FLASER_MAX_RANGE,
-        laser_pose=tuple(v[1 + n:4 + n].tolist()), robot_pose=tuple(v[4 + n:7 + n].tolist()),
-    )
-
-
-def _parse_configured(line: str, posed: bool) -> _Laser:
-    """ROBOTLASERk (posed) and RAWLASERk: a laser config header, ranges and remissions."""
-    payload, t = _split_payload(line)
-    v = _floats(payload)
-    if len(v) < 8:
-        raise _LineError
-    n = _count(v[7])
-    if len(v) < 9 + n:
-        raise _LineError
-    m = _count(v[8 + n])
-    tail = 11 if posed else 0  # two poses, tv rv forward_safety side_safety turn_axis
-    if len(v) != 9 + n + m + tail:
-        raise _LineError
-    rem = _f32(v[9 + n:9 + n + m]) if m == n and m > 0 else None
-    laser = _Laser(t, _f32(v[8:8 + n]), float(v[1]), float(v[3]), float(v[4]), remissions=rem)
-    if posed:
-        k = 9 + n + m
-        laser.laser_pose = tuple(v[k:k + 3].tolist())
-        laser.robot_pose = tuple(v[k + 3:k + 6].tolist())
-        laser.tv, laser.rv = float(v[k + 6]), float(v[k + 7])
-    return laser
-
-
-def _parse_odom(line: str) -> _Odom:
-    # Six numbers: plain float() beats numpy's per-call overhead here, and
-    # ODOM lines outnumber laser lines five to one in dense logs.
-    tokens = line.split()
-    if len(tokens) != 1 + 6 + _TRAILER:
-        raise _LineError
-    try:
-        x, y, theta, tv, rv, _, t = map(float, tokens[1:8])
-        float(tokens[9])
-    except ValueError:
-        raise _LineError from None
-    if not math.isfinite(t):
-        raise _LineError
-    return _Odom(t, x, y, theta, tv, rv)
-
-
-def _parse(kind: str, line: str):
-    if kind == "ODOM":
-        return _parse_odom(line)
-    if kind in ("FLASER", "RLASER"):
-        return _parse_flaser(line)
-    return _parse_configured(line, posed=kind.startswith("ROBOTLASER"))
-
-
-def _expected_fields(kind: str, tokens: list[str]) -> tuple[str, int] | None:
-    """(what the count depends on, expected number of fields after the name), or None if unknowable."""
-    def count_at(i):
-        try:
-            c = float(tokens[i])
-        except (IndexError, ValueError):
-            return None
-        return int(c) if math.isfinite(c) and c >= 0 and c == int(c) else None
-
-    if kind == "ODOM":
-        return "", 6 + _TRAILER
-    if kind in ("FLASER", "RLASER"):
-        n = count_at(1)
-        return (None if n is None else (f" with {n} beams", 1 + n + 6 + _TRAILER))
-    n = count_at(8)
-    if n is None:
-        return None
-    m = count_at(9 + n)
-    tail = 11 if kind.startswith("ROBOTLASER") else 0
-    if m is None:
-        return f" with {n} beams", 9 + n + 1 + tail + _TRAILER  # assumes no remissions
-    return f" with {n} beams and {m} remissions", 9 + n + m + tail + _TRAILER
-
-
-def _diagnose(kind: str, line: str, lineno: int) -> str:
-    """The most precise thing to say about a line the fast path rejected."""
-    tokens = line.split()
-    expected = _expected_fields(kind, tokens)
-    if expected is None:
-        return f"line {lineno}: {kind} has no valid beam or remission count"
-    what, want = expected
-    got = len(tokens) - 1
-    if got != want:
-        return f"line {lineno}: {kind}{what} has {got} fields after its name, expected {want}"
-    host = len(tokens) - 2
-    for i, tok in enumerate(tokens[1:], 1):
-        if i == host:
-            continue
-        try:
-            float(tok)
-        except ValueError:
-            return f"line {lineno}: {kind} field {i} is not a number ('{tok[:20]}')"
-    if not math.isfinite(float(tokens[-_TRAILER])):
-        return f"line {lineno}: {kind} timestamp '{tokens[-_TRAILER]}' is not a finite number"
-    return f"line {lineno}: malformed {kind} line"
-
-
 # ---------------------------------------------------------------- survey (first pass)
 
 @dataclass
@@ -439,7 +177,7 @@ def _probe_poses(kind: str, line: str):
     """Laser and robot pose of a posed laser line, from its tail; None if unreadable."""
     # FLASER: x y th ox oy oth | t host t; ROBOTLASER: lx ly lth rx ry rth tv rv fs ss ta | t host t
     skip = 0 if kind in ("FLASER", "RLASER") else 5
-    parts = line.rsplit(None, 6 + skip + _TRAILER)
+    parts = line.rsplit(None, 6 + skip + TRAILER)
     try:
         v = [float(p) for p in parts[1:7]]
     except ValueError:
@@ -449,12 +187,25 @@ def _probe_poses(kind: str, line: str):
     return tuple(v[:3]), tuple(v[3:])
 
 
+def _cut_mid_message(kind: str, line: str) -> bool:
+    """Whether the file's last line, which has no end of line, is a message the file ends inside: one carto reads
+    that does not parse, or a cut-off name of one. (A cut inside the final logger timestamp loses nothing carto
+    reads and parses.)"""
+    if kind in SUPPORTED:
+        try:
+            parse_line(kind, line)
+        except LineError:
+            return True
+        return False
+    return bool(kind) and any(name.startswith(kind) for name in SUPPORTED)
+
+
 def _survey(path: Path) -> _Survey:
     s = _Survey()
     order = _TimeOrder(REORDER_WINDOW)
-    lines = _Lines(path)
+    lines = LogLines(path)
     for lineno, line in lines:
-        kind = _first_token(line)
+        kind = first_token(line)
         if not line.endswith("\n") and _cut_mid_message(kind, line):
             s.cut_line = lineno
             continue
@@ -463,7 +214,7 @@ def _survey(path: Path) -> _Survey:
                 s.recognised = True
             continue
         s.recognised = True
-        t = _line_time(kind, line, lineno, path)
+        t = line_time(kind, line, lineno, path)
         if kind in POSED:
             probes = s.probes.setdefault(kind, [])
             if len(probes) < POSE_PROBE:
@@ -523,13 +274,13 @@ class CarmenRecording(Recording):
         """
         path = Path(path)
         try:
-            opener = gzip.open if _is_gzip(path) else open
+            opener = gzip.open if is_gzip(path) else open
             with opener(path, "rb") as f:
                 head = f.read(max_bytes)
         except (OSError, EOFError, zlib.error):
             return False
         for line in head.decode("latin-1").splitlines():
-            kind = _first_token(line)
+            kind = first_token(line)
             if kind in SUPPORTED or kind in KNOWN_OTHER:
                 return True
         return False
@@ -613,21 +364,21 @@ class CarmenRecording(Recording):
         order = _TimeOrder(REORDER_WINDOW)
         want_pose = ODOM_LASER_TOPIC in wanted
         cut = self._survey().cut_line
-        for lineno, line in _Lines(self.path):
+        for lineno, line in LogLines(self.path):
             if lineno == cut:
                 break
-            kind = _first_token(line)
+            kind = first_token(line)
             if kind not in SUPPORTED:
                 continue
             topic = topic_of.get(kind)
             if topic is not None and (topic in wanted or (want_pose and kind in POSED)):
                 try:
-                    msg = _parse(kind, line)
-                except _LineError:
-                    raise FormatError(_diagnose(kind, line, lineno), self.path) from None
+                    msg = parse_line(kind, line)
+                except LineError:
+                    raise FormatError(diagnose(kind, line, lineno), self.path) from None
                 t, item = msg.time, self._to_records(topic, msg, wanted)
             else:
-                t, item = _line_time(kind, line, lineno, self.path), None
+                t, item = line_time(kind, line, lineno, self.path), None
             for _, released in order.push(t, lineno, kind, item):
                 if released:
                     yield from released
@@ -637,7 +388,7 @@ class CarmenRecording(Recording):
 
     @staticmethod
     def _to_records(topic: str, msg, wanted: set[str]) -> tuple[Record, ...]:
-        if isinstance(msg, _Odom):
+        if isinstance(msg, OdomLine):
             return (Odometry(msg.time, msg.x, msg.y, msg.theta, topic=topic, vx=msg.tv, wz=msg.rv),)
         out: list[Record] = []
         if msg.robot_pose is not None and ODOM_LASER_TOPIC in wanted:

@@ -13,7 +13,8 @@ from support import SHARED as DATA
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
 from carto_cli.core.records import Odometry, Scan
-from carto_cli.io.sources.carmen import CarmenRecording, carmen_beam_geometry
+from carto_cli.io.sources.carmen import CarmenRecording
+from carto_cli.io.sources.carmen_lines import carmen_beam_geometry
 
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="shared data not available")
 
