@@ -160,7 +160,6 @@ class Stages:
         result.timings["scan scoring"] = result.timings.get("scan scoring", 0.0) + ms
         result.total_ms += ms
 
-
     def _whole(self, q: Query, carry: Carry, submaps: Sequence[int], **kw) -> list[Candidate]:
         """Whole-submap searches of ``submaps`` for ``q`` that keep every place within AMBIGUITY_MARGIN of the best."""
         return self.searches.whole(q.search_pts, submaps, q.search_floor, carry.tm, jobs=q.jobs,
