@@ -6,12 +6,16 @@ import inspect
 import json
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 from typer.core import TyperCommand, TyperGroup
 
 from carto_cli import __version__
 from carto_cli.core.errors import CartoError
+
+if TYPE_CHECKING:  # the commands are imported when run: `carto --help` loads none of them
+    from carto_cli.commands.relocalize import RelocalizeRequest
 
 EXIT_STATUS = ("Exit status, every command: 0 success; 1 internal error; 2 bad input or usage; 3 a check you "
                "asked for failed (a gate of eval or profile, a 'failed' map or a 'suspect' one with map --strict, "
@@ -648,24 +652,24 @@ def relocalize_(
     from carto_cli.commands.common import z_slice
 
     yaw_sigma = None if sigma_yaw is None else _heading_sigma(sigma_yaw)
-    if track:
-        _track(map_file, recording, output, initial_pose=initial_pose, sigma_xy=sigma_xy,
-               sigma_yaw=yaw_sigma, scan_topic=scan_topic,
-               odom_topic=odom_topic, odom_frame=odom_frame, base_frame=base_frame, overrides=overrides,
-               profile=profile, max_jump=max_jump, force=force,
-               read=z_slice(min_z, max_z), as_json=as_json)
-        return
-    if output is not None:
+    # Before the request, whose own checks (--max-jump) the command has always reported after this one.
+    if output is not None and not track:
         raise CartoError("--output goes with --track")
-    from carto_cli.commands.relocalize import run_relocalize
+    from carto_cli.commands.relocalize import RelocalizeRequest, RelocalizeScans, run_relocalize
+    from carto_cli.pipeline import TopicChoice
 
-    run = run_relocalize(
-        map_file, recording, initial_pose=initial_pose, at=at, scan_index=scan_index, sigma_xy=sigma_xy,
-        sigma_yaw=yaw_sigma, corridor=corridor, global_search=global_,
-        queries=queries, csv_out=csv_out, scan_topic=scan_topic, overrides=overrides,
-        on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True), quiet=state.quiet, force=force,
-        read=z_slice(min_z, max_z), profile=profile, max_jump=max_jump, jobs=jobs, odom_topic=odom_topic,
-        odom_frame=odom_frame, base_frame=base_frame)
+    request = RelocalizeRequest(
+        map_file, recording, initial_pose=initial_pose, sigma_xy=sigma_xy, sigma_yaw=yaw_sigma, max_jump=max_jump,
+        profile=profile, overrides=tuple(overrides or ()), read=z_slice(min_z, max_z),
+        topics=TopicChoice(scan=scan_topic, odometry=odom_topic, odom_frame=odom_frame, base_frame=base_frame),
+        jobs=jobs)
+    if track:
+        _track(request, output, force=force, as_json=as_json)
+        return
+    scans = RelocalizeScans(request, at=at, scan_index=scan_index, global_search=global_, corridor=corridor,
+                            queries=queries, csv_out=csv_out)
+    run = run_relocalize(scans, on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True),
+                         quiet=state.quiet, force=force)
     if run.auto is not None and not as_json:
         typer.echo(f"auto: {run.auto.describe()}", err=True)
     from carto_cli.commands.common import compiling_note
@@ -698,14 +702,15 @@ def relocalize_(
         raise typer.Exit(EXIT_AMBIGUOUS if run.result.verdict == "ambiguous" else EXIT_CHECK_FAILED)
 
 
-def _track(map_file: Path, recording: Path, output: Path | None, *, as_json: bool, **kwargs) -> None:
+def _track(request: RelocalizeRequest, output: Path | None, *, force: bool, as_json: bool) -> None:
     from carto_cli.commands.common import compiling_note
     from carto_cli.commands.relocalize import run_track
     from carto_cli.core.progress import progress
 
-    with progress(f"tracking {recording.name}", None, state.quiet) as bar:
-        run = run_track(map_file, recording, output, on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True),
-                        on_scan=lambda _scan: bar.advance(), on_total=bar.set_total, **kwargs)
+    with progress(f"tracking {request.recording.name}", None, state.quiet) as bar:
+        run = run_track(request, output, force=force,
+                        on_warning=lambda w: typer.echo(f"carto: warning: {w}", err=True),
+                        on_scan=lambda _scan: bar.advance(), on_total=bar.set_total)
     s = run.summary
     if run.auto is not None and not as_json:
         typer.echo(f"auto: {run.auto.describe()}", err=True)

@@ -155,15 +155,17 @@ def test_help_text_sigma_yaw_is_in_radians_as_the_initial_pose(monkeypatch, tmp_
 
     seen = []
 
-    def relocalize_nothing(*args, sigma_yaw=None, **kwargs):
-        seen.append(sigma_yaw)
+    def relocalize_nothing(asked, *args, **kwargs):
+        seen.append(getattr(asked, "request", asked).sigma_yaw)  # run_relocalize's RelocalizeScans hold the request
         raise typer.Exit(0)
 
     monkeypatch.setattr(relocalize, "run_relocalize", relocalize_nothing)
     monkeypatch.setattr(relocalize, "run_track", relocalize_nothing)
 
     def run(*args):
-        return CliRunner().invoke(app, ["relocalize", str(tmp_path / "map.carto"), str(tmp_path / "r.bag"), *args])
+        # --global: the request the command builds is checked before run_relocalize, and needs a prior or none.
+        return CliRunner().invoke(app, ["relocalize", str(tmp_path / "map.carto"), str(tmp_path / "r.bag"), "--global",
+                                        *args])
 
     for args in (("--sigma-yaw", "0.1"), ("--sigma-yaw", "5deg"), ("--sigma-yaw", "5DEG", "--track")):
         assert run(*args).exit_code == 0

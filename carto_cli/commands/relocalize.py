@@ -9,7 +9,7 @@ import json
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar, cast
 
@@ -28,7 +28,7 @@ from carto_cli.io.sources.open import open_recording
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options, apply_overrides, load_options
-from carto_cli.pipeline import resolve_laser_pose
+from carto_cli.pipeline import TopicChoice, resolve_laser_pose
 from carto_cli.relocalization import (
     BatchSummary,
     QueryResult,
@@ -47,8 +47,9 @@ from carto_cli.relocalization.queries import CONTEXT_SECONDS
 from carto_cli.relocalization.result import PoseVerdict
 from carto_cli.relocalization.tracking import TRACK_COLUMNS, TrackedScan, Tracker, TrackSummary, summarize_track
 
-__all__ = ["TRACK_OUTPUTS", "Prepared", "RelocalizeRun", "TrackRun", "apply_map_auto", "default_track_dir",
-           "load_relocalization_map", "prepare", "relocalization_options", "run_relocalize", "run_track"]
+__all__ = ["TRACK_OUTPUTS", "Prepared", "RelocalizeRequest", "RelocalizeRun", "RelocalizeScans", "TrackRun",
+           "apply_map_auto", "default_track_dir", "load_relocalization_map", "prepare", "relocalization_options",
+           "run_relocalize", "run_track"]
 
 
 def load_relocalization_map(map_file: Path, profile: str | Path | None = None) -> LoadedMap:
@@ -125,6 +126,81 @@ def relocalization_options(map_options: Options, profile_options: Options) -> Op
 
 
 @dataclass(frozen=True, slots=True)
+class RelocalizeRequest:
+    """A map, a recording and the prior the scans are searched from: what a relocalization (``run_relocalize``,
+    through :class:`RelocalizeScans`) and a track (``run_track``) both ask. Built once (by the CLI, or a library
+    caller).
+
+    ``map_file`` is a map.carto or a map_server YAML (``load_relocalization_map``, with ``profile``); a map that
+    does not know where the laser sits (a map_server image) takes it from the recording's static TF.
+    ``initial_pose``: 'x,y,yaw' text or a pose (None: a global search); text is parsed only when it is used, so
+    that a bad one is reported after the map and the scan, as the command always has. ``sigma_yaw`` is in radians.
+    ``max_jump`` (m): an answer farther than this from its prior is 'lost'. ``overrides`` are ``--set`` items over
+    the map's own options. ``read``: how point clouds are sliced (io.recording.ReadOptions). ``topics``: the scan
+    topic, and the odometry (``odometry``, or TF: ``odom_frame`` / ``base_frame``; default the recording's) that
+    moves a track's predictions and the scans that check an answer no window around its prior confirmed (``imu``
+    is not read). ``jobs``: threads for a batch, or for one query's whole-map search (None: every core); the
+    answers are the same for any number.
+
+    ``max_jump`` is checked here (CartoError), so a bad request fails before the map is loaded.
+    """
+
+    map_file: Path
+    recording: Path
+    _: KW_ONLY
+    initial_pose: str | Sequence[float] | None = None
+    sigma_xy: float | None = None
+    sigma_yaw: float | None = None
+    max_jump: float | None = None
+    profile: str | Path | None = None
+    overrides: Sequence[str] = ()
+    read: ReadOptions | None = None
+    topics: TopicChoice = TopicChoice()
+    jobs: int | None = 1
+
+    def __post_init__(self) -> None:
+        if self.max_jump is not None and not self.max_jump > 0:
+            raise CartoError(f"--max-jump must be > 0 m, got {self.max_jump:g}")
+
+
+@dataclass(frozen=True, slots=True)
+class RelocalizeScans:
+    """Which scans of a request's recording ``run_relocalize`` answers: one (``at`` a time or ``scan_index``,
+    default the first) from the request's ``initial_pose`` or, with ``global_search``, from none; or every line of
+    ``queries`` (each with its own prior; results to ``csv_out``, default QUERIES.results.csv). ``corridor``: search
+    only the submaps along the prior's heading (``Relocalizer.relocalize``).
+
+    The choices that exclude each other are checked here (CartoError), after the request's own, in the order the
+    command has always reported them.
+    """
+
+    request: RelocalizeRequest
+    _: KW_ONLY
+    at: float | None = None
+    scan_index: int | None = None
+    global_search: bool = False
+    corridor: bool = False
+    queries: Path | None = None
+    csv_out: Path | None = None
+
+    def __post_init__(self) -> None:
+        initial_pose = self.request.initial_pose
+        if self.queries is None and not self.global_search and initial_pose is None:
+            raise CartoError("give --initial-pose x,y,yaw, or --global, or --queries FILE")
+        if self.global_search and initial_pose is not None:
+            raise CartoError("--global and --initial-pose exclude each other")
+        if self.at is not None and self.scan_index is not None:
+            raise CartoError("--at and --scan-index exclude each other")
+
+    @property
+    def results_csv(self) -> Path | None:
+        """Where a batch's results go; None for one scan."""
+        if self.queries is None:
+            return None
+        return self.csv_out or self.queries.with_suffix(".results.csv")
+
+
+@dataclass(frozen=True, slots=True)
 class Prepared:
     """What a relocalization and a track both start from (``prepare``)."""
 
@@ -137,22 +213,22 @@ class Prepared:
 
 
 @contextmanager
-def prepare(map_file: Path, recording: Path, *, profile: str | Path | None, overrides: Sequence[str] | None,
-            read: ReadOptions | None, scan_topic: str | None, odom_topic: str | None, odom_frame: str | None,
-            base_frame: str | None, jobs: int | None,
-            on_warning: Callable[[str], None] | None) -> Iterator[Prepared]:
-    """The map loaded (``load_relocalization_map``, with ``profile``) and its settings chosen (``apply_map_auto``),
-    the recording opened and its topics chosen, the relocalizer built (``overrides`` over the map's options;
-    ``jobs`` its threads), for as long as the context lasts (the recording stays open). A map that knows the laser
-    mount gets its relocalizer before the recording is read, so that its warnings come first; one that does not
-    (a map_server image) takes the mount, and without a profile its settings, from the recording (``_from_scans``)."""
-    loaded = load_relocalization_map(map_file, None if profile == "auto" else profile)
+def prepare(request: RelocalizeRequest, on_warning: Callable[[str], None] | None = None) -> Iterator[Prepared]:
+    """The request's map loaded (``load_relocalization_map``, with its ``profile``) and its settings chosen
+    (``apply_map_auto``), the recording opened and its topics chosen, the relocalizer built (``overrides`` over
+    the map's options; ``jobs`` its threads), for as long as the context lasts (the recording stays open). A map
+    that knows the laser mount gets its relocalizer before the recording is read, so that its warnings come first;
+    one that does not (a map_server image) takes the mount, and without a profile its settings, from the recording
+    (``_from_scans``)."""
+    profile, overrides, jobs, topics = request.profile, request.overrides, request.jobs, request.topics
+    loaded = load_relocalization_map(request.map_file, None if profile == "auto" else profile)
     auto = apply_map_auto(loaded, profile)
     warnings: list[str] = []
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning, jobs)
-    with open_recording(recording, read) as rec:
+    with open_recording(request.recording, request.read) as rec:
         _tell(rec.warnings, warnings, on_warning)
-        selection = select_topics(rec, scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame)
+        selection = select_topics(rec, topics.scan, topics.odometry, odom_frame=topics.odom_frame,
+                                  base_frame=topics.base_frame)
         mount = None
         if relocalizer is None:
             mount, auto = _from_scans(loaded, rec, selection.scan, profile)
@@ -208,84 +284,49 @@ def _noting_compiles(run: _Run) -> _Run:
 
 
 @_noting_compiles
-def run_relocalize(
-    map_file: Path,
-    recording: Path,
-    *,
-    initial_pose: str | Sequence[float] | None = None,
-    at: float | None = None,
-    scan_index: int | None = None,
-    sigma_xy: float | None = None,
-    sigma_yaw: float | None = None,
-    corridor: bool = False,
-    global_search: bool = False,
-    queries: Path | None = None,
-    csv_out: Path | None = None,
-    scan_topic: str | None = None,
-    overrides: Sequence[str] | None = None,
-    on_warning: Callable[[str], None] | None = None,
-    quiet: bool = True,
-    force: bool = False,
-    read: ReadOptions | None = None,
-    profile: str | Path | None = None,
-    max_jump: float | None = None,
-    jobs: int | None = 1,
-    odom_topic: str | None = None,
-    odom_frame: str | None = None,
-    base_frame: str | None = None,
-) -> RelocalizeRun:
-    """Relocalize one scan (``at`` / ``scan_index``, default the first) from ``initial_pose`` ('x,y,yaw' text or
-    a pose) or globally, or every line of ``queries`` (results to ``csv_out``, default QUERIES.results.csv).
+def run_relocalize(scans: RelocalizeScans, *, on_warning: Callable[[str], None] | None = None, quiet: bool = True,
+                   force: bool = False) -> RelocalizeRun:
+    """Relocalize the scans ``scans`` chooses of its request's recording in the request's map (one scan, or a
+    queries file whose results go to ``scans.results_csv``).
 
-    ``sigma_yaw`` is in radians; ``overrides`` are ``--set`` items over the map's own options. The relocalizer's
-    warnings go to ``on_warning`` as soon as it is built (before any scan is relocalized), and into the result.
-    ``quiet=False`` shows a progress bar over a batch (on a terminal). An existing results CSV is replaced only
-    with ``force`` (refused before any work). ``read``: how point clouds are sliced (io.recording.ReadOptions).
-    ``map_file`` is a map.carto or a map_server YAML (``load_relocalization_map``, with ``profile``); a map that
-    does not know where the laser sits (a map_server image) takes it from the recording's static TF.
-    ``max_jump`` (m): an answer farther than this from its prior is 'lost'. ``jobs``: threads for a batch,
-    or for one query's whole-map search (None: every core); the answers are the same for any number.
-    An answer no window around its prior confirmed is checked by the scans around its own in the recording,
-    moved by the odometry of ``odom_topic`` (or TF: ``odom_frame`` / ``base_frame``; default the recording's).
+    The relocalizer's warnings go to ``on_warning`` as soon as it is built (before any scan is relocalized), and
+    into the result. ``quiet=False`` shows a progress bar over a batch (on a terminal). An existing results CSV is
+    replaced only with ``force`` (refused before any work). An answer no window around its prior confirmed is
+    checked by the scans around its own in the recording, moved by the request's odometry.
     """
-    if max_jump is not None and not max_jump > 0:
-        raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
-    if queries is None and not global_search and initial_pose is None:
-        raise CartoError("give --initial-pose x,y,yaw, or --global, or --queries FILE")
-    if global_search and initial_pose is not None:
-        raise CartoError("--global and --initial-pose exclude each other")
-    if at is not None and scan_index is not None:
-        raise CartoError("--at and --scan-index exclude each other")
-    if queries is not None:
-        csv_out = csv_out or queries.with_suffix(".results.csv")
-        if csv_out.exists() and not force:
-            raise CartoError("exists; --force replaces it, or give another --csv", csv_out)
+    request = scans.request
+    csv_out = scans.results_csv
+    if csv_out is not None and csv_out.exists() and not force:
+        raise CartoError("exists; --force replaces it, or give another --csv", csv_out)
 
-    with prepare(map_file, recording, profile=profile, overrides=overrides, read=read, scan_topic=scan_topic,
-                 odom_topic=odom_topic, odom_frame=odom_frame, base_frame=base_frame, jobs=jobs,
-                 on_warning=on_warning) as p:
+    scan_topic, max_jump = request.topics.scan, request.max_jump
+    with prepare(request, on_warning) as p:
         relocalizer, rec, selection, mount = p.relocalizer, p.recording, p.selection, p.mount
         run = RelocalizeRun(warnings=p.warnings, auto=p.auto)
-        if queries is not None:
-            qs = read_queries(queries)
+        if scans.queries is not None:
+            qs = read_queries(scans.queries)
             with progress("relocalizing", len(qs), quiet, unit="queries") as bar:
                 run.results, run.summary = relocalize_many(relocalizer, rec, qs, scan_topic=scan_topic,
-                                                           corridor=corridor, on_query=bar.advance,
-                                                           laser_pose=mount, max_jump=max_jump, jobs=jobs,
+                                                           corridor=scans.corridor, on_query=bar.advance,
+                                                           laser_pose=mount, max_jump=max_jump, jobs=request.jobs,
                                                            selection=selection)
             assert csv_out is not None
             run.csv = write_results_csv(csv_out, run.results)
             return run
         context = None
         if relocalizer.ro.context_scans > 0:
-            run.scan_index, run.scan, context = context_at(rec, time=at, index=scan_index, scan_topic=scan_topic,
-                                                           context_seconds=CONTEXT_SECONDS, selection=selection)
+            run.scan_index, run.scan, context = context_at(rec, time=scans.at, index=scans.scan_index,
+                                                           scan_topic=scan_topic, context_seconds=CONTEXT_SECONDS,
+                                                           selection=selection)
         else:
-            run.scan_index, run.scan = scan_at(rec, time=at, index=scan_index, scan_topic=scan_topic)
+            run.scan_index, run.scan = scan_at(rec, time=scans.at, index=scans.scan_index, scan_topic=scan_topic)
     # Parsed only now, as the command always has: a bad --initial-pose is reported after the map and the scan.
-    prior = None if global_search else (parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose)
-    run.result = relocalizer.relocalize(run.scan, prior, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, corridor=corridor,
-                                        laser_pose=mount, max_jump=max_jump, context=context)
+    initial_pose = request.initial_pose
+    prior = (None if scans.global_search
+             else parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose)
+    run.result = relocalizer.relocalize(run.scan, prior, sigma_xy=request.sigma_xy, sigma_yaw=request.sigma_yaw,
+                                        corridor=scans.corridor, laser_pose=mount, max_jump=max_jump,
+                                        context=context)
     return run
 
 
@@ -317,32 +358,21 @@ def default_track_dir(recording: Path) -> Path:
 
 @_noting_compiles
 def run_track(
-    map_file: Path,
-    recording: Path,
+    request: RelocalizeRequest,
     outdir: Path | None = None,
     *,
-    initial_pose: str | Sequence[float] | None = None,
-    sigma_xy: float | None = None,
-    sigma_yaw: float | None = None,
-    scan_topic: str | None = None,
-    odom_topic: str | None = None,
-    odom_frame: str | None = None,
-    base_frame: str | None = None,
-    overrides: Sequence[str] | None = None,
-    profile: str | Path | None = None,
-    max_jump: float | None = None,
     force: bool = False,
-    read: ReadOptions | None = None,
     on_warning: Callable[[str], None] | None = None,
     on_scan: Callable[[TrackedScan], None] | None = None,
     on_total: Callable[[int], None] | None = None,
 ) -> TrackRun:
-    """A pose and a verdict for every scan of ``recording`` in the map (``relocalization.tracking``): the first
-    from ``initial_pose`` or a global search, then each from the previous one moved by odometry; writes
-    ``trajectory.tum`` (the scans judged ok), ``track.csv`` (every scan: pose, verdict, source, score, sigmas)
-    and ``track.json`` (the summary: verdict counts, time to first fix, scans per second) into ``outdir``
-    (default NAME_track in the current directory) as one set; an earlier set is replaced only with ``force``.
-    ``on_total`` hears how many scans the recording holds (before the first ``on_scan``)."""
+    """A pose and a verdict for every scan of the request's recording in its map (``relocalization.tracking``):
+    the first from the request's ``initial_pose`` or a global search, then each from the previous one moved by
+    odometry; writes ``trajectory.tum`` (the scans judged ok), ``track.csv`` (every scan: pose, verdict, source,
+    score, sigmas) and ``track.json`` (the summary: verdict counts, time to first fix, scans per second) into
+    ``outdir`` (default NAME_track in the current directory) as one set; an earlier set is replaced only with
+    ``force``. ``on_total`` hears how many scans the recording holds (before the first ``on_scan``)."""
+    recording = request.recording
     outdir = Path(outdir) if outdir is not None else default_track_dir(recording)
     if outdir.exists() and not outdir.is_dir():
         raise CartoError("exists and is not a directory; the outputs go into a directory (give another -o)", outdir)
@@ -350,20 +380,17 @@ def run_track(
     if taken and not force:
         raise CartoError(f"already holds a track ({', '.join(taken)}); --force replaces it, or give another -o",
                          outdir)
-    if max_jump is not None and not max_jump > 0:
-        raise CartoError(f"--max-jump must be > 0 m, got {max_jump:g}")
+    initial_pose = request.initial_pose
     prior = parse_pose(initial_pose) if isinstance(initial_pose, str) else initial_pose
     t0 = time.perf_counter()
-    with prepare(map_file, recording, profile=profile, overrides=overrides, read=read, scan_topic=scan_topic,
-                 odom_topic=odom_topic, odom_frame=odom_frame, base_frame=base_frame, jobs=None,
-                 on_warning=on_warning) as p:
+    with prepare(request, on_warning) as p:
         selection = p.selection
         if on_total is not None:
             on_total(sum(t.count for t in p.recording.topics() if t.name == selection.scan))
-        tracker = Tracker(p.relocalizer, laser_pose=p.mount, max_jump=max_jump)
+        tracker = Tracker(p.relocalizer, laser_pose=p.mount, max_jump=request.max_jump)
         topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
         scans = list(tracker.track(selected_records(p.recording, selection, topics), initial_pose=prior,
-                                   sigma_xy=sigma_xy, sigma_yaw=sigma_yaw, on_scan=on_scan))
+                                   sigma_xy=request.sigma_xy, sigma_yaw=request.sigma_yaw, on_scan=on_scan))
     if not scans:
         raise CartoError(f"no scans on {selection.scan}", recording)
     summary = summarize_track(scans, time.perf_counter() - t0, tracker.relocalizations, tracker.timings)

@@ -9,7 +9,7 @@ from reloc_map import build_map, pose_error, second_pass, with_walls
 from typer.testing import CliRunner
 
 from carto_cli.cli import app
-from carto_cli.commands.relocalize import apply_map_auto, run_relocalize
+from carto_cli.commands.relocalize import RelocalizeRequest, RelocalizeScans, apply_map_auto, run_relocalize
 from carto_cli.core.errors import CartoError
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.relocalization import CSV_COLUMNS
@@ -31,6 +31,12 @@ def _cli(*args):
     return CliRunner().invoke(app, [str(a) for a in args])
 
 
+def _scans(map_path, recording, *, at=None, scan_index=None, global_search=False, queries=None, csv_out=None,
+           **request):
+    return RelocalizeScans(RelocalizeRequest(map_path, recording, **request), at=at, scan_index=scan_index,
+                           global_search=global_search, queries=queries, csv_out=csv_out)
+
+
 # ------------------------------------------------------------------------------------------ library call
 
 
@@ -38,8 +44,8 @@ def test_run_relocalize_answers_one_scan(cli_files):
     map_path, bag, qs = cli_files
     scan, truth = qs[5]
     warned = []
-    run = run_relocalize(map_path, bag, initial_pose=tuple(truth + [0.5, -0.4, 0.1]), at=scan.time,
-                         sigma_yaw=math.radians(8), on_warning=warned.append)
+    run = run_relocalize(_scans(map_path, bag, initial_pose=tuple(truth + [0.5, -0.4, 0.1]), at=scan.time,
+                                sigma_yaw=math.radians(8)), on_warning=warned.append)
     assert not run.batch and run.result.success and run.result.path == "windowed"
     assert run.scan.time == pytest.approx(scan.time) and run.scan_index == round((scan.time - 1000.0) * 5)
     assert pose_error(run.result.pose, truth)[0] < 0.1
@@ -47,8 +53,8 @@ def test_run_relocalize_answers_one_scan(cli_files):
     assert d["scan_index"] == run.scan_index and d["scan_time"] == scan.time and d["success"]
     assert warned == [] and run.warnings == []
     # The same prior as text, the way the command line gives it.
-    text = run_relocalize(map_path, bag, initial_pose=",".join(str(v) for v in truth + [0.5, -0.4, 0.1]),
-                          scan_index=run.scan_index)
+    text = run_relocalize(_scans(map_path, bag, initial_pose=",".join(str(v) for v in truth + [0.5, -0.4, 0.1]),
+                                 scan_index=run.scan_index))
     assert text.scan_index == run.scan_index and pose_error(text.result.pose, run.result.pose)[0] < 1e-9
 
 
@@ -57,12 +63,12 @@ def test_run_relocalize_batch_writes_the_csv_next_to_the_queries(cli_files, tmp_
     (s0, t0), (s1, _) = qs[4], qs[12]
     q = tmp_path / "q.txt"
     q.write_text(f"{s0.time} {t0[0]} {t0[1]} {t0[2]}\n{s1.time} - - -\n")
-    run = run_relocalize(map_path, bag, queries=q)
+    run = run_relocalize(_scans(map_path, bag, queries=q))
     assert run.batch and run.csv == tmp_path / "q.results.csv" and run.csv.is_file()
     assert [r.result.path for r in run.results] == ["windowed", "global"]
     assert run.summary.queries == 2 and run.to_dict() == run.summary.to_dict()
     assert run.csv.read_text().splitlines()[0].split(",") == list(CSV_COLUMNS)
-    other = run_relocalize(map_path, bag, queries=q, csv_out=tmp_path / "sub" / "r.csv")
+    other = run_relocalize(_scans(map_path, bag, queries=q, csv_out=tmp_path / "sub" / "r.csv"))
     assert other.csv == tmp_path / "sub" / "r.csv" and other.csv.is_file()
 
 
@@ -71,8 +77,8 @@ def test_a_batch_on_threads_gives_the_answers_of_one_thread(cli_files, tmp_path)
     q = tmp_path / "q.txt"
     lines = [f"{s.time} {t[0] + 0.3} {t[1] - 0.2} {t[2] + 0.05}" for s, t in qs[:12:2]] + [f"{qs[3][0].time} - - -"]
     q.write_text("\n".join(lines) + "\n")
-    one = run_relocalize(map_path, bag, queries=q, csv_out=tmp_path / "one.csv", jobs=1)
-    three = run_relocalize(map_path, bag, queries=q, csv_out=tmp_path / "three.csv", jobs=3)
+    one = run_relocalize(_scans(map_path, bag, queries=q, csv_out=tmp_path / "one.csv", jobs=1))
+    three = run_relocalize(_scans(map_path, bag, queries=q, csv_out=tmp_path / "three.csv", jobs=3))
     assert len(one.results) == len(three.results) == len(lines)
     for a, b in zip(one.results, three.results):
         assert (a.scan_index, a.result.path, a.result.verdict) == (b.scan_index, b.result.path, b.result.verdict)
@@ -102,8 +108,8 @@ def test_run_relocalize_reports_warnings_before_reading_the_recording(cli_files,
     map_path, _, _ = cli_files
     warned = []
     with pytest.raises(CartoError):
-        run_relocalize(map_path, tmp_path / "missing.bag", global_search=True,
-                       overrides=["relocalization.cache_budget_mb=0.001"], on_warning=warned.append)
+        run_relocalize(_scans(map_path, tmp_path / "missing.bag", global_search=True,
+                              overrides=["relocalization.cache_budget_mb=0.001"]), on_warning=warned.append)
     assert len(warned) == 1 and "cache_budget_mb" in warned[0]
 
 
@@ -111,18 +117,23 @@ def test_run_relocalize_reports_warnings_before_reading_the_recording(cli_files,
     ({}, "give --initial-pose x,y,yaw, or --global, or --queries FILE"),
     ({"global_search": True, "initial_pose": "1,2,3"}, "--global and --initial-pose exclude each other"),
     ({"global_search": True, "at": 1.0, "scan_index": 2}, "--at and --scan-index exclude each other"),
+    ({"global_search": True, "max_jump": 0.0}, "--max-jump must be > 0 m, got 0"),
+    # Both wrong: reported in the order the command always has.
+    ({"at": 1.0, "scan_index": 2}, "give --initial-pose x,y,yaw, or --global, or --queries FILE"),
+    ({"max_jump": -1.0}, "--max-jump must be > 0 m, got -1"),
 ])
 def test_run_relocalize_checks_its_arguments_first(tmp_path, kwargs, message):
+    """The request refuses them as it is built, before any map or recording is looked at."""
     with pytest.raises(CartoError, match=message):
-        run_relocalize(tmp_path / "no-map.carto", tmp_path / "no.bag", **kwargs)
+        _scans(tmp_path / "no-map.carto", tmp_path / "no.bag", **kwargs)
 
 
 def test_a_bad_initial_pose_is_reported_after_the_scan_is_read(cli_files, tmp_path):
     map_path, bag, _ = cli_files
     with pytest.raises(CartoError, match="--initial-pose: expected x,y,yaw"):
-        run_relocalize(map_path, bag, initial_pose="1,2")
+        run_relocalize(_scans(map_path, bag, initial_pose="1,2"))
     with pytest.raises(CartoError, match="beyond the recording's"):
-        run_relocalize(map_path, bag, initial_pose="1,2", scan_index=10_000)
+        run_relocalize(_scans(map_path, bag, initial_pose="1,2", scan_index=10_000))
 
 
 # ------------------------------------------------------------------------------------------ command line
@@ -232,7 +243,7 @@ def test_headerless_query_file_errors_name_the_query_file(cli_files, tmp_path):
     assert "'index x y yaw'" in r.stderr
     q.write_text("index x y yaw\n3 - - -\n100000 - - -\n")
     with pytest.raises(CartoError, match=f"line 3: scan index 100000 is beyond {bag.name}'s 350 scans") as e:
-        run_relocalize(map_path, bag, queries=q)
+        run_relocalize(_scans(map_path, bag, queries=q))
     assert e.value.path == str(q)
     assert not q.with_suffix(".results.csv").exists()
     help_text = " ".join(_cli("relocalize", "--help").output.replace("│", " ").split())

@@ -136,7 +136,7 @@ def test_bad_requests_are_one_line_errors(mapped, tmp_path):
 def test_a_map_handed_to_cartographer_and_back(mapped, tmp_path):
     """--pbstream writes the map as Cartographer's state; carto renders, relocalizes in and continues that file
     as it does the map.carto it came from."""
-    from carto_cli.commands.relocalize import run_relocalize
+    from carto_cli.commands.relocalize import RelocalizeRequest, RelocalizeScans, run_relocalize
 
     mapdir, _ = mapped
     done = run_render(mapdir / "map.carto", tmp_path / "out", pbstream=True)
@@ -144,7 +144,7 @@ def test_a_map_handed_to_cartographer_and_back(mapped, tmp_path):
     again = run_render(done.pbstream, tmp_path / "again")
     assert again.image_file.read_bytes() == (mapdir / "map.pgm").read_bytes()
     bag = mapdir.parent / "sim.bag"
-    poses = [run_relocalize(m, bag, scan_index=150, global_search=True).result.pose
+    poses = [run_relocalize(RelocalizeScans(RelocalizeRequest(m, bag), scan_index=150, global_search=True)).result.pose
              for m in (mapdir / "map.carto", done.pbstream)]
     assert np.allclose(poses[0], poses[1], atol=1e-6)
     runner = CliRunner()
