@@ -638,10 +638,10 @@ def relocalize_(
     max_z: float = MAX_Z,
     jobs: int | None = typer.Option(None, "--jobs", "-j", metavar="N", callback=_at_least_one,
                                     rich_help_panel=PANEL_PERFORMANCE,
-                                    help="--queries: queries relocalized at once; one query: threads for a "
-                                         "whole-map search (default: every core). The answers are the same for any "
-                                         "number; a batch's timings include waiting for a core (1 for latency "
-                                         "figures)."),
+                                    help="--queries: queries relocalized at once; one query or --track: threads "
+                                         "for a whole-map search (default: every core). The answers are the same "
+                                         "for any number; a batch's timings include waiting for a core (1 for "
+                                         "latency figures)."),
 ):
     """Find scans in a saved map: windowed search from a prior, fallbacks, or a global search.
 
