@@ -79,8 +79,9 @@ def options(profile: str | Path | None = None, overrides: Sequence[str] = ()) ->
     """The options a command would use: ``profile`` None or 'auto' chooses them from each recording (what
     `carto map` does with no profile), else a profile name or YAML path; ``overrides`` as ``--set`` items."""
     if profile in (None, "auto"):
-        load_options(None, overrides)  # a bad override fails here, not once a recording is read
-        return Auto(tuple(overrides))
+        auto = Auto(tuple(overrides))
+        auto.base  # noqa: B018 - a bad override fails here, not once a recording is read
+        return auto
     return load_options(profile, overrides)
 
 

@@ -367,11 +367,11 @@ def _options(profile: str | None, overrides: list[str] | None):
 def _map_options(profile: str | None, overrides: list[str] | None):
     """--profile for commands that map: auto (None) chooses from the recording."""
     if profile in (None, "auto"):
-        from carto_cli.options import load_options
         from carto_cli.pipeline import Auto
 
-        load_options(None, overrides or [])  # a bad --set fails before the recording is read
-        return Auto(tuple(overrides or ()))
+        auto = Auto(tuple(overrides or ()))
+        auto.base  # noqa: B018 - a bad --set fails before the recording is read (and is loaded once)
+        return auto
     return _options(profile, overrides)
 
 

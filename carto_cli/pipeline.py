@@ -10,6 +10,7 @@ benchmarks all go this way.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time as _time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -84,6 +85,12 @@ class Auto:
     profile), then the user's ``--set`` overrides on top."""
 
     overrides: tuple[str, ...] = ()
+
+    @functools.cached_property
+    def base(self) -> Options:
+        """The defaults with the overrides, loaded once: what the recording is read with and auto chooses from
+        (a bad ``--set`` fails here)."""
+        return load_options(None, list(self.overrides))
 
 
 @dataclass(frozen=True, slots=True)
@@ -182,9 +189,7 @@ class Plan:
 
 def read_options(options: Options | Auto) -> ReadOptions:
     """How to read a recording for these options (the 3D point-cloud slice)."""
-    if isinstance(options, Auto):
-        options = load_options(None, list(options.overrides))
-    tb = options.trajectory_builder_2d
+    tb = (options.base if isinstance(options, Auto) else options).trajectory_builder_2d
     return ReadOptions(min_z=tb.min_z, max_z=tb.max_z)
 
 
@@ -257,7 +262,7 @@ def survey_mount(recording: Recording, selection: TopicSelection, laser_pose: An
 def configure_regime(regime: Regime, spec: Auto, algorithm: str | None = None) -> Configured:
     """The options and system auto chooses for a surveyed ``regime`` (``algorithm``, when given, wins), the
     user's ``--set`` on top."""
-    base = load_options(None, list(spec.overrides))
+    base = spec.base
     g = base.gmapping
     choice = choose(regime, base_max_range=base.trajectory_builder_2d.max_range, algorithm=algorithm,
                     gmapping_max_range=g.maxRange, gmapping_noise=(g.srr, g.srt, g.str, g.stt))
