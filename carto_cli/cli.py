@@ -384,10 +384,14 @@ def _say_configured(configured) -> None:
 @app.command("map")
 @handle_errors
 def map_(
-    recording: Path = RECORDING,
+    recordings: list[Path] = typer.Argument(
+        ..., metavar="RECORDING...",
+        help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]; several recordings of one building make "
+             "one map, one trajectory each (the first fixes the map frame; each later one is placed by loop "
+             "closures, wherever it starts)."),
     outdir: Path | None = typer.Option(None, "--output", "-o", metavar="DIR",
                                        help="Output directory (default: NAME_map in the current directory, NAME the "
-                                            "recording's name)."),
+                                            "first recording's name)."),
     profile: str | None = MAP_PROFILE,
     overrides: list[str] | None = SET,
     force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
@@ -424,23 +428,29 @@ def map_(
 ):
     """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
 
+    With several recordings (or --load-state) also trajectory_N.tum per trajectory in the map frame after the joint
+    optimization, and sessions.json: which are linked, by how many loop closures, where each lies in the first.
+    A recording linked to none is left out of the map and fails it.
+
     The outputs are written as one set (all replaced together or none); an earlier map in the output
     directory is kept unless --force. carto judges its own map: 'map quality: ok | suspect | failed' with the
     reasons (also in summary.json); a 'failed' map (or a 'suspect' one with --strict) exits 3, its outputs
     still written for a look."""
-    from carto_cli.commands.map import run_map, summary_line
+    from carto_cli.commands.map import run_map, sessions_lines, summary_line
     from carto_cli.core import parse
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
     from carto_cli.pipeline import MapRequest, TopicChoice
 
+    recording = recordings[0]
     request = MapRequest(
         recording, _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget)), algorithm,
         TopicChoice(scan_topic, odom_topic, imu_topic, odom_frame, base_frame),
         laser_pose=parse.pose(laser_pose, "--laser-pose") if laser_pose else None, use_odometry=not no_odometry,
-        loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs)
+        loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs, later=tuple(recordings[1:]))
     timer = StageTimer()
-    with progress(f"mapping {recording.name}", None, state.quiet) as bar:
+    label = recording.name + (f" + {len(recordings) - 1} more" if len(recordings) > 1 else "")
+    with progress(f"mapping {label}", None, state.quiet) as bar:
         result, outputs = run_map(request, outdir, timer=timer, on_scan=bar.advance, on_total=bar.set_total,
                                   on_configured=_say_configured, state=not no_state, force=force)
     for warning in result.warnings:
@@ -448,6 +458,8 @@ def map_(
     if timings:
         typer.echo(report_tree_text(timer))
     typer.echo(f"{summary_line(result, timer)} -> {outputs.yaml.parent}")
+    for line in sessions_lines(result):
+        typer.echo(line)
     if result.quality is not None:
         typer.echo(result.quality.line(), err=not result.quality.ok)
         if result.quality.fails(strict=strict):

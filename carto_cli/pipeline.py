@@ -25,13 +25,17 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
 from carto_cli.gmapping import ALGORITHMS, GMAPPING_PIPELINE, Algorithm
+from carto_cli.grid.occupancy_image import AssembledImage
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
-from carto_cli.mapping.quality import LEVELS, MapQuality, assess
+from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping.pose_graph_state import PoseGraphState
+from carto_cli.mapping.quality import LEVELS, MapQuality, QualityCheck, assess
+from carto_cli.mapping.sessions import Session, SessionLink, SessionScans, linked_to, session_links, trajectories
 from carto_cli.mapping.slam import MappingSystem, RunStats, Slam, SlamResult
 from carto_cli.options import Options, load_options
 from carto_cli.regime import AutoChoice, Regime, choose, survey
@@ -39,8 +43,8 @@ from carto_cli.regime import AutoChoice, Regime, choose, survey
 if TYPE_CHECKING:
     from carto_cli.io.loaded_map import LoadedMap
 
-__all__ = ["Auto", "Configured", "MapRequest", "MapResult", "Plan", "TopicChoice", "build", "execute", "planned",
-           "read_options", "resolve_laser_pose", "survey_mount"]
+__all__ = ["Auto", "Configured", "Continued", "MapRequest", "MapResult", "Plan", "TopicChoice", "build", "execute",
+           "map_sessions", "planned", "read_options", "resolve_laser_pose", "survey_mount"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,9 @@ class MapResult(SlamResult):
     quality: MapQuality | None = None  # carto's own verdict on the map (mapping.quality)
     warnings: tuple[str, ...] = ()  # what the recording held that mapping dropped (io.content)
     options: Options | None = None  # the options the map was built with (auto's choice)
+    # A map of several recordings (sessions): each one's trajectory after the joint optimization, and the links
+    sessions: tuple[Session, ...] = ()
+    links: tuple[SessionLink, ...] = ()
 
     @property
     def configured(self) -> Configured:
@@ -76,7 +83,14 @@ class MapResult(SlamResult):
             "laser_pose_source": self.laser_pose_source,
             "odometry": None if self.selection is None else self.selection.describe_odometry(),
             "warnings": list(self.warnings),
-        }
+        } | ({"sessions": self.sessions_report()} if self.sessions else {})
+
+    def sessions_report(self) -> dict:
+        """What sessions.json holds: every recording's trajectory and whether it is in the map, and the links."""
+        return {"schema": "carto.sessions v1",
+                "sessions": [{"trajectory": x.trajectory, "recording": x.name, "scans": len(x.times),
+                              "linked": x.linked} for x in self.sessions],
+                "links": [link.to_dict() for link in self.links]}
 
 
 @dataclass(frozen=True)
@@ -122,6 +136,9 @@ class MapRequest:
     load_state: Path | None = None
     max_scans: int | None = None
     jobs: int | None = None
+    # Recordings of the same building mapped after ``source``, each a trajectory of its own placed by whole-map
+    # loop-closure search (their odometry may restart anywhere)
+    later: tuple[str | Path | Recording, ...] = ()
 
     def __post_init__(self) -> None:
         # Refused before any recording is read or state loaded: mapping would refuse only after both.
@@ -131,18 +148,21 @@ class MapRequest:
         if self.load_state is not None and self.algorithm in GMAPPING_PIPELINE:
             raise CartoError(f"--load-state continues a Cartographer pose graph; {self.algorithm} starts every map "
                              "afresh (drop --load-state or use --algorithm cartographer)", self.load_state)
+        if self.later and self.algorithm in GMAPPING_PIPELINE:
+            raise CartoError(f"several recordings make one Cartographer pose graph; {self.algorithm} maps one "
+                             "recording (give one, or use --algorithm cartographer)")
 
     @property
     def system(self) -> str | None:
         """The mapping system asked for; None: auto chooses."""
-        if self.algorithm is None and self.load_state is not None:
+        if self.algorithm is None and (self.load_state is not None or self.later):
             return Algorithm.CARTOGRAPHER
         return self.algorithm
 
     @property
     def name(self) -> str:
         """The recording's name, as map.carto lists it."""
-        return Path(self.source).name if isinstance(self.source, (str, Path)) else "memory"
+        return Path(self.source).name if isinstance(self.source, (str, Path)) else self.source.path.name
 
 
 @dataclass(frozen=True)
@@ -151,6 +171,49 @@ class Configured:
     regime: Regime | None = None
     auto: AutoChoice | None = None
     algorithm: str = Algorithm.CARTOGRAPHER  # what maps: the caller's choice, else auto's, else Cartographer
+
+
+@dataclass(frozen=True, eq=False)
+class Continued:
+    """The map a run extends: its pose graph's state, the recordings it was made of, and each earlier session's
+    scans (whose poses the joint optimization will move)."""
+
+    state: PoseGraphState
+    recordings: tuple[str, ...]
+    sessions: tuple[SessionScans, ...]
+
+    @property
+    def next_trajectory(self) -> int:
+        """The id the run's trajectory takes."""
+        ids = [int(t) for t in self.state.node_trajectories] + [e.trajectory for e in self.state.submaps]
+        return max(ids) + 1 if ids else 0
+
+    @classmethod
+    def of_loaded(cls, loaded: LoadedMap) -> Continued:
+        """A saved map (--load-state): its earlier sessions are known by their nodes."""
+        recordings = tuple(loaded.metadata.recordings)
+        sessions = []
+        for t in sorted({int(v) for v in loaded.node_trajectories}):
+            nodes = np.flatnonzero(loaded.node_trajectories == t)
+            name = recordings[t] if t < len(recordings) else f"trajectory {t}"
+            sessions.append(SessionScans(t, name, loaded.node_times[nodes], loaded.node_local_poses[nodes], nodes))
+        return cls(loaded.to_state(), recordings, tuple(sessions))
+
+    @classmethod
+    def of_result(cls, result: MapResult, plan: Plan, trajectory: int) -> Continued:
+        """The map just made by ``plan`` (its trajectory ``trajectory``), to be extended in memory."""
+        assert result.graph is not None  # Cartographer's
+        earlier = plan.continued.sessions if plan.continued is not None else ()
+        return cls(result.graph.to_state(), plan.recordings, earlier + (_own_scans(result, plan, trajectory),))
+
+
+def _own_scans(result: MapResult, plan: Plan, trajectory: int) -> SessionScans:
+    """The scans ``plan`` mapped as trajectory ``trajectory`` of ``result``'s graph."""
+    assert result.graph is not None
+    own = np.flatnonzero(np.asarray(result.graph.node_trajectory) == trajectory)
+    # The node at or before each scan: the one whose correction carries it, as Slam poses its scans
+    at = np.clip(np.searchsorted(result.node_scans, np.arange(len(result.times)), side="right") - 1, 0, None)
+    return SessionScans(trajectory, plan.request.name, result.times, result.local_poses, own[at])
 
 
 @dataclass(frozen=True)
@@ -164,13 +227,13 @@ class Plan:
     mount: np.ndarray  # the laser on the robot (x, y, yaw)
     mount_source: str  # where that came from, in words
     configured: Configured
-    continued: LoadedMap | None = None  # the saved map this run extends (--load-state)
+    continued: Continued | None = None  # the map this run extends (--load-state, or the sessions before)
     stream: RecordStream | None = None  # the recording's records, read ahead (None: read them here)
 
     @property
     def recordings(self) -> tuple[str, ...]:
         """The recordings the map will have been built from, in order."""
-        earlier = tuple(self.continued.metadata.recordings) if self.continued is not None else ()
+        earlier = self.continued.recordings if self.continued is not None else ()
         return earlier + (self.request.name,)
 
     @property
@@ -194,9 +257,10 @@ def read_options(options: Options | Auto) -> ReadOptions:
 
 
 @contextmanager
-def planned(request: MapRequest, timer: Any = None) -> Iterator[Plan]:
+def planned(request: MapRequest, timer: Any = None, *, continued: Continued | None = None) -> Iterator[Plan]:
     """Open ``request``'s recording (unless it came open), choose its topics, start reading ahead, load or compile
-    the kernels, survey and configure: the :class:`Plan`, for as long as the recording stays open."""
+    the kernels, survey and configure: the :class:`Plan`, for as long as the recording stays open. ``continued``:
+    the map to extend (else ``request.load_state``'s, if any)."""
     with _opened(request) as recording:
         t = request.topics
         selection = select_topics(recording, t.scan, t.odometry, t.imu, odom_frame=t.odom_frame,
@@ -209,7 +273,7 @@ def planned(request: MapRequest, timer: Any = None) -> Iterator[Plan]:
             # Before the survey, which needs the matchers: on a cold cache every kernel the run will use is
             # compiled here at once, on every core (GMapping's only if it was asked for: auto rarely picks it).
             kernels.warm_up(timer, systems=(request.system or Algorithm.CARTOGRAPHER,))
-            yield resolve(request, recording, selection, stream=stream, timer=timer)
+            yield resolve(request, recording, selection, stream=stream, timer=timer, continued=continued)
 
 
 @contextmanager
@@ -222,7 +286,7 @@ def _opened(request: MapRequest) -> Iterator[Recording]:
 
 
 def resolve(request: MapRequest, recording: Recording, selection: TopicSelection, *,
-            stream: RecordStream | None = None, timer: Any = None) -> Plan:
+            stream: RecordStream | None = None, timer: Any = None, continued: Continued | None = None) -> Plan:
     """The :class:`Plan` for ``request`` on an opened ``recording`` whose topics are ``selection``: the laser's
     mount, the options and system (for :class:`Auto` the survey's choice; ``request.algorithm`` wins), the saved
     map to continue. ``stream``: the records mapping will read (the survey looks at their start)."""
@@ -242,11 +306,10 @@ def resolve(request: MapRequest, recording: Recording, selection: TopicSelection
         regime = survey(recording, surveyed, check_odometry=check, laser_pose=mount if check else None, timer=timer,
                         stream=stream)
         configured = configure_regime(regime, spec, request.system)
-    continued = None
-    if request.load_state is not None:
+    if continued is None and request.load_state is not None:
         from carto_cli.io.map_file import load_map  # reads pose graphs: only a run that continues one needs it
 
-        continued = load_map(request.load_state)
+        continued = Continued.of_loaded(load_map(request.load_state))
     return Plan(request, recording, selection, mount, mount_source, configured, continued, stream)
 
 
@@ -380,9 +443,61 @@ def _map_once(plan: Plan, configured: Configured, timer: Any,
         with slam.timer.stage("quality"):
             quality = assess(core, core.graph.odometry.samples(trajectory_id))
     fields = {f.name: getattr(core, f.name) for f in dataclasses.fields(SlamResult)}
-    return MapResult(**(fields | {"stats": stats}), laser_pose_source=plan.mount_source, selection=plan.selection,
-                     regime=configured.regime, auto=configured.auto, quality=quality,
-                     warnings=tuple(plan.recording.warnings) + tuple(content.warnings()), options=configured.options)
+    result = MapResult(**(fields | {"stats": stats}), laser_pose_source=plan.mount_source, selection=plan.selection,
+                       regime=configured.regime, auto=configured.auto, quality=quality,
+                       warnings=tuple(plan.recording.warnings) + tuple(content.warnings()), options=configured.options)
+    if plan.continued is not None:
+        with slam.timer.stage("sessions"):
+            result = _with_sessions(result, plan, trajectory_id)
+    return result
+
+
+def _with_sessions(result: MapResult, plan: Plan, trajectory: int) -> MapResult:
+    """A map of several sessions: every session's trajectory after the joint optimization, the links between them,
+    and a verdict that fails when one is linked to none. An unlinked session's submaps are left out of the map
+    image: they lie in a frame of their own, which drawn at the map's origin would overlay unrelated walls."""
+    graph = result.graph
+    assert plan.continued is not None and graph is not None
+    links = session_links(graph)
+    first = min(trajectories(graph))
+    linked = linked_to(first, links)
+    scans = plan.continued.sessions + (_own_scans(result, plan, trajectory),)
+    sessions = tuple(Session(x.trajectory, x.name, x.times, x.poses(graph), x.trajectory in linked) for x in scans)
+    unlinked = [x for x in sessions if not x.linked]
+    if not unlinked:
+        return dataclasses.replace(result, sessions=sessions, links=tuple(links))
+    kept = [e for e in graph.submaps if e.trajectory in linked]
+    image = AssembledImage([e.submap.grid for e in kept], [e.local_to_global() for e in kept])
+    check = QualityCheck("unlinked_sessions", float(len(unlinked)), 0.0, 0.0, "",
+                         "recording(s) linked by no loop closure to the first, left out of the map: "
+                         + ", ".join(x.name for x in unlinked))
+    checks = (result.quality.checks if result.quality is not None else []) + [check]
+    return dataclasses.replace(result, sessions=sessions, links=tuple(links), image=image,
+                               quality=MapQuality.of(checks))
+
+
+def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[int], None] | None = None,
+                 on_plan: Callable[[Plan], None] | None = None) -> MapResult:
+    """Every recording of ``request`` (``source``, then ``later``) into one map, one trajectory each, in order:
+    the first (or ``load_state``'s map) fixes the map frame, each later one continues the pose graph the one
+    before left, mapped with the first one's options. ``on_plan`` hears each plan before it is executed. One
+    recording: :func:`execute` of its plan."""
+    result: MapResult | None = None
+    continued: Continued | None = None
+    first = dataclasses.replace(request, later=(), algorithm=request.system)
+    for source in (request.source,) + request.later:
+        one = first if result is None else dataclasses.replace(
+            first, source=source, options=result.configured.options, algorithm=Algorithm.CARTOGRAPHER,
+            load_state=None)
+        with planned(one, timer, continued=continued) as plan:
+            if on_plan is not None:
+                on_plan(plan)
+            result = execute(plan, timer=timer, on_scan=on_scan)
+            if request.later:
+                trajectory = plan.continued.next_trajectory if plan.continued is not None else 0
+                continued = Continued.of_result(result, plan, trajectory)
+    assert result is not None
+    return result
 
 
 def _start_system(plan: Plan, configured: Configured, timer: Any) -> tuple[MappingSystem, int]:
@@ -402,8 +517,8 @@ def _start_system(plan: Plan, configured: Configured, timer: Any) -> tuple[Mappi
     graph = None
     trajectory_id = 0
     if plan.continued is not None:
-        graph = plan.continued.to_pose_graph(options, timer=timer, loop_closure=request.loop_closure)
-        trajectory_id = plan.continued.next_trajectory_id
+        graph = PoseGraph.from_state(options, plan.continued.state, timer=timer, loop_closure=request.loop_closure)
+        trajectory_id = plan.continued.next_trajectory
     return Slam(options, laser_pose=plan.mount, timer=timer, loop_closure=request.loop_closure, graph=graph,
                 trajectory_id=trajectory_id, started=wall0, jobs=request.jobs), trajectory_id
 

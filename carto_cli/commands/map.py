@@ -14,12 +14,16 @@ from carto_cli.io.atomic import existing_outputs, output_set, write_text_atomic
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
-from carto_cli.pipeline import Configured, MapRequest, MapResult, execute, planned
+from carto_cli.pipeline import Configured, MapRequest, MapResult, Plan, map_sessions
 
-__all__ = ["OUTPUT_NAMES", "MapOutputs", "check_outdir", "compile_note", "default_outdir", "run_map", "summary_line",
-           "write_outputs"]
+__all__ = ["OUTPUT_NAMES", "MapOutputs", "check_outdir", "compile_note", "default_outdir", "run_map", "sessions_lines",
+           "summary_line", "write_outputs"]
 
 OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto", "summary.json")
+# A map of several recordings also gets one trajectory file per recording (its trajectory id in the name) and the
+# report of how they are linked
+SESSION_NAMES = ("sessions.json",)
+SESSION_GLOB = "trajectory_*.tum"
 # What a recording's name ends with: cut off for the default output directory, the rest of the name kept
 RECORDING_SUFFIXES = (".gz", ".bag", ".mcap", ".db3", ".clf", ".log")
 
@@ -42,7 +46,10 @@ def write_outputs(result: MapResult, outdir: Path, options: Options | None = Non
     outdir = Path(outdir)
     if 0 in result.image.shape:
         raise CartoError("the map is empty: no scan was inserted", outdir)
-    with output_set(outdir, OUTPUT_NAMES) as staging:
+    # One trajectory file per recording of a map of several; those of an earlier set go with it
+    sessions = {f"trajectory_{x.trajectory}.tum": x for x in result.sessions}
+    names = OUTPUT_NAMES + SESSION_NAMES + tuple(sorted(set(sessions) | {p.name for p in outdir.glob(SESSION_GLOB)}))
+    with output_set(outdir, names) as staging:
         write_map(staging, result.image)
         write_png(staging / "map.png", render_png(result.image, result.poses, result.loop_closures))
         write_trajectory(staging / "trajectory.tum", Trajectory.from_poses(result.times, result.poses), fmt="tum")
@@ -53,6 +60,11 @@ def write_outputs(result: MapResult, outdir: Path, options: Options | None = Non
             save_map(staging / "map.carto", result, options, recordings=recordings, jobs=jobs)
             wrote_state = True
         write_text_atomic(staging / "summary.json", json.dumps(result.summary(), indent=1, default=float) + "\n")
+        for name, session in sessions.items():
+            write_trajectory(staging / name, Trajectory.from_poses(session.times, session.poses), fmt="tum")
+        if sessions:
+            write_text_atomic(staging / "sessions.json",
+                              json.dumps(result.sessions_report(), indent=1, default=float) + "\n")
     return MapOutputs(outdir / "map.pgm", outdir / "map.yaml", outdir / "map.png", outdir / "trajectory.tum",
                       outdir / "map.carto" if wrote_state else None, outdir / "summary.json")
 
@@ -105,19 +117,34 @@ def run_map(
             raise CartoError("a recording in memory has no name to make an output directory of: give outdir")
         outdir = default_outdir(Path(request.source))
     check_outdir(outdir, force=force)  # before mapping: not after the whole recording was mapped
-    with planned(request, timer) as plan:
-        if on_configured is not None:
+    plans: list[Plan] = []
+    scans = 0
+
+    def on_plan(plan: Plan) -> None:
+        nonlocal scans
+        if on_configured is not None and not plans:  # the later recordings are mapped with the first's options
             on_configured(plan.configured)
+        plans.append(plan)
+        scans += plan.scan_count
         if on_total is not None:
-            on_total(plan.scan_count)
-        result = execute(plan, timer=timer, on_scan=on_scan)
-        if result.auto is not plan.configured.auto and on_configured is not None:
-            on_configured(result.configured)  # auto tried another system (execute): say what came of it
-        recordings = plan.recordings
+            on_total(scans)  # every recording's scans so far: one bar over the whole run
+
+    result = map_sessions(request, timer=timer, on_scan=on_scan, on_plan=on_plan)
+    if result.auto is not plans[0].configured.auto and on_configured is not None:
+        on_configured(result.configured)  # auto tried another system (execute): say what came of it
+    recordings = plans[-1].recordings
     outputs = write_outputs(result, outdir, result.options, state=state, recordings=recordings, jobs=request.jobs)
     if timer is not None:
         timer.stop()
     return result, outputs
+
+
+def sessions_lines(result: MapResult) -> list[str]:
+    """A map of several recordings in a few lines: each link, then each recording linked to none."""
+    lines = [f"sessions: {link.describe()}" for link in result.links]
+    lines += [f"sessions: trajectory {x.trajectory} ({x.name}) is linked to no other: left out of the map"
+              for x in result.sessions if not x.linked]
+    return lines
 
 
 def summary_line(result: MapResult, timer=None, compiled: bool | None = None) -> str:

@@ -18,7 +18,7 @@ from carto_cli.core import transform
 from carto_cli.mapping.constraint_builder import LoopClosure
 
 __all__ = ["CONFIRM_MAX_NODES", "CONFIRM_MAX_ROTATION", "CONFIRM_MAX_TRANSLATION", "CONFIRM_NEIGHBOURS",
-           "ClosureConfirmation", "PendingClosure"]
+           "LINK_PLACES", "ClosureConfirmation", "LinkConfirmation", "PendingClosure"]
 
 # Two closures to one submap agree when they place their nodes, at most this many nodes apart, within this of
 # local SLAM's relative pose (local SLAM is good to centimetres over a few nodes).
@@ -26,6 +26,8 @@ CONFIRM_MAX_NODES = 10
 CONFIRM_MAX_TRANSLATION = 0.2  # m
 CONFIRM_MAX_ROTATION = math.radians(2.0)
 CONFIRM_NEIGHBOURS = 2  # nodes searched at once to confirm a new closure
+# Two trajectories are linked once closures into this many different submaps agree where the one lies in the other
+LINK_PLACES = 2
 
 
 @dataclass
@@ -87,3 +89,54 @@ def _agree(m: int, rel_m: np.ndarray, n: int, rel_n: np.ndarray, local_poses: np
     by_closures = transform.relative(rel_m, rel_n)
     gap = transform.relative(by_local_slam, by_closures)
     return math.hypot(gap[0], gap[1]) <= CONFIRM_MAX_TRANSLATION and abs(gap[2]) <= CONFIRM_MAX_ROTATION
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Offered:
+    closure: LoopClosure
+    frame: np.ndarray  # where the closure puts the later trajectory's frame in the earlier one's
+    place: np.ndarray  # the closure's place, in the later trajectory's frame
+
+
+class LinkConfirmation:
+    """The same rule for the first closures between two trajectories not yet linked (two recordings, each in a frame
+    of its own): a whole-map search matches one scan anywhere, and a building has look-alike places (a ring
+    corridor, rooms in a row), where one false closure would put a whole session in the wrong place. Each closure
+    says where the one trajectory's frame lies in the other's, from local poses alone; the two are linked when
+    closures into ``LINK_PLACES`` different submaps agree on it (within the chain rule's tolerance, at the newest
+    closure's place), and only then go into the graph. Near-duplicates from neighbouring nodes into one submap
+    are not independent evidence, so they do not count twice."""
+
+    def __init__(self) -> None:
+        self.pending: dict[tuple[int, int], list[_Offered]] = {}  # (earlier, later) trajectory → closures offered
+
+    def offer(self, lc: LoopClosure, submap_trajectory: int, submap_local_pose: np.ndarray, node_trajectory: int,
+              node_local_pose: np.ndarray) -> tuple[list[LoopClosure], np.ndarray | None]:
+        """Keep ``lc`` (between two trajectories not yet linked); the closures that link them now, ``lc`` and the
+        earlier ones that agree with it, in the order offered, with where ``lc`` puts the later trajectory's frame
+        in the earlier's; ([], None) while they wait."""
+        # The node's pose in the submap's frame carried into both trajectories' frames: the later trajectory's
+        # frame in the earlier's, from local SLAM's poses only (no optimization has seen the pair yet)
+        frame = transform.compose(transform.compose(submap_local_pose, lc.relative_pose),
+                                  transform.inverse(node_local_pose))
+        place = np.asarray(node_local_pose, dtype=np.float64)[:2]
+        pair = (submap_trajectory, node_trajectory)
+        if submap_trajectory > node_trajectory:
+            pair, frame = (node_trajectory, submap_trajectory), transform.inverse(frame)
+            place = np.asarray(submap_local_pose, dtype=np.float64)[:2]
+        offered = self.pending.setdefault(pair, [])
+        new = _Offered(lc, np.asarray(frame, dtype=np.float64), place)
+        agreeing = [o for o in offered if _same_frame(o, new)]
+        offered.append(new)
+        if len({o.closure.submap for o in agreeing} | {lc.submap}) < LINK_PLACES:
+            return [], None
+        del self.pending[pair]
+        return [o.closure for o in agreeing] + [lc], new.frame
+
+
+def _same_frame(a: _Offered, b: _Offered) -> bool:
+    """Whether ``a``'s and ``b``'s frames put ``b``'s place at the same spot, heading alike."""
+    pa = transform.apply(a.frame, b.place.reshape(1, 2))[0]
+    pb = transform.apply(b.frame, b.place.reshape(1, 2))[0]
+    turn = float(transform.wrap_angle(np.array([a.frame[2] - b.frame[2]]))[0])
+    return math.hypot(pa[0] - pb[0], pa[1] - pb[1]) <= CONFIRM_MAX_TRANSLATION and abs(turn) <= CONFIRM_MAX_ROTATION

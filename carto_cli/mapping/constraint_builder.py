@@ -335,6 +335,6 @@ class ConstraintBuilder:
         if o.closure is None:
             return None
         stats.accepted += 1
-        if o.global_search:
-            self.connected.add(frozenset((o.node.trajectory, o.submap.trajectory)))
+        # A whole-map search links two trajectories only once the pose graph has seen its closures agree
+        # (closure_confirmation.LinkConfirmation), which then marks them connected
         return o.closure

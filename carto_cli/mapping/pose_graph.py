@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike
 from carto_cli.core import transform
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.timing import NullTimer, StageTimer
-from carto_cli.mapping.closure_confirmation import ClosureConfirmation
+from carto_cli.mapping.closure_confirmation import ClosureConfirmation, LinkConfirmation
 from carto_cli.mapping.closure_search import ClosureSearches, node_data_of, submap_data_of
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
@@ -59,6 +59,29 @@ def _travel_to(local_pose: np.ndarray, trajectory: int, node_trajectory: list[in
             step = local_poses[previous, :2] - local_pose[:2]
             return node_travel[previous] + math.hypot(step[0], step[1])
     return 0.0
+
+
+def _offer_link(graph: PoseGraph, lc: LoopClosure) -> bool:
+    """Hand ``lc`` to the link rule when it joins two trajectories not linked yet (True), inserting the closures
+    that link them once they agree; False for any other closure."""
+    submap_trajectory, node_trajectory = graph.submaps[lc.submap].trajectory, graph.node_trajectory[lc.node]
+    pair = frozenset((submap_trajectory, node_trajectory))
+    if submap_trajectory == node_trajectory or pair in graph.builder.connected:
+        return False
+    cb = graph.pg.constraint_builder
+    linking, frame = graph.links.offer(lc, submap_trajectory, graph.submaps[lc.submap].local_pose, node_trajectory,
+                                       graph.local_poses[lc.node])
+    for link in linking:
+        graph.constraints.add(link.submap, link.node, link.relative_pose, cb.loop_closure_translation_weight,
+                              cb.loop_closure_rotation_weight, ConstraintKind.INTER_SUBMAP)
+    if frame is not None:
+        earlier, later = sorted(pair)
+        if not any(later in p for p in graph.builder.connected):
+            # A session linked for the first time goes where the link puts it at once (after the running
+            # optimization lands, which knew it elsewhere): searches from now on look around its true place
+            graph.placements.append((earlier, later, frame))
+        graph.builder.connected.add(pair)
+    return True
 
 
 def _last_correction(submaps: list[SubmapEntry], trajectory: int) -> np.ndarray:
@@ -105,6 +128,8 @@ class PoseGraph:
         self._nodes_since_optimization = 0
         self.searches = ClosureSearches()
         self.confirmation = ClosureConfirmation()  # with confirm_loop_closures
+        self.links = LinkConfirmation()  # the first closures between two trajectories
+        self.placements: list[tuple[int, int, np.ndarray]] = []  # sessions just linked, moved into place at settle
         self.scheduler = OptimizationScheduler()
 
     # ------------------------------------------------------------------ state in and out
@@ -167,7 +192,8 @@ class PoseGraph:
     # two lists name every attribute, so one added later is handed back or left out on purpose, never forgotten.
     EXPORTED = ("node_times", "node_trajectory", "node_points", "node_travel", "_local", "_global", "_odometry",
                 "odometry", "node_searches", "removed_loop_closures", "constraints", "_submap_index",
-                "_finished", "stats", "_nodes_since_optimization", "searches", "confirmation")
+                "_finished", "stats", "_nodes_since_optimization", "searches", "confirmation", "links",
+                "placements")
     # scheduler: idle once settled (nothing runs at export), and its thread cannot cross processes
     NOT_EXPORTED = ("options", "pg", "timer", "loop_closure", "scheduler", "builder", "submaps")  # the last two: below
 
@@ -283,6 +309,8 @@ class PoseGraph:
             self.constraints.add(lc.submap, node, relative, cb.loop_closure_translation_weight,
                                  cb.loop_closure_rotation_weight, ConstraintKind.INTER_SUBMAP)
 
+        if _offer_link(self, lc):
+            return
         if not cb.confirm_loop_closures:
             insert(lc.node, lc.relative_pose)
             return
@@ -316,6 +344,16 @@ class PoseGraph:
         taken = self.scheduler.take(self.timer)
         if taken is not None:
             self._apply(*taken)
+        placements, self.placements = self.placements, []
+        for earlier, later, frame in placements:
+            # The later trajectory moved rigidly, so that its frame lies at ``frame`` in the earlier one's
+            move = transform.compose(transform.compose(_last_correction(self.submaps, earlier), frame),
+                                     transform.inverse(_last_correction(self.submaps, later)))
+            mine = np.asarray(self.node_trajectory) == later
+            self._global.array[mine] = transform.compose(move, self._global.array[mine])
+            for entry in self.submaps:
+                if entry.trajectory == later:
+                    entry.global_pose = transform.compose(move, entry.global_pose)
 
     def _optimize_beside(self) -> None:
         """The periodic optimization, run while the next ``optimize_every_n_nodes`` nodes are added and searched

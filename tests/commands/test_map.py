@@ -74,6 +74,33 @@ def test_load_state_continues_the_map(tmp_path, sim_bag):
     # The same drive mapped twice: the second trajectory lands on the first.
     g, t = m.node_global_poses, m.node_trajectories
     assert np.linalg.norm(g[t == 1][0, :2] - g[t == 0][0, :2]) < 0.3
+    # Every trajectory after the joint optimization, and how they are linked
+    report = json.loads((second / "sessions.json").read_text())
+    assert [s["linked"] for s in report["sessions"]] == [True, True] and report["links"][0]["trajectories"] == [0, 1]
+    earlier, later = read_trajectory(second / "trajectory_0.tum"), read_trajectory(second / "trajectory_1.tum")
+    assert len(earlier) == len(m.node_times[t == 0])  # a saved map knows its earlier sessions by their nodes
+    assert len(later) == len(read_trajectory(second / "trajectory.tum"))
+    assert "sessions: trajectories 0 and 1:" in r.stdout
+
+
+def test_several_recordings_make_one_map(tmp_path, sim_bag):
+    bag, sim = sim_bag
+    out = tmp_path / "o"
+    r = runner.invoke(app, ["map", str(bag), str(bag), "-o", str(out), *FAST])
+    assert r.exit_code == 0, r.output
+    report = json.loads((out / "sessions.json").read_text())
+    assert [(s["trajectory"], s["recording"], s["linked"]) for s in report["sessions"]] == \
+        [(0, bag.name, True), (1, bag.name, True)]
+    first, second = read_trajectory(out / "trajectory_0.tum"), read_trajectory(out / "trajectory_1.tum")
+    assert len(first) == len(second) == sim.counts()["/scan"]
+    # The same drive twice: the two trajectories coincide in the map frame
+    assert np.max(np.linalg.norm(first.xy - second.xy, axis=1)) < 0.3
+    assert json.loads((out / "summary.json").read_text())["sessions"] == report
+    assert load_map(out / "map.carto").metadata.recordings == (bag.name, bag.name)
+    # One recording into the same directory: the earlier per-session files go with the earlier set
+    r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--force", *FAST])
+    assert r.exit_code == 0, r.output
+    assert not list(out.glob("trajectory_*.tum")) and not (out / "sessions.json").exists()
 
 
 def test_no_state_and_no_loop_closure(tmp_path, sim_bag):

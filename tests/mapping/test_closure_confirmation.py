@@ -47,3 +47,38 @@ def test_neighbours_are_the_nearest_searchable_nodes_of_the_trajectory():
     c.keep(_closure(4, 2.0), [])  # already has a closure to submap 0
     assert CONFIRM_NEIGHBOURS == 2 and c.neighbours(5, 0, [3], TRAJECTORIES, points) == [7, 2]
     assert c.neighbours(9, 0, [], TRAJECTORIES, points) == [8, 7]  # never trajectory 1's nodes 10 and 11
+
+
+def test_two_trajectories_are_linked_when_closures_into_two_submaps_agree():
+    from carto_cli.core import transform
+    from carto_cli.mapping.closure_confirmation import LinkConfirmation
+
+    # Trajectory 1's frame lies at (5, 2, 90 deg) in trajectory 0's; a closure's node pose in its submap's frame
+    # follows from that, for a node at ``local`` (trajectory 1) and a submap at ``origin`` (trajectory 0).
+    frame = np.array([5.0, 2.0, np.pi / 2])
+
+    def closure(node, submap, local, origin, off=(0.0, 0.0, 0.0)):
+        in_map = transform.compose(transform.compose(frame, off), local)
+        return LoopClosure(node, submap, transform.compose(transform.inverse(origin), in_map), 0.7, True)
+
+    origin0, origin1 = np.array([0.0, 0.0, 0.0]), np.array([4.0, 0.0, 0.0])
+    links = LinkConfirmation()
+    local = np.array([1.0, 0.5, 0.1])
+    assert links.offer(closure(3, 0, local, origin0), 0, origin0, 1, local) == ([], None)  # alone: waits
+    # A second closure into the same submap is no independent evidence; a look-alike elsewhere disagrees
+    assert links.offer(closure(4, 0, local + 0.1, origin0), 0, origin0, 1, local + 0.1)[0] == []
+    wrong = closure(5, 1, local, origin1, off=(0.0, 0.0, np.pi))
+    assert links.offer(wrong, 0, origin1, 1, local)[0] == []
+    found, got = links.offer(closure(6, 1, local + 0.2, origin1), 0, origin1, 1, local + 0.2)
+    assert [c.node for c in found] == [3, 4, 6] and got is not None
+    np.testing.assert_allclose(got, frame, atol=1e-9)
+    assert links.pending == {}
+    # Offered the other way round (the later trajectory's submap, the earlier one's node): the same frame
+    back = LinkConfirmation()
+    node0 = np.array([6.0, 3.0, 0.4])  # trajectory 0's node, matched in trajectory 1's submap at origin1
+    rel = transform.compose(transform.inverse(transform.compose(frame, origin1)), node0)
+    back.offer(LoopClosure(1, 7, rel, 0.7, True), 1, origin1, 0, node0)
+    second = transform.compose(transform.inverse(transform.compose(frame, origin0)), node0)
+    found, got = back.offer(LoopClosure(2, 8, second, 0.7, True), 1, origin0, 0, node0)
+    assert len(found) == 2
+    np.testing.assert_allclose(got, frame, atol=1e-9)
