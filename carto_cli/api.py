@@ -33,7 +33,7 @@ from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angle
 from carto_cli.evaluation.metrics import Evaluation
 from carto_cli.io.sources.memory import MemoryRecording
 from carto_cli.options import Options, load_options
-from carto_cli.pipeline import Auto, MapRequest, MapResult, execute, planned
+from carto_cli.pipeline import Auto, MapRequest, MapResult, execute, map_sessions, planned
 from carto_cli.relocalization import RelocalizationResult, Relocalizer, ScanContext
 
 __all__ = [
@@ -42,6 +42,7 @@ __all__ = [
     "ScanContext",
     "evaluate",
     "map_recording",
+    "map_recordings",
     "map_records",
     "odometry",
     "options",
@@ -68,6 +69,12 @@ class MapRun:
     def quality(self) -> str | None:
         """'ok', 'suspect' or 'failed' (the map's own verdict: a ``MapVerdict``, which is that string)."""
         return None if self.result.quality is None else self.result.quality.verdict
+
+    @property
+    def sessions(self) -> tuple:
+        """A map of several recordings: each one's trajectory in the map frame after the joint optimization
+        (``.name``, ``.times``, ``.poses``, ``.linked``); empty for one recording."""
+        return self.result.sessions
 
     def write(self, outdir: str | Path, *, force: bool = False, state: bool = True) -> MapOutputs:
         """Every output `carto map` writes, into ``outdir`` as one set; an earlier map there only with ``force``."""
@@ -96,6 +103,22 @@ def map_recording(recording: str | Path, *, profile: str | Path | None = None, o
         with planned(request) as plan:  # nothing written: the caller wants the result only
             result = execute(plan)
     return MapRun(result, result.configured.options, (Path(recording).name,))
+
+
+def map_recordings(recordings: Sequence[str | Path], *, profile: str | Path | None = None,
+                   overrides: Sequence[str] = (), jobs: int | None = None, outdir: str | Path | None = None,
+                   force: bool = False) -> MapRun:
+    """Several recordings of one building into one map, as `carto map A B ...`: each a trajectory, placed by
+    loop closures; ``MapRun.sessions`` says where each is and whether it is linked (``result.links``: how)."""
+    if not recordings:
+        raise CartoError("no recording to map")
+    first, *later = (Path(r) for r in recordings)
+    request = MapRequest(first, options(profile, overrides), jobs=jobs, later=tuple(later))
+    if outdir is not None:
+        result, _ = run_map(request, Path(outdir), force=force)
+    else:
+        result = map_sessions(request)
+    return MapRun(result, result.configured.options, tuple(Path(r).name for r in recordings))
 
 
 def map_records(records: Iterable[Record], *, laser_pose: Sequence[float] | None = None,

@@ -480,12 +480,15 @@ def _finish_gates(gates, junit: Path | None, suite: str, label: str) -> None:
 @app.command("eval")
 @handle_errors
 def eval_(
-    trajectory: Path = typer.Argument(..., metavar="TRAJECTORY",
-                                      help="Trajectory to score: TUM (t x y z qx qy qz qw) or 't x y theta'."),
+    trajectories: list[Path] = typer.Argument(
+        ..., metavar="TRAJECTORY...",
+        help="Trajectory to score: TUM (t x y z qx qy qz qw) or 't x y theta'. Several (a map's trajectory_N.tum): "
+             "ATE of each in their common frame, one alignment for all."),
     relations: Path | None = typer.Option(None, "--relations", metavar="FILE",
                                           help="Relations file: t1 t2 dx dy dz droll dpitch dyaw."),
-    ground_truth: Path | None = typer.Option(None, "--ground-truth", metavar="FILE",
-                                             help="Reference trajectory (TUM or 't x y theta')."),
+    ground_truth: list[Path] | None = typer.Option(
+        None, "--ground-truth", metavar="FILE",
+        help="Reference trajectory (TUM or 't x y theta'); with several trajectories, one for all or one each."),
     rpe_delta: float = typer.Option(1.0, "--rpe-delta", metavar="S", help="RPE step in seconds (with --ground-truth)."),
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
     max_trans_error: float | None = typer.Option(
@@ -498,11 +501,22 @@ def eval_(
                                       help="Write the gates' outcome as JUnit XML."),
 ):
     """Score a trajectory: relation error (Kuemmerle et al.) and/or ATE + RPE against a ground truth."""
-    from carto_cli.commands.eval import run_eval
+    from carto_cli.commands.eval import run_eval, run_eval_sessions
     from carto_cli.evaluation.metrics import format_table
 
-    run = run_eval(trajectory, relations=relations, ground_truth=ground_truth, rpe_delta=rpe_delta,
-                   max_trans_error=max_trans_error, max_rot_error=max_rot_error)
+    if len(trajectories) > 1:
+        if relations is not None:
+            raise CartoError("--relations scores one trajectory; several are scored by ATE (--ground-truth)")
+        several = run_eval_sessions(trajectories, list(ground_truth or []), max_trans_error=max_trans_error,
+                                    max_rot_error=max_rot_error)
+        typer.echo(json.dumps(several.data, indent=2) if as_json else "\n".join(several.lines()))
+        if several.gates is not None:
+            _finish_gates(several.gates, junit, "carto.eval", "gate failed")
+        return
+    if ground_truth is not None and len(ground_truth) > 1:
+        raise CartoError("one trajectory takes one --ground-truth")
+    run = run_eval(trajectories[0], relations=relations, ground_truth=ground_truth[0] if ground_truth else None,
+                   rpe_delta=rpe_delta, max_trans_error=max_trans_error, max_rot_error=max_rot_error)
     if as_json:
         typer.echo(json.dumps(run.data, indent=2))
     else:

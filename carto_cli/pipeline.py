@@ -37,6 +37,7 @@ from carto_cli.mapping.pose_graph_state import PoseGraphState
 from carto_cli.mapping.quality import LEVELS, MapQuality, QualityCheck, assess
 from carto_cli.mapping.sessions import Session, SessionLink, SessionScans, linked_to, session_links, trajectories
 from carto_cli.mapping.slam import MappingSystem, RunStats, Slam, SlamResult
+from carto_cli.mapping.submaps import Submap
 from carto_cli.options import Options, load_options
 from carto_cli.regime import AutoChoice, Regime, choose, survey
 
@@ -191,6 +192,7 @@ class Continued:
     @classmethod
     def of_loaded(cls, loaded: LoadedMap) -> Continued:
         """A saved map (--load-state): its earlier sessions are known by their nodes."""
+        _finish(loaded.submaps)
         recordings = tuple(loaded.metadata.recordings)
         sessions = []
         for t in sorted({int(v) for v in loaded.node_trajectories}):
@@ -204,7 +206,16 @@ class Continued:
         """The map just made by ``plan`` (its trajectory ``trajectory``), to be extended in memory."""
         assert result.graph is not None  # Cartographer's
         earlier = plan.continued.sessions if plan.continued is not None else ()
+        _finish([e.submap for e in result.graph.submaps if e.trajectory == trajectory])
         return cls(result.graph.to_state(), plan.recordings, earlier + (_own_scans(result, plan, trajectory),))
+
+
+def _finish(submaps: Sequence[Submap]) -> None:
+    """A session that is over takes no more scans: its last submaps are finished, as Cartographer's
+    FinishTrajectory does, so that a later session's whole-map searches can match against them too."""
+    for submap in submaps:
+        if not submap.finished:
+            submap.finish()
 
 
 def _own_scans(result: MapResult, plan: Plan, trajectory: int) -> SessionScans:

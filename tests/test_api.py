@@ -69,6 +69,18 @@ def test_map_recording_relocalize_and_evaluate(drive, tmp_path):
     assert math.isfinite(report.relations.translation.mean)
 
 
+def test_map_recordings_makes_one_map_of_several(drive, tmp_path):
+    sim, records = drive
+    bag = tmp_path / "drive.bag"
+    write_recording(iter(records), bag, "ros1", static_transforms=sim.static_transforms)
+    run = api.map_recordings([bag, bag])  # the same drive twice
+    assert [(s.trajectory, s.name, s.linked) for s in run.sessions] == [(0, "drive.bag", True), (1, "drive.bag", True)]
+    assert np.max(np.hypot(*(run.sessions[0].poses[:, :2] - run.sessions[1].poses[:, :2]).T)) < 0.3
+    assert run.recordings == ("drive.bag", "drive.bag") and len(run.result.links) == 1
+    with pytest.raises(api.CartoError, match="no recording"):
+        api.map_recordings([])
+
+
 def test_bad_input_is_a_carto_error(tmp_path):
     with pytest.raises(api.CartoError, match="no scans"):
         api.map_records([api.odometry(0.0, 0.0, 0.0, 0.0)])

@@ -15,6 +15,7 @@ of metrics.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,6 +35,7 @@ __all__ = [
     "RpeResult",
     "align_se2",
     "ate",
+    "ate_sessions",
     "evaluate",
     "format_table",
     "interpolate_poses",
@@ -302,6 +304,30 @@ def evaluate(trajectory: Trajectory | str | Path, relations: Relations | str | P
         if rpe_delta is not None:
             rpe_result = rpe(traj, gt, rpe_delta, rpe_unit, max_gap=max_gap)
     return Evaluation(name, rel_result, ate_result, rpe_result)
+
+
+def ate_sessions(trajectories: Sequence[Trajectory], groundtruths: Sequence[Trajectory], *,
+                 associate: str = "groundtruth", max_gap: float | None = None) -> list[AteResult]:
+    """ATE of several trajectories of one map (sessions) in their common frame: ONE SE(2) alignment over all of them
+    (a session misplaced against the others shows, which aligning each alone would hide), then each one's errors.
+    ``groundtruths``: one per trajectory, or one for all (a recording cut into sessions)."""
+    if len(groundtruths) not in (1, len(trajectories)):
+        raise CartoError(f"give one ground truth, or one per trajectory ({len(trajectories)}), "
+                         f"not {len(groundtruths)}")
+    refs = list(groundtruths) * len(trajectories) if len(groundtruths) == 1 else list(groundtruths)
+    pairs = [_associate(t, g, associate, max_gap) for t, g in zip(trajectories, refs)]
+    if sum(p[1].shape[0] for p in pairs) < 2:
+        raise CartoError("ATE needs at least 2 poses common to the trajectories and the ground truth")
+    tx, ty, phi = align_se2(np.concatenate([p[1] for p in pairs]), np.concatenate([p[3] for p in pairs]))
+    c, s = math.cos(phi), math.sin(phi)
+    out = []
+    for _, exy, eth, gxy, gth, skipped in pairs:
+        axy = np.stack([c * exy[:, 0] - s * exy[:, 1] + tx, s * exy[:, 0] + c * exy[:, 1] + ty], axis=1)
+        trans = np.linalg.norm(axy - gxy, axis=1)
+        rot = np.degrees(np.abs(wrap_angle(eth + phi - gth)))
+        out.append(AteResult(ErrorStats.of(trans), ErrorStats.of(rot), int(trans.size), skipped, True, associate,
+                             (tx, ty, phi), trans, rot))
+    return out
 
 
 # --------------------------------------------------------------------------- formatting

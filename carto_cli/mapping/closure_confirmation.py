@@ -18,7 +18,7 @@ from carto_cli.core import transform
 from carto_cli.mapping.constraint_builder import LoopClosure
 
 __all__ = ["CONFIRM_MAX_NODES", "CONFIRM_MAX_ROTATION", "CONFIRM_MAX_TRANSLATION", "CONFIRM_NEIGHBOURS",
-           "LINK_PLACES", "ClosureConfirmation", "LinkConfirmation", "PendingClosure"]
+           "LINK_CHECKS", "LINK_PLACES", "LINK_SEPARATION", "ClosureConfirmation", "LinkConfirmation", "PendingClosure"]
 
 # Two closures to one submap agree when they place their nodes, at most this many nodes apart, within this of
 # local SLAM's relative pose (local SLAM is good to centimetres over a few nodes).
@@ -26,8 +26,12 @@ CONFIRM_MAX_NODES = 10
 CONFIRM_MAX_TRANSLATION = 0.2  # m
 CONFIRM_MAX_ROTATION = math.radians(2.0)
 CONFIRM_NEIGHBOURS = 2  # nodes searched at once to confirm a new closure
-# Two trajectories are linked once closures into this many different submaps agree where the one lies in the other
+# Two trajectories are linked once closures from this many places agree where the one lies in the other: places
+# are different submaps, or nodes at least LINK_SEPARATION apart (a neighbouring node's closure into the same
+# submap is nearly the same scan matched again, no evidence of its own)
 LINK_PLACES = 2
+LINK_SEPARATION = 2.0  # m
+LINK_CHECKS = 4  # nodes of the session searched where a waiting closure puts them (pose_graph._check_link)
 
 
 @dataclass
@@ -103,9 +107,8 @@ class LinkConfirmation:
     of its own): a whole-map search matches one scan anywhere, and a building has look-alike places (a ring
     corridor, rooms in a row), where one false closure would put a whole session in the wrong place. Each closure
     says where the one trajectory's frame lies in the other's, from local poses alone; the two are linked when
-    closures into ``LINK_PLACES`` different submaps agree on it (within the chain rule's tolerance, at the newest
-    closure's place), and only then go into the graph. Near-duplicates from neighbouring nodes into one submap
-    are not independent evidence, so they do not count twice."""
+    closures from ``LINK_PLACES`` places agree on it (within the chain rule's tolerance, at the newest closure's
+    place), and only then go into the graph."""
 
     def __init__(self) -> None:
         self.pending: dict[tuple[int, int], list[_Offered]] = {}  # (earlier, later) trajectory → closures offered
@@ -128,10 +131,21 @@ class LinkConfirmation:
         new = _Offered(lc, np.asarray(frame, dtype=np.float64), place)
         agreeing = [o for o in offered if _same_frame(o, new)]
         offered.append(new)
-        if len({o.closure.submap for o in agreeing} | {lc.submap}) < LINK_PLACES:
+        if _places(agreeing + [new]) < LINK_PLACES:
             return [], None
         del self.pending[pair]
         return [o.closure for o in agreeing] + [lc], new.frame
+
+
+def _places(offered: list[_Offered]) -> int:
+    """How many independent places ``offered`` come from: greedily, each one in another submap than, or
+    LINK_SEPARATION from, every place counted before it."""
+    counted: list[_Offered] = []
+    for o in offered:
+        if all(o.closure.submap != c.closure.submap or math.hypot(*(o.place - c.place)) >= LINK_SEPARATION
+               for c in counted):
+            counted.append(o)
+    return len(counted)
 
 
 def _same_frame(a: _Offered, b: _Offered) -> bool:

@@ -19,6 +19,7 @@ searches themselves to ``constraint_builder`` (never the graph), the chain rule 
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -28,7 +29,7 @@ from numpy.typing import ArrayLike
 from carto_cli.core import transform
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.timing import NullTimer, StageTimer
-from carto_cli.mapping.closure_confirmation import ClosureConfirmation, LinkConfirmation
+from carto_cli.mapping.closure_confirmation import LINK_CHECKS, ClosureConfirmation, LinkConfirmation
 from carto_cli.mapping.closure_search import ClosureSearches, node_data_of, submap_data_of
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
@@ -61,9 +62,10 @@ def _travel_to(local_pose: np.ndarray, trajectory: int, node_trajectory: list[in
     return 0.0
 
 
-def _offer_link(graph: PoseGraph, lc: LoopClosure) -> bool:
+def _offer_link(graph: PoseGraph, lc: LoopClosure, *, checking: bool = False) -> bool:
     """Hand ``lc`` to the link rule when it joins two trajectories not linked yet (True), inserting the closures
-    that link them once they agree; False for any other closure."""
+    that link them once they agree; False for any other closure. A closure that waits is checked at once
+    (``_check_link``) unless it came from such a check."""
     submap_trajectory, node_trajectory = graph.submaps[lc.submap].trajectory, graph.node_trajectory[lc.node]
     pair = frozenset((submap_trajectory, node_trajectory))
     if submap_trajectory == node_trajectory or pair in graph.builder.connected:
@@ -74,6 +76,10 @@ def _offer_link(graph: PoseGraph, lc: LoopClosure) -> bool:
     for link in linking:
         graph.constraints.add(link.submap, link.node, link.relative_pose, cb.loop_closure_translation_weight,
                               cb.loop_closure_rotation_weight, ConstraintKind.INTER_SUBMAP)
+    if frame is None:
+        if not checking:
+            _check_link(graph, lc)
+        return True
     if frame is not None:
         earlier, later = sorted(pair)
         if not any(later in p for p in graph.builder.connected):
@@ -82,6 +88,40 @@ def _offer_link(graph: PoseGraph, lc: LoopClosure) -> bool:
             graph.placements.append((earlier, later, frame))
         graph.builder.connected.add(pair)
     return True
+
+
+def _check_link(graph: PoseGraph, lc: LoopClosure) -> None:
+    """Search a few other nodes of ``lc``'s node's trajectory where ``lc`` says they are, each in the nearest
+    finished submap of the other trajectory, with a windowed search: closures there that agree link the two at
+    once. Whole-map searches are few (``global_sampling_ratio``), so without this a short session could wait for a
+    second one that never comes, and a wrong candidate is refuted where it would put the session."""
+    entry = graph.submaps[lc.submap]
+    trajectory = graph.node_trajectory[lc.node]
+    # Where the closure puts the node's trajectory, in the map frame of the submap's trajectory
+    frame = transform.compose(transform.compose(entry.global_pose, lc.relative_pose),
+                              transform.inverse(graph.local_poses[lc.node]))
+    own = [n for n in range(graph.num_nodes)
+           if graph.node_trajectory[n] == trajectory and n != lc.node and len(graph.node_points[n])]
+    targets = [i for i in sorted(graph._finished) if graph.submaps[i].trajectory == entry.trajectory]
+    if not own or not targets:
+        return
+    centres = np.array([graph.submaps[i].global_pose[:2] for i in targets])
+    pairs = []
+    for k in np.unique(np.linspace(0, len(own) - 1, min(LINK_CHECKS, len(own))).round().astype(int)).tolist():
+        node = own[k]
+        pose = transform.compose(frame, graph.local_poses[node])
+        # Another submap than the closure's where there is one: a second place is independent evidence
+        gaps = np.hypot(*(centres - pose[:2]).T) + np.where(np.array(targets) == lc.submap, np.inf, 0.0)
+        if not np.isfinite(gaps).any():
+            gaps = np.hypot(*(centres - pose[:2]).T)
+        nearest = int(np.argmin(gaps))
+        if gaps[nearest] <= graph.pg.constraint_builder.max_constraint_distance:
+            data = node_data_of(graph, node)
+            pairs.append((dataclasses.replace(data, global_pose=pose), submap_data_of(graph, targets[nearest]),
+                          False))
+    for found in graph.builder.search_many(pairs):
+        if found is not None:
+            _offer_link(graph, found, checking=True)
 
 
 def _last_correction(submaps: list[SubmapEntry], trajectory: int) -> np.ndarray:

@@ -43,3 +43,25 @@ def test_needs_a_reference(files):
     traj, _, _ = files
     with pytest.raises(CartoError, match="give --relations FILE and/or --ground-truth FILE"):
         run_eval(traj)
+
+
+def test_several_trajectories_are_scored_in_their_common_frame(tmp_path):
+    from carto_cli.commands.eval import run_eval_sessions
+
+    gt = tmp_path / "gt.txt"
+    gt.write_text("".join(f"{t} {0.5 * t} {0.1 * t * t} 0\n" for t in range(20)))
+    first, second, shifted = tmp_path / "a.txt", tmp_path / "b.txt", tmp_path / "c.txt"
+    first.write_text("".join(f"{t} {0.5 * t} {0.1 * t * t} 0\n" for t in range(10)))
+    second.write_text("".join(f"{t} {0.5 * t} {0.1 * t * t} 0\n" for t in range(10, 20)))
+    # The second session placed 1 m off: alone it would align perfectly, in the common frame it cannot
+    shifted.write_text("".join(f"{t} {0.5 * t + 1.0} {0.1 * t * t} 0\n" for t in range(10, 20)))
+    right = run_eval_sessions([first, second], [gt])
+    assert [r.translation.rmse for r in right.results] == pytest.approx([0.0, 0.0], abs=1e-9)
+    wrong = run_eval_sessions([first, shifted], [gt], max_trans_error=0.1)
+    assert max(r.translation.rmse for r in wrong.results) > 0.3  # the common alignment splits the shift
+    assert [g.passed for g in wrong.gates] == [False]
+    assert [s["trajectory"] for s in wrong.data["sessions"]] == [str(first), str(shifted)]
+    with pytest.raises(CartoError, match="ground truth"):
+        run_eval_sessions([first, second], [gt, gt, gt])
+    with pytest.raises(CartoError, match="--ground-truth"):
+        run_eval_sessions([first, second], [])
