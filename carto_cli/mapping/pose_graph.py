@@ -68,8 +68,12 @@ def _offer_link(graph: PoseGraph, lc: LoopClosure, *, checking: bool = False) ->
     (``_check_link``) unless it came from such a check."""
     submap_trajectory, node_trajectory = graph.submaps[lc.submap].trajectory, graph.node_trajectory[lc.node]
     pair = frozenset((submap_trajectory, node_trajectory))
-    if submap_trajectory == node_trajectory or pair in graph.builder.connected:
+    if submap_trajectory == node_trajectory:
         return False
+    if pair in graph.builder.connected:
+        # A whole-map search started before the link came back: the link is its prior now, and a match a windowed
+        # search around the node's pose could not have found is a look-alike place (dropped)
+        return lc.global_search and not _within_window(graph, lc)
     cb = graph.pg.constraint_builder
     linking, frame = graph.links.offer(lc, submap_trajectory, graph.submaps[lc.submap].local_pose, node_trajectory,
                                        graph.local_poses[lc.node])
@@ -83,11 +87,32 @@ def _offer_link(graph: PoseGraph, lc: LoopClosure, *, checking: bool = False) ->
     if frame is not None:
         earlier, later = sorted(pair)
         if not any(later in p for p in graph.builder.connected):
-            # A session linked for the first time goes where the link puts it at once (after the running
-            # optimization lands, which knew it elsewhere): searches from now on look around its true place
+            # A session linked for the first time goes where the link puts it at once, and again once the running
+            # optimization (which knew it elsewhere) lands: searches from now on look around its true place
+            _place(graph, earlier, later, frame)
             graph.placements.append((earlier, later, frame))
         graph.builder.connected.add(pair)
     return True
+
+
+def _place(graph: PoseGraph, earlier: int, later: int, frame: np.ndarray) -> None:
+    """Move trajectory ``later`` rigidly so that its frame lies at ``frame`` in trajectory ``earlier``'s."""
+    move = transform.compose(transform.compose(_last_correction(graph.submaps, earlier), frame),
+                             transform.inverse(_last_correction(graph.submaps, later)))
+    mine = np.asarray(graph.node_trajectory) == later
+    graph._global.array[mine] = transform.compose(move, graph._global.array[mine])
+    for entry in graph.submaps:
+        if entry.trajectory == later:
+            entry.global_pose = transform.compose(move, entry.global_pose)
+
+
+def _within_window(graph: PoseGraph, lc: LoopClosure) -> bool:
+    """Whether ``lc`` puts its node within the windowed search's reach of where the graph has it."""
+    window = graph.pg.constraint_builder.fast_correlative_scan_matcher
+    gap = transform.relative(graph.global_poses[lc.node],
+                             transform.compose(graph.submaps[lc.submap].global_pose, lc.relative_pose))
+    return (max(abs(gap[0]), abs(gap[1])) <= window.linear_search_window
+            and abs(gap[2]) <= window.angular_search_window)
 
 
 def _check_link(graph: PoseGraph, lc: LoopClosure) -> None:
@@ -386,14 +411,7 @@ class PoseGraph:
             self._apply(*taken)
         placements, self.placements = self.placements, []
         for earlier, later, frame in placements:
-            # The later trajectory moved rigidly, so that its frame lies at ``frame`` in the earlier one's
-            move = transform.compose(transform.compose(_last_correction(self.submaps, earlier), frame),
-                                     transform.inverse(_last_correction(self.submaps, later)))
-            mine = np.asarray(self.node_trajectory) == later
-            self._global.array[mine] = transform.compose(move, self._global.array[mine])
-            for entry in self.submaps:
-                if entry.trajectory == later:
-                    entry.global_pose = transform.compose(move, entry.global_pose)
+            _place(self, earlier, later, frame)  # again: the optimization just taken knew it elsewhere
 
     def _optimize_beside(self) -> None:
         """The periodic optimization, run while the next ``optimize_every_n_nodes`` nodes are added and searched
