@@ -137,12 +137,15 @@ def one(case: str, n: int, mode: str) -> dict:
         ests.append(s.poses[ok])
         refs.append(ref[ok])
         fits.append(_fit(s.poses[ok], ref[ok]))
-    common = _fit(np.concatenate(ests), np.concatenate(refs))
-    out["ate"] = [_rmse(common, e, r) for e, r in zip(ests, refs)]
+    # One alignment over the linked sessions (an unlinked one is in no common frame: not scored)
+    linked = [s.linked for s in result.sessions]
+    common = _fit(np.concatenate([e for e, k in zip(ests, linked) if k]),
+                  np.concatenate([r for r, k in zip(refs, linked) if k]))
+    out["ate"] = [_rmse(common, e, r) if k else None for e, r, k in zip(ests, refs, linked)]
     misplaced = []
-    for fit in fits[1:]:
+    for fit, k in zip(fits[1:], linked[1:]):
         d = transform.compose(transform.inverse(fits[0]), fit)
-        misplaced.append([float(math.hypot(d[0], d[1])), float(abs(math.degrees(d[2])))])
+        misplaced.append([float(math.hypot(d[0], d[1])), float(abs(math.degrees(d[2])))] if k else None)
     out["misplaced"] = misplaced
     return out
 
@@ -178,11 +181,14 @@ def _table(rows: list[dict], foreign_rows: list[dict], commit: str) -> str:
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         base = r["baseline"]
-        ratio = max(a / b if b > 0 else float("inf") for a, b in zip(r["ate"], base["ate"]))
-        worst = max(r["misplaced"], key=lambda m: m[0]) if r["misplaced"] else [0.0, 0.0]
-        worst_deg = max((m[1] for m in r["misplaced"]), default=0.0)
+        ratio = max((a / b if b > 0 else float("inf") for a, b in zip(r["ate"], base["ate"]) if a is not None),
+                    default=float("nan"))
+        placed = [m for m in r["misplaced"] if m is not None]
+        worst = max((m[0] for m in placed), default=0.0)
+        worst_deg = max((m[1] for m in placed), default=0.0)
+        ates = ", ".join("unlinked" if a is None else f"{a:.3f}" for a in r["ate"])
         lines.append(f"| {r['case']} | {r['sessions']} | {r['linked']}/{r['sessions']} | {r['verdict']} | "
-                     f"{', '.join(f'{a:.3f}' for a in r['ate'])} | {ratio:.2f} | {worst[0]:.3f} / {worst_deg:.2f} | "
+                     f"{ates} | {ratio:.2f} | {worst:.3f} / {worst_deg:.2f} | "
                      f"{r['cpu_s']:.1f} | {r['peak_memory_mb']:.0f} | {base['cpu_s']:.1f} |")
     if foreign_rows:
         lines += ["", "Two buildings given together (the first 40 % of each): links found and the verdict.", "",

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import time as _time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -32,6 +33,7 @@ from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
+from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.pose_graph_state import PoseGraphState
 from carto_cli.mapping.quality import LEVELS, MapQuality, QualityCheck, assess
@@ -475,14 +477,22 @@ def _with_sessions(result: MapResult, plan: Plan, trajectory: int) -> MapResult:
     scans = plan.continued.sessions + (_own_scans(result, plan, trajectory),)
     sessions = tuple(Session(x.trajectory, x.name, x.times, x.poses(graph), x.trajectory in linked) for x in scans)
     unlinked = [x for x in sessions if not x.linked]
-    if not unlinked:
-        return dataclasses.replace(result, sessions=sessions, links=tuple(links))
-    kept = [e for e in graph.submaps if e.trajectory in linked]
-    image = AssembledImage([e.submap.grid for e in kept], [e.local_to_global() for e in kept])
-    check = QualityCheck("unlinked_sessions", float(len(unlinked)), 0.0, 0.0, "",
-                         "recording(s) linked by no loop closure to the first, left out of the map: "
-                         + ", ".join(x.name for x in unlinked))
-    checks = (result.quality.checks if result.quality is not None else []) + [check]
+    checks = list(result.quality.checks) if result.quality is not None else []
+    if links:
+        # The closures of one link place the session alike when it is right; a look-alike place mixed in splits
+        # them (within the link rule's own tolerance: suspect at twice it, failed at five times)
+        worst = max(links, key=lambda link: float(link.spread[2]))
+        tolerance = math.degrees(CONFIRM_MAX_ROTATION)
+        checks.append(QualityCheck("session_links", math.degrees(float(worst.spread[2])), 2 * tolerance,
+                                   5 * tolerance, "deg", f"spread of the headings the closures between trajectories "
+                                   f"{worst.a} and {worst.b} give the one in the other"))
+    image = result.image
+    if unlinked:
+        kept = [e for e in graph.submaps if e.trajectory in linked]
+        image = AssembledImage([e.submap.grid for e in kept], [e.local_to_global() for e in kept])
+        checks.append(QualityCheck("unlinked_sessions", float(len(unlinked)), 0.0, 0.0, "",
+                                   "recording(s) linked by no loop closure to the first, left out of the map: "
+                                   + ", ".join(x.name for x in unlinked)))
     return dataclasses.replace(result, sessions=sessions, links=tuple(links), image=image,
                                quality=MapQuality.of(checks))
 
