@@ -386,9 +386,8 @@ def _say_configured(configured) -> None:
 def map_(
     recordings: list[Path] = typer.Argument(
         ..., metavar="RECORDING...",
-        help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]; several recordings of one building make "
-             "one map, one trajectory each (the first fixes the map frame; each later one is placed by loop "
-             "closures, wherever it starts)."),
+        help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]; several of one building make one map "
+             "(each later one placed by loop closures, wherever it starts)."),
     outdir: Path | None = typer.Option(None, "--output", "-o", metavar="DIR",
                                        help="Output directory (default: NAME_map in the current directory, NAME the "
                                             "first recording's name)."),
@@ -426,11 +425,8 @@ def map_(
     jobs: int | None = JOBS,
     memory_budget: str | None = MEMORY_BUDGET,
 ):
-    """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json.
-
-    With several recordings (or --load-state) also trajectory_N.tum per trajectory in the map frame after the joint
-    optimization, and sessions.json: which are linked, by how many loop closures, where each lies in the first.
-    A recording linked to none is left out of the map and fails it.
+    """Build a map: map.pgm + map.yaml (map_server), map.png, trajectory.tum, map.carto, summary.json; with
+    several recordings (or --load-state) also trajectory_N.tum per recording and sessions.json (their links).
 
     The outputs are written as one set (all replaced together or none); an earlier map in the output
     directory is kept unless --force. carto judges its own map: 'map quality: ok | suspect | failed' with the
