@@ -503,6 +503,9 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
     the first (or ``load_state``'s map) fixes the map frame, each later one continues the pose graph the one
     before left, mapped with the first one's options. ``on_plan`` hears each plan before it is executed. One
     recording: :func:`execute` of its plan."""
+    for source in request.later:  # a missing later recording is said before the first is mapped, not after
+        if isinstance(source, (str, Path)) and not Path(source).exists():
+            raise CartoError("no such file or directory", source)
     result: MapResult | None = None
     continued: Continued | None = None
     first = dataclasses.replace(request, later=(), algorithm=request.system)

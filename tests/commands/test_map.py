@@ -97,6 +97,10 @@ def test_several_recordings_make_one_map(tmp_path, sim_bag):
     assert np.max(np.linalg.norm(first.xy - second.xy, axis=1)) < 0.3
     assert json.loads((out / "summary.json").read_text())["sessions"] == report
     assert load_map(out / "map.carto").metadata.recordings == (bag.name, bag.name)
+    # A later recording that is not there is said at once, before the first is mapped, and nothing is written
+    r = runner.invoke(app, ["map", str(bag), str(tmp_path / "no-such.bag"), "-o", str(tmp_path / "x"), *FAST])
+    assert r.exit_code != 0 and "no-such.bag: no such file" in r.output and "mapping" not in r.stderr
+    assert not (tmp_path / "x").exists()
     # One recording into the same directory: the earlier per-session files go with the earlier set
     r = runner.invoke(app, ["map", str(bag), "-o", str(out), "--force", *FAST])
     assert r.exit_code == 0, r.output
