@@ -84,14 +84,13 @@ def _offer_link(graph: PoseGraph, lc: LoopClosure, *, checking: bool = False) ->
         if not checking:
             _check_link(graph, lc)
         return True
-    if frame is not None:
-        earlier, later = sorted(pair)
-        if not any(later in p for p in graph.builder.connected):
-            # A session linked for the first time goes where the link puts it at once, and again once the running
-            # optimization (which knew it elsewhere) lands: searches from now on look around its true place
-            _place(graph, earlier, later, frame)
-            graph.placements.append((earlier, later, frame))
-        graph.builder.connected.add(pair)
+    earlier, later = sorted(pair)
+    if not any(later in p for p in graph.builder.connected):
+        # A session linked for the first time goes where the link puts it at once, and again once the running
+        # optimization (which knew it elsewhere) lands: searches from now on look around its true place
+        _place(graph, earlier, later, frame)
+        graph.placements.append((earlier, later, frame))
+    graph.builder.connected.add(pair)
     return True
 
 
@@ -125,8 +124,8 @@ def _check_link(graph: PoseGraph, lc: LoopClosure) -> None:
     # Where the closure puts the node's trajectory, in the map frame of the submap's trajectory
     frame = transform.compose(transform.compose(entry.global_pose, lc.relative_pose),
                               transform.inverse(graph.local_poses[lc.node]))
-    own = [n for n in range(graph.num_nodes)
-           if graph.node_trajectory[n] == trajectory and n != lc.node and len(graph.node_points[n])]
+    own = [n for n in np.flatnonzero(np.asarray(graph.node_trajectory) == trajectory).tolist()
+           if n != lc.node and len(graph.node_points[n])]
     targets = [i for i in sorted(graph._finished) if graph.submaps[i].trajectory == entry.trajectory]
     if not own or not targets:
         return
