@@ -44,24 +44,11 @@ DATA = Path(os.environ.get("CARTO_SHARED_DATA", ROOT.parent / "shared" / "data")
 FOREIGN_SHARE = 0.4
 
 
-def _fit(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    from carto_cli.evaluation.metrics import align_se2
+def _ate(trajectories, references) -> list:
+    """``evaluation.metrics.ate_sessions``: one SE(2) alignment over all of ``trajectories``, each one's errors."""
+    from carto_cli.evaluation.metrics import ate_sessions
 
-    return np.array(align_se2(est[:, :2], ref[:, :2]))
-
-
-def _rmse(align: np.ndarray, est: np.ndarray, ref: np.ndarray) -> float:
-    from carto_cli.core import transform
-
-    moved = transform.apply(align, est[:, :2])
-    return float(np.sqrt(np.mean(np.sum((moved - ref[:, :2]) ** 2, axis=1))))
-
-
-def _reference_at(reference, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from carto_cli.evaluation.metrics import interpolate_poses
-
-    xy, th, ok = interpolate_poses(reference, times)
-    return np.column_stack([xy, th]), ok
+    return ate_sessions(trajectories, references)
 
 
 def _sim_sessions(n: int):
@@ -100,6 +87,7 @@ def _map(first, later=()):
 def one(case: str, n: int, mode: str) -> dict:
     """One measurement (run in a process of its own)."""
     from carto_cli.core import transform
+    from carto_cli.io.trajectory import Trajectory
 
     if case == "sim":
         recordings, references, whole = *_sim_sessions(n), None
@@ -107,41 +95,37 @@ def one(case: str, n: int, mode: str) -> dict:
         recordings, references, whole = _dense_sessions(case.removeprefix("dense-"), n)
     out: dict = {"case": case, "sessions": n, "mode": mode}
     if mode == "baseline":
-        per = []
         if whole is not None:
+            # The uncut map under one alignment, scored over each session's stretch of it
             result = _map(whole)
-            est = result.poses
-            ref, ok = _reference_at(references[0], result.times)
-            align = _fit(est[ok], ref[ok])
+            pieces = []
             for rec in recordings:
                 span = np.array([r.time for r in rec.records([next(t.name for t in rec.topics() if t.kind == "scan")])])
-                inside = ok & (result.times >= span[0]) & (result.times <= span[-1])
-                per.append(_rmse(align, est[inside], ref[inside]))
+                inside = (result.times >= span[0]) & (result.times <= span[-1])
+                pieces.append(Trajectory.from_poses(result.times[inside], result.poses[inside]))
+            out["ate"] = [r.translation.rmse for r in _ate(pieces, references[:1])]
             out["peak_memory_mb"] = result.stats.get("peak_memory_mb")
         else:
+            per = []
             for rec, reference in zip(recordings, references):
                 result = _map(rec)
-                ref, ok = _reference_at(reference, result.times)
-                per.append(_rmse(_fit(result.poses[ok], ref[ok]), result.poses[ok], ref[ok]))
+                (alone,) = _ate([Trajectory.from_poses(result.times, result.poses)], [reference])
+                per.append(alone.translation.rmse)
                 out["peak_memory_mb"] = max(out.get("peak_memory_mb") or 0, result.stats.get("peak_memory_mb") or 0)
-        out["ate"] = per
+            out["ate"] = per
         return out
     result = _map(recordings[0], recordings[1:])
     out["peak_memory_mb"] = result.stats.get("peak_memory_mb")
     out["verdict"] = str(result.quality.verdict) if result.quality is not None else None
     out["linked"] = sum(s.linked for s in result.sessions)
     out["links"] = [link.to_dict() for link in result.links]
-    ests, refs, fits = [], [], []
-    for s, reference in zip(result.sessions, references):
-        ref, ok = _reference_at(reference, s.times)
-        ests.append(s.poses[ok])
-        refs.append(ref[ok])
-        fits.append(_fit(s.poses[ok], ref[ok]))
-    # One alignment over the linked sessions (an unlinked one is in no common frame: not scored)
+    trajectories = [Trajectory.from_poses(s.times, s.poses) for s in result.sessions]
     linked = [s.linked for s in result.sessions]
-    common = _fit(np.concatenate([e for e, k in zip(ests, linked) if k]),
-                  np.concatenate([r for r, k in zip(refs, linked) if k]))
-    out["ate"] = [_rmse(common, e, r) if k else None for e, r, k in zip(ests, refs, linked)]
+    # One alignment over the linked sessions (an unlinked one is in no common frame: not scored)
+    common = iter(_ate([t for t, k in zip(trajectories, linked) if k], [r for r, k in zip(references, linked) if k]))
+    out["ate"] = [next(common).translation.rmse if k else None for k in linked]
+    # Each session aligned alone: how far a later one is misplaced against the first as a whole
+    fits = [np.array(_ate([t], [r])[0].alignment) for t, r in zip(trajectories, references)]
     misplaced = []
     for fit, k in zip(fits[1:], linked[1:]):
         d = transform.compose(transform.inverse(fits[0]), fit)

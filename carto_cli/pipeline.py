@@ -208,7 +208,6 @@ class Continued:
         """The map just made by ``plan`` (its trajectory ``trajectory``), to be extended in memory."""
         assert result.graph is not None  # Cartographer's
         earlier = plan.continued.sessions if plan.continued is not None else ()
-        _finish([e.submap for e in result.graph.submaps if e.trajectory == trajectory])
         return cls(result.graph.to_state(), plan.recordings, earlier + (_own_scans(result, plan, trajectory),))
 
 
@@ -519,6 +518,8 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
             result = execute(plan, timer=timer, on_scan=on_scan)
             if request.later:
                 trajectory = plan.continued.next_trajectory if plan.continued is not None else 0
+                assert result.graph is not None  # Cartographer's
+                _finish([e.submap for e in result.graph.submaps if e.trajectory == trajectory])
                 continued = Continued.of_result(result, plan, trajectory)
     assert result is not None
     return result

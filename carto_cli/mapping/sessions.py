@@ -16,6 +16,7 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.mapping.pose_graph import PoseGraph
+from carto_cli.mapping.slam import scan_poses
 
 __all__ = ["Session", "SessionLink", "SessionScans", "linked_to", "session_links", "trajectories"]
 
@@ -34,8 +35,7 @@ class SessionScans:
 
     def poses(self, graph: PoseGraph) -> np.ndarray:
         """(S, 3) the scans in the map frame: each carried by the correction of its node."""
-        correction = transform.compose(graph.global_poses[self.nodes], transform.inverse(graph.local_poses[self.nodes]))
-        return transform.compose(correction, self.local_poses)
+        return scan_poses(graph, self.local_poses, self.nodes)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

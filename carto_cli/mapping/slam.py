@@ -209,7 +209,7 @@ class Slam:
         give_back()
         submaps = [entry.submap for entry in graph.submaps]
         local_arr = np.array(self._local_poses)
-        poses = _scan_poses(graph, local_arr, np.asarray(self._scan_node) + self._first_node)
+        poses = scan_poses(graph, local_arr, np.asarray(self._scan_node) + self._first_node)
         submap_poses = graph.submap_global_poses
         with timer.stage("assemble map"):
             corrections = [entry.local_to_global() for entry in graph.submaps]
@@ -243,7 +243,7 @@ class Slam:
         )
 
 
-def _scan_poses(graph: PoseGraph, scan_local: np.ndarray, scan_node: np.ndarray) -> np.ndarray:
+def scan_poses(graph: PoseGraph, scan_local: np.ndarray, scan_node: np.ndarray) -> np.ndarray:
     """Global poses of scans given their local poses and the latest node at or before each.
 
     A scan between nodes takes the correction of the node before it, which is what the robot would have reported

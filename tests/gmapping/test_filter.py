@@ -29,14 +29,17 @@ def drive():
     return sim, list(sim.records(["/scan", "/odom"]))
 
 
-def _run(sim, records, overrides):
-    slam = GMappingSlam(load_options(None, FAST + overrides), laser_pose=sim.laser_pose)
+def _feed(slam, records):
     for record in records:
         if isinstance(record, Scan):
             slam.add_scan(record)
         elif isinstance(record, Odometry):
             slam.add_odometry(record)
-    return slam.finish()
+    return slam
+
+
+def _run(sim, records, overrides):
+    return _feed(GMappingSlam(load_options(None, FAST + overrides), laser_pose=sim.laser_pose), records).finish()
 
 
 def _odometry_at_scans(records, times):
@@ -118,12 +121,7 @@ def test_walls_above_slam_gmappings_threshold_are_occupied_in_map_yaml_terms(cli
     slam = GMappingSlam(load_options(None, FAST + ["gmapping.particles=6", "gmapping.refineIterations=0",
                                                   "gmapping.refineLoops=false"]),
                         laser_pose=sim.laser_pose)
-    for record in records:
-        if isinstance(record, Scan):
-            slam.add_scan(record)
-        elif isinstance(record, Odometry):
-            slam.add_odometry(record)
-    image = slam.finish().image.probability
+    image = _feed(slam, records).finish().image.probability
     raw, _ = slam.maps.occupancy(slam.best_particle())
     known = np.isfinite(raw)
     assert np.array_equal(known, np.isfinite(image)) and image[known].max() <= 1.0
@@ -138,11 +136,7 @@ def test_the_particles_maps_are_released_before_the_refinement_draws_its_own(cli
     sim, records = clip
     slam = GMappingSlam(load_options(None, FAST + ["gmapping.particles=6", "gmapping.refineIterations=1"]),
                         laser_pose=sim.laser_pose)
-    for record in records:
-        if isinstance(record, Scan):
-            slam.add_scan(record)
-        elif isinstance(record, Odometry):
-            slam.add_odometry(record)
+    _feed(slam, records)
     held = slam.maps.tiles_in_use
     result = slam.finish()
     assert held > 0 and slam.maps.tiles_in_use == 0
