@@ -11,6 +11,7 @@ modules below it may change in any release. Units are metres, seconds and radian
     run = api.map_records(scans + [api.odometry(t, x, y, yaw) for t, x, y, yaw in odo])   # from arrays
     answer = api.relocalize("run_map/map.carto", scans[10], prior=(1.0, 2.0, 0.3))        # .verdict, .pose
     report = api.evaluate("run_map/trajectory.tum", relations="run.relations")            # .relations.mean_translation
+    ates = api.evaluate_sessions(["ab/trajectory_0.tum", "ab/trajectory_1.tum"], ["a.tum", "b.tum"])  # one frame
 
 Scans are de-skewed by the robot's motion during the sweep only when they say how long it took
 (``time_increment`` per beam, or ``scan_time``); with both 0 (the default of :func:`scan`) a scan is taken as
@@ -25,12 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
-from carto_cli.commands.eval import run_eval
+from carto_cli.commands.eval import run_eval, run_eval_sessions
 from carto_cli.commands.map import MapOutputs, check_outdir, run_map, write_outputs
 from carto_cli.commands.relocalize import apply_map_auto, load_relocalization_map
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
-from carto_cli.evaluation.metrics import Evaluation
+from carto_cli.evaluation.metrics import AteResult, Evaluation
 from carto_cli.io.sources.memory import MemoryRecording
 from carto_cli.options import Options, load_options
 from carto_cli.pipeline import Auto, MapRequest, MapResult, execute, map_sessions, planned
@@ -41,6 +42,7 @@ __all__ = [
     "MapRun",
     "ScanContext",
     "evaluate",
+    "evaluate_sessions",
     "map_recording",
     "map_recordings",
     "map_records",
@@ -187,3 +189,9 @@ def evaluate(trajectory: str | Path, *, relations: str | Path | None = None,
     return run_eval(Path(trajectory), relations=None if relations is None else Path(relations),
                     ground_truth=None if ground_truth is None else Path(ground_truth)).result
 
+
+def evaluate_sessions(trajectories: Sequence[str | Path], ground_truths: Sequence[str | Path]) -> list[AteResult]:
+    """`carto eval T0 T1 ... --ground-truth G...`: the ATE of each trajectory of one map of several recordings
+    (``map_recordings``' trajectory_N.tum) in their common frame, under ONE alignment for all (a session placed
+    wrongly against the others shows); ``ground_truths`` one for all, or one per trajectory."""
+    return run_eval_sessions([Path(t) for t in trajectories], [Path(g) for g in ground_truths]).results

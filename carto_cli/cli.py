@@ -850,6 +850,9 @@ def tune_(
              "those two the default --space is the gmapping.* space (spaces/gmapping.yaml)."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace an -o file that is not this study's output "
                                "(rerunning the same study resumes it and rewrites its own outputs)."),
+    sessions: bool = typer.Option(False, "--sessions", rich_help_panel=PANEL_OBJECTIVE,
+                                  help="The recordings are sessions of one building: a trial maps them into one "
+                                       "map, scored in its one frame."),
     min_z: float | None = MAP_MIN_Z,
     max_z: float | None = MAP_MAX_Z,
 ):
@@ -866,7 +869,7 @@ def tune_(
         request = StudyRequest(recordings, out, space=space, trials=trials, objective=objective, relations=relations,
                                ground_truth=ground_truth, profile=profile, overrides=_with_z(overrides, min_z, max_z),
                                time_weight=time_weight, storage=storage, study_name=study, n_jobs=n_jobs, seed=seed,
-                               max_scans=max_scans, algorithm=algorithm)
+                               max_scans=max_scans, algorithm=algorithm, sessions=sessions)
         result = run_tune(request, on_trial=on_trial, force=force)
     typer.echo(summary_line(result))
     if result.interrupted:

@@ -11,6 +11,7 @@ from carto_cli.cli import app
 from carto_cli.core.records import Odometry, Scan
 from carto_cli.io.recording_writers import write_recording
 from carto_cli.io.sources.messages import ns_to_seconds, seconds_to_ns
+from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.sim import loop_building, loop_trajectory, simulate
 
 
@@ -79,6 +80,15 @@ def test_map_recordings_makes_one_map_of_several(drive, tmp_path):
     assert run.recordings == ("drive.bag", "drive.bag") and len(run.result.links) == 1
     with pytest.raises(api.CartoError, match="no recording"):
         api.map_recordings([])
+    run.write(tmp_path / "ab")
+    truth = tmp_path / "truth.tum"
+    gt = sim.ground_truth
+    write_trajectory(truth, Trajectory.from_arrays(gt[:, 0], gt[:, 1], gt[:, 2], gt[:, 3]), fmt="tum")
+    both = api.evaluate_sessions([tmp_path / "ab" / "trajectory_0.tum", tmp_path / "ab" / "trajectory_1.tum"], [truth])
+    # One alignment for both: the same drive twice, so the same small error twice
+    assert len(both) == 2 and both[0].alignment == both[1].alignment
+    assert max(r.translation.rmse for r in both) < 0.3
+    assert abs(both[0].translation.rmse - both[1].translation.rmse) < 0.1
 
 
 def test_bad_input_is_a_carto_error(tmp_path):

@@ -37,6 +37,14 @@ GMapping), scored by an objective, averaged over the recordings (lower is better
     relations when relation files are given, else ground-truth when ground truths are
     given, else map-quality.
 
+Sessions (``carto tune --sessions``): the recordings are sessions of one building, and a trial maps them
+together into one map, a trajectory each (``pipeline.map_sessions``), scored in that map's one frame:
+relations averaged over the sessions; ground-truth as the ATE RMSE over every session's poses under ONE SE(2)
+alignment (a session misplaced against the others counts); map-quality with the endpoint spread of all the
+sessions' returns in one grid (sessions placed alike put their returns on the same walls). A session linked to
+nothing adds ``UNLINKED_PENALTY`` (as a 1 m error): such a map is failed whatever its other scores. Relocalization
+has no multi-session form.
+
 ``time_weight`` adds ``time_weight × wall seconds per scan`` of the mapping (numba
 compilation excluded by a warm-up run) to every recording's score: with
 ``time_weight=10``, 10 ms per scan costs as much as 10 cm of relation error.
@@ -45,6 +53,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,16 +62,26 @@ from typing import Any
 import numpy as np
 
 from carto_cli.core.errors import CartoError
-from carto_cli.evaluation.metrics import Relations, align_se2, ate, interpolate_poses, read_relations, relation_error
+from carto_cli.evaluation.metrics import (
+    Relations,
+    align_se2,
+    ate,
+    ate_sessions,
+    interpolate_poses,
+    read_relations,
+    relation_error,
+)
 from carto_cli.gmapping import GMAPPING_PIPELINE
 from carto_cli.io.trajectory import Trajectory, read_trajectory
 from carto_cli.options import Options
 
-__all__ = ["OBJECTIVES", "OBJECTIVE_TEXT", "ROTATION_LEVER_M", "Case", "check_space", "endpoint_spread",
+__all__ = ["OBJECTIVES", "OBJECTIVE_TEXT", "ROTATION_LEVER_M", "UNLINKED_PENALTY", "Case", "SessionsCase",
+           "check_space", "endpoint_spread",
            "evaluate_options", "make_cases", "map_quality", "prepare", "resolve_objective", "score_case"]
 
 OBJECTIVES = ("auto", "relations", "ground-truth", "relocalization", "map-quality")
 ROTATION_LEVER_M = 1.0  # relations objective: metres per radian of rotational error
+UNLINKED_PENALTY = 1.0  # sessions: what a session linked to nothing adds to any objective
 
 RELOC_MAP_FRACTION = 0.7
 RELOC_QUERIES = 20
@@ -114,6 +133,23 @@ class Case:
         return self._recording
 
 
+@dataclass(eq=False)
+class SessionsCase:
+    """Recordings of one building mapped together into one map, a trajectory each (``--sessions``), with one
+    reference per recording."""
+
+    parts: tuple[Case, ...]
+
+    @property
+    def name(self) -> str:
+        return " + ".join(p.name for p in self.parts)
+
+
+def _parts(cases: Sequence[Case | SessionsCase]) -> list[Case]:
+    """Every recording's case, those of sessions included."""
+    return [p for c in cases for p in (c.parts if isinstance(c, SessionsCase) else (c,))]
+
+
 def _as_trajectory(gt) -> Trajectory:
     if isinstance(gt, Trajectory):
         return gt
@@ -126,10 +162,13 @@ def _as_trajectory(gt) -> Trajectory:
 
 
 def make_cases(recordings: Sequence, relations: Sequence | None = None,
-               ground_truth: Sequence | None = None) -> list[Case]:
-    """Cases from recordings (paths or Recording objects) and one relations / ground-truth per recording."""
+               ground_truth: Sequence | None = None, *, sessions: bool = False) -> list[Case | SessionsCase]:
+    """Cases from recordings (paths or Recording objects) and one relations / ground-truth per recording;
+    ``sessions``: the recordings are sessions of one building, one case mapped together."""
     if not recordings:
         raise CartoError("tune needs at least one recording")
+    if sessions and len(recordings) < 2:
+        raise CartoError("--sessions maps several recordings into one map: give at least two")
     n = len(recordings)
     for what, extra in (("relations", relations), ("ground-truth", ground_truth)):
         if extra and len(extra) != n:
@@ -140,12 +179,16 @@ def make_cases(recordings: Sequence, relations: Sequence | None = None,
         gt = ground_truth[i] if ground_truth else None
         cases.append(Case(rec, read_relations(rel) if isinstance(rel, (str, Path)) else rel,
                           None if gt is None else _as_trajectory(gt)))
-    return cases
+    return [SessionsCase(tuple(cases))] if sessions else list(cases)
 
 
-def resolve_objective(objective: str, cases: Sequence[Case]) -> str:
+def resolve_objective(objective: str, cases: Sequence[Case | SessionsCase]) -> str:
     if objective not in OBJECTIVES:
         raise CartoError(f"unknown objective '{objective}' (one of {', '.join(OBJECTIVES)})")
+    if objective == "relocalization" and any(isinstance(c, SessionsCase) for c in cases):
+        raise CartoError("the relocalization objective scores one recording's map: drop --sessions, or choose "
+                         "relations, ground-truth or map-quality")
+    cases = _parts(cases)
     if objective == "auto":
         if all(c.relations is not None for c in cases):
             return "relations"
@@ -195,7 +238,7 @@ def _scans(recording, limit: int | None = None):
             n += 1
 
 
-def prepare(cases: Sequence[Case], objective: str, base: Options, max_scans: int | None,
+def prepare(cases: Sequence[Case | SessionsCase], objective: str, base: Options, max_scans: int | None,
             algorithm: str = "cartographer") -> None:
     """What an objective computes once per recording, before any trial (relocalization reference, mapped
     by ``algorithm`` like the trials)."""
@@ -203,7 +246,7 @@ def prepare(cases: Sequence[Case], objective: str, base: Options, max_scans: int
         return
     from carto_cli.pipeline import build
 
-    for case in cases:
+    for case in _parts(cases):
         case.n_scans = sum(1 for _ in _scans(case.recording(), max_scans))
         if case.n_scans < 10:
             raise CartoError(f"relocalization needs at least 10 scans, the recording has {case.n_scans}", case.name)
@@ -228,9 +271,22 @@ def endpoint_spread(result, recording, max_scans: int | None = None) -> float:
     of many scans on the same thin walls, a blurred or doubled one spreads them over more
     cells. In (0, 1], lower is sharper.
     """
-    times = np.asarray(result.times, dtype=np.float64)
-    poses = np.asarray(result.poses, dtype=np.float64)
-    mount = np.asarray(result.laser_pose, dtype=np.float64).reshape(3)
+    keys, n_points = _endpoint_cells(result.times, result.poses, result.laser_pose, recording, max_scans)
+    return _spread(keys, n_points)
+
+
+def _spread(keys: list[np.ndarray], n_points: int) -> float:
+    if n_points == 0:
+        raise CartoError("no scan endpoint to score the map with")
+    return float(np.unique(np.concatenate(keys)).size / n_points)
+
+
+def _endpoint_cells(times, poses, laser_pose, recording, max_scans: int | None) -> tuple[list[np.ndarray], int]:
+    """The 5 cm cell of every return of ``recording``'s scans placed at ``poses`` (per scan, matched by time),
+    and how many returns there were."""
+    times = np.asarray(times, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    mount = np.asarray(laser_pose, dtype=np.float64).reshape(3)
     keys, n_points = [], 0
     for scan in _scans(recording, max_scans):
         i = int(np.searchsorted(times, scan.time))
@@ -249,9 +305,7 @@ def endpoint_spread(result, recording, max_scans: int | None = None) -> float:
         py = np.floor((ly + r[ok] * np.sin(ang)) / SPREAD_CELL_M).astype(np.int64)
         keys.append(px * 4_000_003 + py)
         n_points += int(ok.sum())
-    if n_points == 0:
-        raise CartoError("no scan endpoint to score the map with")
-    return float(np.unique(np.concatenate(keys)).size / n_points)
+    return keys, n_points
 
 
 def map_quality(result, recording=None, max_scans: int | None = None) -> dict[str, float]:
@@ -335,16 +389,80 @@ def _relocalization_score(case: Case, options: Options, max_scans: int | None, t
     return value, _with_time(value, metrics, result, time_weight)
 
 
-def _with_time(value: float, metrics: dict, result, time_weight: float) -> dict:
-    s_per_scan = result.stats["wall_time_s"] / max(1, result.stats["scans"])
+def _with_time(value: float, metrics: dict, result, time_weight: float, s_per_scan: float | None = None) -> dict:
+    if s_per_scan is None:
+        s_per_scan = result.stats["wall_time_s"] / max(1, result.stats["scans"])
     metrics.update({"s_per_scan": s_per_scan, "loop_closures": result.stats.get("loop_closures", 0),
                     "score": value + time_weight * s_per_scan})
     return metrics
 
 
-def score_case(case: Case, options: Options, objective: str, *, max_scans: int | None = None,
+def _sessions_score(case: SessionsCase, options: Options, objective: str, max_scans: int | None,
+                    time_weight: float) -> tuple[float, dict]:
+    """(score, metrics) of ``options`` on recordings mapped together (module doc: Sessions)."""
+    from carto_cli.pipeline import MapRequest, map_sessions
+
+    first, *later = (p.recording() for p in case.parts)
+    mounts: list[np.ndarray] = []  # each recording's laser on its robot, as its plan resolved it
+    started = time.perf_counter()  # every session's mapping, reading included (the result's stats are the last one's)
+    result = map_sessions(MapRequest(first, options, max_scans=max_scans, later=tuple(later)),
+                          on_plan=lambda plan: mounts.append(plan.mount))
+    wall = time.perf_counter() - started
+    sessions = result.sessions
+    trajectories = [Trajectory.from_poses(x.times, x.poses) for x in sessions]
+    metrics: dict[str, float] = {}
+    if objective == "relations":
+        errors = []
+        for trajectory, part in zip(trajectories, case.parts):
+            if part.relations is None:
+                raise CartoError("the relations objective needs a --relations file for every recording", part.name)
+            errors.append(relation_error(trajectory, part.relations))
+        translation = float(np.mean([r.translation.mean for r in errors]))
+        rotation = float(np.mean([r.rotation.mean for r in errors]))
+        value = translation + ROTATION_LEVER_M * math.radians(rotation)
+        metrics = {"relation_trans_m": translation, "relation_rot_deg": rotation,
+                   "relations_used": float(sum(r.used for r in errors))}
+    elif objective == "ground-truth":
+        truths = [p.ground_truth for p in case.parts]
+        if any(t is None for t in truths):
+            raise CartoError("the ground-truth objective needs a --ground-truth file for every recording", case.name)
+        results = ate_sessions(trajectories, [t for t in truths if t is not None])
+        used = np.array([r.used for r in results], dtype=np.float64)
+
+        def pooled(rmse: list[float]) -> float:  # the RMSE over every session's poses together
+            return float(np.sqrt(np.sum(used * np.square(rmse)) / max(1.0, used.sum())))
+
+        value = pooled([r.translation.rmse for r in results])
+        metrics = {"ate_rmse_m": value, "ate_rot_rmse_deg": pooled([r.rotation.rmse for r in results]),
+                   "worst_session_ate_m": max(r.translation.rmse for r in results)}
+    elif objective == "map-quality":
+        metrics = map_quality(result)
+        keys: list[np.ndarray] = []
+        n_points = 0
+        for x, mount, part in zip(sessions, mounts, case.parts):
+            more, n = _endpoint_cells(x.times, x.poses, mount, part.recording(), max_scans)
+            keys += more
+            n_points += n
+        metrics["endpoint_spread"] = _spread(keys, n_points)
+        value = metrics["map_quality"] = metrics["endpoint_spread"] + metrics["loop_closure_residual_m"]
+    else:
+        raise CartoError(f"the {objective} objective has no multi-session form")
+    unlinked = sum(not x.linked for x in sessions)
+    metrics["unlinked_sessions"] = float(unlinked)
+    value += UNLINKED_PENALTY * unlinked
+    return value, _with_time(value, metrics, result, time_weight, wall / max(1, sum(len(x.times) for x in sessions)))
+
+
+def score_case(case: Case | SessionsCase, options: Options, objective: str, *, max_scans: int | None = None,
                time_weight: float = 0.0, algorithm: str = "cartographer") -> tuple[float, dict]:
-    """(score, metrics) of ``options`` mapped by ``algorithm`` on one recording; score includes the time term."""
+    """(score, metrics) of ``options`` mapped by ``algorithm`` on one recording (or several together: a
+    :class:`SessionsCase`, always Cartographer's pose graph); score includes the time term."""
+    if isinstance(case, SessionsCase):
+        if algorithm in GMAPPING_PIPELINE:
+            raise CartoError(f"several recordings make one Cartographer pose graph; {algorithm} maps one "
+                             "recording (drop --sessions, or use --algorithm cartographer)")
+        value, metrics = _sessions_score(case, options, objective, max_scans, time_weight)
+        return metrics["score"], metrics
     if objective == "relocalization":
         if case.reference is None:
             raise CartoError("relocalization case not prepared (call tune.prepare first)")
@@ -376,8 +494,9 @@ def score_case(case: Case, options: Options, objective: str, *, max_scans: int |
     return metrics["score"], metrics
 
 
-def evaluate_options(options: Options, cases: Sequence[Case], objective: str, *, max_scans: int | None = None,
-                     time_weight: float = 0.0, report: Callable[[int, float], None] | None = None,
+def evaluate_options(options: Options, cases: Sequence[Case | SessionsCase], objective: str, *,
+                     max_scans: int | None = None, time_weight: float = 0.0,
+                     report: Callable[[int, float], None] | None = None,
                      algorithm: str = "cartographer") -> tuple[float, dict]:
     """Mean score of ``options`` (mapped by ``algorithm``) over ``cases`` and the mean of each metric;
     ``report(i, running_mean)`` is called after each recording (the tuner prunes from it)."""

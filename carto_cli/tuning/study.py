@@ -27,10 +27,18 @@ from typing import Any
 import carto_cli.pipeline  # noqa: F401  (imports every mapping kernel, registering its warm-up)
 from carto_cli.core import interrupts, kernels
 from carto_cli.core.errors import CartoError
-from carto_cli.gmapping import ALGORITHMS
+from carto_cli.gmapping import ALGORITHMS, GMAPPING_PIPELINE
 from carto_cli.io.atomic import output_set
 from carto_cli.options import Options, apply_overrides, load_options
-from carto_cli.tuning.objectives import Case, check_space, evaluate_options, make_cases, prepare, resolve_objective
+from carto_cli.tuning.objectives import (
+    Case,
+    SessionsCase,
+    check_space,
+    evaluate_options,
+    make_cases,
+    prepare,
+    resolve_objective,
+)
 from carto_cli.tuning.report import draw_report, write_profile, write_trials_csv
 from carto_cli.tuning.space import Param, base_values, load_space, suggest_params
 
@@ -79,7 +87,7 @@ class _Job:
     study_name: str
     params: list[Param]
     base: Options
-    cases: list[Case]
+    cases: list[Case | SessionsCase]
     objective: str
     time_weight: float
     max_scans: int | None
@@ -193,7 +201,9 @@ class StudyRequest:
     ground truths may also be (m, 4) t x y yaw arrays). ``space`` is a search-space file or dict (see
     ``tuning.space``); None lets ``run_tune`` take the base profile's (gmapping's with ``algorithm`` gmapping).
     ``storage`` defaults to ``sqlite:///<out dir>/<out stem>.optuna.db`` and ``study_name`` to the out stem, so
-    the same request resumes. Every trial maps with ``algorithm`` (``carto_cli.gmapping.ALGORITHMS``).
+    the same request resumes. Every trial maps with ``algorithm`` (``carto_cli.gmapping.ALGORITHMS``);
+    ``sessions``: the recordings are sessions of one building, mapped together and scored in the map's one frame
+    (``tuning.objectives``).
 
     The values that can be judged without reading anything are checked here (CartoError), so a bad request
     fails before any recording is opened.
@@ -216,6 +226,7 @@ class StudyRequest:
     seed: int | None = None
     max_scans: int | None = None
     algorithm: str = "cartographer"
+    sessions: bool = False  # the recordings are sessions of one building: every trial maps them into one map
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "out", Path(self.out))
@@ -230,6 +241,9 @@ class StudyRequest:
         if self.algorithm not in ALGORITHMS:
             raise CartoError(f"--algorithm: unknown algorithm '{self.algorithm}' "
                              f"(choose from {', '.join(ALGORITHMS)})")
+        if self.sessions and self.algorithm in GMAPPING_PIPELINE:
+            raise CartoError(f"--sessions maps the recordings into one Cartographer pose graph; {self.algorithm} "
+                             "maps one recording (use --algorithm cartographer)")
 
 
 def tune(
@@ -256,7 +270,7 @@ def tune(
     base = load_options(base_profile, []) if isinstance(overrides, dict) else load_options(base_profile, overrides)
     if isinstance(overrides, dict):
         base = apply_overrides(base, overrides)
-    cases = make_cases(request.recordings, request.relations, request.ground_truth)
+    cases = make_cases(request.recordings, request.relations, request.ground_truth, sessions=request.sessions)
     objective = resolve_objective(request.objective, cases)
     check_space(objective, [p.name for p in params], algorithm)
     prepare(cases, objective, base, request.max_scans, algorithm)

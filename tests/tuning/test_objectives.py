@@ -1,13 +1,20 @@
 """The objectives a trial is scored by: map quality without a reference, relocalization on held-out scans,
-and which objective a set of recordings gets."""
+recordings mapped together as sessions, and which objective a set of recordings gets."""
+import numpy as np
 import pytest
 
+from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
+from carto_cli.evaluation.metrics import align_se2
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.options import apply_overrides, load_options
-from carto_cli.pipeline import build
+from carto_cli.pipeline import MapRequest, build, map_sessions
 from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
+from carto_cli.sim.sessions import route_sessions
+from carto_cli.sim.world import room
 from carto_cli.tuning.objectives import (
+    UNLINKED_PENALTY,
+    SessionsCase,
     check_space,
     evaluate_options,
     make_cases,
@@ -112,3 +119,63 @@ def test_a_gmapping_score_maps_with_gmapping(sim):
     assert case.ground_truth is not None
     direct_ate = ate(Trajectory.from_poses(direct.times, direct.poses), case.ground_truth).translation.rmse
     assert value == pytest.approx(metrics["ate_rmse_m"]) and value == pytest.approx(direct_ate)
+
+
+@pytest.fixture(scope="module")
+def sessions():
+    """The loop building driven twice, the second time from the other side the other way round."""
+    recordings, references = route_sessions(loop_building(), 2, scan_rate=5.0, lidar=Lidar(beams=180))
+    return recordings, [_reference(r) for r in references]
+
+
+def _reference(rows) -> Trajectory:
+    return Trajectory.from_arrays(rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3])
+
+
+def test_sessions_are_scored_in_the_one_frame_of_their_map(sessions):
+    recordings, references = sessions
+    case, = make_cases(recordings, ground_truth=references, sessions=True)
+    assert isinstance(case, SessionsCase) and len(case.parts) == 2
+    value, metrics = score_case(case, load_options(), "ground-truth")
+    assert metrics["unlinked_sessions"] == 0
+    # The reference computation: every session's poses against its truth under ONE alignment, one RMSE over all
+    result = map_sessions(MapRequest(recordings[0], load_options(), later=(recordings[1],)))
+    est = np.concatenate([s.poses[:, :2] for s in result.sessions])
+    ref = np.concatenate([np.column_stack([np.interp(s.times, t.t, t.xy[:, 0]), np.interp(s.times, t.t, t.xy[:, 1])])
+                          for s, t in zip(result.sessions, references)])
+    moved = transform.apply(align_se2(est, ref), est)
+    assert value == pytest.approx(float(np.sqrt(np.mean(np.sum((moved - ref) ** 2, axis=1)))), rel=1e-3)
+    assert metrics["worst_session_ate_m"] >= value * 0.99
+
+
+def test_a_session_linked_to_nothing_costs_the_penalty(sessions):
+    recordings, references = sessions
+    (other,), (truth,) = route_sessions(room(), 1, scan_rate=5.0, lidar=Lidar(beams=180))
+    case, = make_cases([recordings[0], other], ground_truth=[references[0], _reference(truth)], sessions=True)
+    value, metrics = score_case(case, load_options(), "ground-truth")
+    assert metrics["unlinked_sessions"] == 1
+    assert value == pytest.approx(metrics["ate_rmse_m"] + UNLINKED_PENALTY)
+    quality, quality_metrics = score_case(case, load_options(), "map-quality")
+    assert quality_metrics["unlinked_sessions"] == 1 and quality >= UNLINKED_PENALTY
+
+
+def test_map_quality_of_sessions_spreads_every_sessions_returns_in_one_grid(sessions):
+    recordings, _ = sessions
+    case, = make_cases(recordings, sessions=True)
+    _, joint = score_case(case, load_options(), "map-quality")
+    # Each session alone: the joint grid must hold about as few cells per return as the sharper of the two (two
+    # sessions placed alike put their returns on the same walls), far fewer than their returns side by side would
+    alone = [score_case(c, load_options(), "map-quality")[1]["endpoint_spread"] for c in make_cases(recordings)]
+    assert 0 < joint["endpoint_spread"] < 0.75 * sum(alone)
+
+
+def test_sessions_refuse_what_has_no_multi_session_form(sessions):
+    recordings, _ = sessions
+    with pytest.raises(CartoError, match="--sessions maps several recordings"):
+        make_cases(recordings[:1], sessions=True)
+    cases = make_cases(recordings, sessions=True)
+    with pytest.raises(CartoError, match="relocalization objective scores one recording's map"):
+        resolve_objective("relocalization", cases)
+    assert resolve_objective("auto", cases) == "map-quality"
+    with pytest.raises(CartoError, match="one Cartographer pose graph; gmapping maps one"):
+        score_case(cases[0], load_options(), "map-quality", algorithm="gmapping")

@@ -107,6 +107,21 @@ def test_tune_rejects_bad_inputs(sim, tmp_path):
         tune(StudyRequest([rec], tmp_path / "x.yaml", space=grid_space, trials=1))
 
 
+def test_a_sessions_study_maps_the_recordings_into_one_map(tmp_path):
+    from carto_cli.sim import Lidar, loop_building
+    from carto_cli.sim.sessions import route_sessions
+
+    recordings, _ = route_sessions(loop_building(), 2, scan_rate=5.0, lidar=Lidar(beams=180))
+    with pytest.raises(CartoError, match="--sessions maps the recordings into one Cartographer pose graph"):
+        StudyRequest(recordings, tmp_path / "x.yaml", space=SPACE, trials=1, sessions=True, algorithm="gmapping")
+    space = {"pose_graph.constraint_builder.min_score": {"low": 0.5, "high": 0.7}}
+    result = tune(StudyRequest(recordings, tmp_path / "s.yaml", space=space, trials=2, sessions=True, seed=0))
+    assert result.objective == "map-quality" and result.n_complete == 2
+    # Scored as one map of both: the metrics of the sessions' form
+    assert result.best_metrics["unlinked_sessions"] == 0
+    assert result.best_value == pytest.approx(result.best_metrics["map_quality"])
+
+
 PARALLEL_SCRIPT = """
 import sys
 from pathlib import Path
