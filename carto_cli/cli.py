@@ -387,10 +387,10 @@ def map_(
     recordings: list[Path] = typer.Argument(
         ..., metavar="RECORDING...",
         help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz]; several of one building make one map "
-             "(each later one placed by loop closures, wherever it starts)."),
+             "(each later one placed by loop closures)."),
     outdir: Path | None = typer.Option(None, "--output", "-o", metavar="DIR",
-                                       help="Output directory (default: NAME_map in the current directory, NAME the "
-                                            "first recording's name)."),
+                                       help="Output directory (default: NAME_map here, NAME the first "
+                                            "recording's)."),
     profile: str | None = MAP_PROFILE,
     overrides: list[str] | None = SET,
     force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
@@ -402,6 +402,10 @@ def map_(
     load_state: Path | None = typer.Option(
         None, "--load-state", metavar="FILE", rich_help_panel=PANEL_MAPPING,
         help="Continue mapping into this map.carto: the recording becomes a new trajectory."
+    ),
+    keep_all_sessions: bool = typer.Option(
+        False, "--keep-all-sessions", rich_help_panel=PANEL_MAPPING,
+        help="Several sessions: fuse all (default: last seen wins, superseded submaps trimmed)."
     ),
     scan_topic: str | None = SCAN_TOPIC,
     odom_topic: str | None = ODOM_TOPIC,
@@ -421,7 +425,7 @@ def map_(
     timings: bool = typer.Option(False, "--timings", rich_help_panel=PANEL_OUTPUT,
                                  help="Print the per-stage timing tree."),
     strict: bool = typer.Option(False, "--strict", rich_help_panel=PANEL_OUTPUT,
-                                help="Exit 3 on a 'suspect' map too, not only a 'failed' one (for CI)."),
+                                help="Exit 3 on a 'suspect' map too (for CI)."),
     jobs: int | None = JOBS,
     memory_budget: str | None = MEMORY_BUDGET,
 ):
@@ -443,7 +447,8 @@ def map_(
         recording, _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget)), algorithm,
         TopicChoice(scan_topic, odom_topic, imu_topic, odom_frame, base_frame),
         laser_pose=parse.pose(laser_pose, "--laser-pose") if laser_pose else None, use_odometry=not no_odometry,
-        loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs, later=tuple(recordings[1:]))
+        loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs, later=tuple(recordings[1:]),
+        keep_all_sessions=keep_all_sessions)
     timer = StageTimer()
     label = recording.name + (f" + {len(recordings) - 1} more" if len(recordings) > 1 else "")
     with progress(f"mapping {label}", None, state.quiet) as bar:

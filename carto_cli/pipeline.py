@@ -25,6 +25,7 @@ from carto_cli.core import kernels, transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
+from carto_cli.core.timing import NullTimer
 from carto_cli.gmapping import ALGORITHMS, GMAPPING_PIPELINE, Algorithm
 from carto_cli.grid.occupancy_image import AssembledImage
 from carto_cli.io.content import ContentCheck
@@ -34,6 +35,7 @@ from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
+from carto_cli.mapping.lifelong import Trimmed, last_seen
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.pose_graph_state import PoseGraphState
 from carto_cli.mapping.quality import LEVELS, MapQuality, QualityCheck, assess
@@ -64,6 +66,7 @@ class MapResult(SlamResult):
     # A map of several recordings (sessions): each one's trajectory after the joint optimization, and the links
     sessions: tuple[Session, ...] = ()
     links: tuple[SessionLink, ...] = ()
+    trimmed: tuple[Trimmed, ...] = ()  # what later sessions superseded, trimmed from the graph (mapping.lifelong)
 
     @property
     def configured(self) -> Configured:
@@ -90,9 +93,12 @@ class MapResult(SlamResult):
 
     def sessions_report(self) -> dict:
         """What sessions.json holds: every recording's trajectory and whether it is in the map, and the links."""
+        trimmed = {x.trajectory: x.to_dict() for x in self.trimmed}
         return {"schema": "carto.sessions v1",
                 "sessions": [{"trajectory": x.trajectory, "recording": x.name, "scans": len(x.times),
-                              "linked": x.linked} for x in self.sessions],
+                              "linked": x.linked} | ({"trimmed": trimmed[x.trajectory]}
+                                                     if x.trajectory in trimmed else {})
+                             for x in self.sessions],
                 "links": [link.to_dict() for link in self.links]}
 
 
@@ -142,6 +148,9 @@ class MapRequest:
     # Recordings of the same building mapped after ``source``, each a trajectory of its own placed by whole-map
     # loop-closure search (their odometry may restart anywhere)
     later: tuple[str | Path | Recording, ...] = ()
+    # A map of several sessions keeps every session's evidence, fused alike, instead of showing the building as
+    # last seen and trimming what later sessions superseded (mapping.lifelong)
+    keep_all_sessions: bool = False
 
     def __post_init__(self) -> None:
         # Refused before any recording is read or state loaded: mapping would refuse only after both.
@@ -522,7 +531,20 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
                 _finish([e.submap for e in result.graph.submaps if e.trajectory == trajectory])
                 continued = Continued.of_result(result, plan, trajectory)
     assert result is not None
+    if result.sessions and not request.keep_all_sessions:
+        result = _as_last_seen(result, timer)
     return result
+
+
+def _as_last_seen(result: MapResult, timer: Any) -> MapResult:
+    """The finished map of several sessions as last seen (``mapping.lifelong``): its graph trimmed of what later
+    sessions superseded, its image with the newest sure evidence winning. The sessions' trajectories were taken
+    before, so each stays whole."""
+    assert result.graph is not None and result.options is not None
+    with (timer or NullTimer()).stage("last seen"):
+        seen = last_seen(result.graph.to_state(), [x.trajectory for x in result.sessions if x.linked])
+        graph = PoseGraph.from_state(result.options, seen.state)
+    return dataclasses.replace(result, graph=graph, image=seen.image, trimmed=seen.trimmed)
 
 
 def _start_system(plan: Plan, configured: Configured, timer: Any) -> tuple[MappingSystem, int]:

@@ -140,10 +140,12 @@ def run_map(
 
 
 def sessions_lines(result: MapResult) -> list[str]:
-    """A map of several recordings in a few lines: each link, then each recording linked to none."""
+    """A map of several recordings in a few lines: each link, each recording linked to none, then what later
+    sessions superseded and trimming took from each earlier one."""
     lines = [f"sessions: {link.describe()}" for link in result.links]
     lines += [f"sessions: trajectory {x.trajectory} ({x.name}) is linked to no other: left out of the map"
               for x in result.sessions if not x.linked]
+    lines += [f"trimmed: {x.describe()}" for x in result.trimmed]
     return lines
 
 

@@ -3,7 +3,9 @@
 Each output cell averages the log-odds of every submap that knows it. Averaging
 rather than summing matters: every scan lives in two overlapping submaps, and a
 sum would count it twice and let long stays at one place burn walls into free
-space.
+space. Submaps may come in layers (a map of several sessions: one layer each, the
+newest last); then a cell takes the newest layer that knows it with confidence,
+and only a cell no layer is sure of averages them all (``mapping/lifelong.py``).
 """
 from __future__ import annotations
 
@@ -49,6 +51,11 @@ def _logodds_table() -> np.ndarray:
 
 
 _LOGODDS = _logodds_table()
+
+
+def logodds(cells: np.ndarray) -> np.ndarray:
+    """The log-odds of grid values ``cells`` (0, unknown, gives 0)."""
+    return _LOGODDS[cells]
 
 
 @njit(cache=True, nogil=True)
@@ -99,20 +106,25 @@ class AssembledImage:
     whole image."""
 
     def __init__(self, grids: Sequence, corrections: Sequence, resolution: float | None = None,
-                 margin_cells: int = 10):
+                 margin_cells: int = 10, *, layers: Sequence[int] | None = None, sure: float = 0.0):
+        """``layers``: one int per grid, higher newer; a cell takes the newest layer whose mean log-odds there is
+        at least ``sure`` in magnitude, else the mean of all. None: every grid averaged alike."""
         self._parts = []
-        for grid, corr in zip(grids, corrections):
+        self._layered = layers is not None
+        self._sure = float(sure)
+        ranks = list(layers) if layers is not None else [0] * len(grids)
+        for grid, corr, rank in zip(grids, corrections, ranks):
             corners = _known_corners(grid)
             if corners is not None:
                 corr = transform.as_pose(corr)
-                self._parts.append((grid, corr, transform.apply(corr, corners)))
+                self._parts.append((grid, corr, transform.apply(corr, corners), int(rank)))
         self.resolution = float(resolution or (grids[0].resolution if len(grids) else 0.05))
         self._probability: np.ndarray | None = None
         if not self._parts:
             self.origin, self.shape = (0.0, 0.0), (0, 0)
             return
         res = self.resolution
-        pts = np.concatenate([box for _, _, box in self._parts])
+        pts = np.concatenate([box for _, _, box, _ in self._parts])
         lo = np.floor(pts.min(axis=0) / res) * res - margin_cells * res
         hi = np.ceil(pts.max(axis=0) / res) * res + margin_cells * res
         self.origin = (float(lo[0]), float(lo[1]))
@@ -146,18 +158,35 @@ class AssembledImage:
         total = np.zeros((y1 - y0, nx), np.float64)
         count = np.zeros((y1 - y0, nx), np.int32)
         lo = np.array([self.origin[0], goy])
-        for grid, corr, box in self._parts:
-            bmin = np.floor((box.min(axis=0) - lo) / res).astype(int)
-            bmax = np.ceil((box.max(axis=0) - lo) / res).astype(int)
-            x0, ya = max(bmin[0], 0), max(bmin[1], 0)
-            x1, yb = min(bmax[0] + 1, nx), min(bmax[1] + 1, y1 - y0)
-            if ya >= yb or x0 >= x1:
-                continue
-            _accumulate(total, count, gox, goy, res, grid.cells, _LOGODDS, grid.origin[0], grid.origin[1],
-                        grid.resolution, math.cos(corr[2]), math.sin(corr[2]), corr[0], corr[1], x0, ya, x1, yb)
+        # Layer by layer, oldest first, so that a newer layer's sure cells overwrite an older one's
+        chosen = np.full(total.shape, np.nan) if self._layered else None
+        for rank in sorted({part[3] for part in self._parts}):
+            part_total = np.zeros_like(total) if self._layered else total
+            part_count = np.zeros_like(count) if self._layered else count
+            for grid, corr, box, r in self._parts:
+                if r != rank:
+                    continue
+                bmin = np.floor((box.min(axis=0) - lo) / res).astype(int)
+                bmax = np.ceil((box.max(axis=0) - lo) / res).astype(int)
+                x0, ya = max(bmin[0], 0), max(bmin[1], 0)
+                x1, yb = min(bmax[0] + 1, nx), min(bmax[1] + 1, y1 - y0)
+                if ya >= yb or x0 >= x1:
+                    continue
+                _accumulate(part_total, part_count, gox, goy, res, grid.cells, _LOGODDS, grid.origin[0],
+                            grid.origin[1], grid.resolution, math.cos(corr[2]), math.sin(corr[2]), corr[0], corr[1],
+                            x0, ya, x1, yb)
+            if chosen is not None:
+                total += part_total
+                count += part_count
+                mean = np.divide(part_total, part_count, out=np.zeros_like(part_total), where=part_count > 0)
+                sure = (part_count > 0) & (np.abs(mean) >= self._sure)
+                chosen[sure] = mean[sure]
         known = count > 0
+        mean = np.divide(total, count, out=np.zeros_like(total), where=known)
+        if chosen is not None:
+            mean = np.where(np.isnan(chosen), mean, chosen)
         prob = np.full(total.shape, np.nan, np.float32)
-        prob[known] = (1.0 / (1.0 + np.exp(-total[known] / count[known]))).astype(np.float32)
+        prob[known] = (1.0 / (1.0 + np.exp(-mean[known]))).astype(np.float32)
         return prob
 
 

@@ -81,6 +81,39 @@ class PoseGraphState:
         """(N, 3) odometry at every node, as ``PoseGraph.node_odometry`` gives it."""
         return odometry_at_nodes(self.node_odometry, self.node_times, self.node_trajectories, self.odometry_samples)
 
+    def without_submaps(self, drop: np.ndarray) -> PoseGraphState:
+        """This state without the submaps ``drop`` marks (a bool per submap), their constraints, and the nodes left
+        in no submap; nodes and submaps renumbered in their order (the first submap kept is the one the optimizer
+        holds). Grids and node points are shared with this state."""
+        drop = np.asarray(drop, dtype=bool).reshape(len(self.submaps))
+        kept = np.zeros(self.num_nodes, bool)
+        for entry, gone in zip(self.submaps, drop):
+            if not gone:
+                kept[np.asarray(entry.nodes, dtype=np.int64)] = True
+        node_id = np.cumsum(kept) - 1  # new id of a kept node
+        submap_id = np.cumsum(~drop) - 1
+        cs = self.constraints
+        live = kept[cs.node] & ~drop[cs.submap]
+        constraints = ConstraintSet.from_arrays(submap_id[cs.submap[live]], node_id[cs.node[live]],
+                                                cs.relative[live], cs.translation_weight[live],
+                                                cs.rotation_weight[live], cs.is_loop_closure[live])
+        submaps = [SubmapEntry(e.submap, e.trajectory, e.global_pose.copy(), node_id[np.asarray(e.nodes, dtype=np.int64)
+                                                                                     ].tolist(), e.searched)
+                   for e, gone in zip(self.submaps, drop) if not gone]
+        trajectories = {int(t) for t in self.node_trajectories[kept]}
+        index = np.flatnonzero(kept)
+        return PoseGraphState(
+            node_times=self.node_times[kept], node_trajectories=self.node_trajectories[kept],
+            node_local_poses=self.node_local_poses[kept], node_global_poses=self.node_global_poses[kept],
+            node_odometry=self.node_odometry[kept], node_points=[self.node_points[i] for i in index.tolist()],
+            node_searches=self.node_searches[kept], submaps=submaps, constraints=constraints,
+            odometry_samples=_renumbered_samples(self, kept),
+            last_search_poses={t: p for t, p in self.last_search_poses.items() if t in trajectories},
+            connected={pair for pair in self.connected if set(pair) <= trajectories},
+            removed_loop_closures=[(int(node_id[n]), int(submap_id[s]), r) for n, s, r in self.removed_loop_closures
+                                   if kept[n] and not drop[s]],
+            nodes_since_optimization=self.nodes_since_optimization)
+
     def copy(self) -> PoseGraphState:
         """A state sharing nothing mutable with this one (grids included)."""
         submaps = []
@@ -106,6 +139,20 @@ class PoseGraphState:
             removed_loop_closures=list(self.removed_loop_closures),
             nodes_since_optimization=self.nodes_since_optimization,
         )
+
+
+def _renumbered_samples(state: PoseGraphState, kept: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """The odometry streams of the trajectories that keep nodes, cut to the span of those nodes (one sample either
+    side, for interpolation)."""
+    out = {}
+    for trajectory, (times, poses) in state.odometry_samples.items():
+        mine = state.node_times[kept & (state.node_trajectories == trajectory)]
+        if not len(mine) or not len(times):
+            continue
+        lo = max(int(np.searchsorted(times, mine.min(), side="right")) - 1, 0)
+        hi = min(int(np.searchsorted(times, mine.max(), side="left")) + 1, len(times))
+        out[trajectory] = (times[lo:hi], poses[lo:hi])
+    return out
 
 
 def odometry_at_nodes(node_odometry: np.ndarray, node_times: ArrayLike, node_trajectories: ArrayLike,

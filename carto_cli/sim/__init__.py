@@ -4,7 +4,19 @@ from carto_cli.sim.lidar import Lidar, cast
 from carto_cli.sim.odometry import ImuModel, OdometryModel
 from carto_cli.sim.recording import SimulatedRecording, Simulation, simulate
 from carto_cli.sim.trajectory import Limits, Trajectory, follow_route, loop_trajectory
-from carto_cli.sim.world import Material, World, corridor, courtyard, glass_office, loop_building, office, room
+from carto_cli.sim.world import (
+    Material,
+    World,
+    altered,
+    changed_cells,
+    corridor,
+    courtyard,
+    glass_office,
+    loop_building,
+    office,
+    rearranged_loop_building,
+    room,
+)
 
 __all__ = [
     "ImuModel",
@@ -16,7 +28,9 @@ __all__ = [
     "Simulation",
     "Trajectory",
     "World",
+    "altered",
     "cast",
+    "changed_cells",
     "corridor",
     "courtyard",
     "follow_route",
@@ -24,6 +38,7 @@ __all__ = [
     "loop_building",
     "loop_trajectory",
     "office",
+    "rearranged_loop_building",
     "room",
     "simulate",
 ]

@@ -19,16 +19,23 @@ from carto_cli.sim.world import World
 __all__ = ["cut_sessions", "route_sessions"]
 
 
-def route_sessions(world: World, n: int, *, lidar: Lidar = Lidar(), scan_rate: float = 10.0,
+def route_sessions(world: World | Sequence[World], n: int, *, lidar: Lidar = Lidar(), scan_rate: float = 10.0,
                    limits: Limits = Limits()) -> tuple[list[MemoryRecording], list[np.ndarray]]:
     """``n`` recordings of ``world`` driven once around its closed route each, session k from the k/n point of the
     route and every other one the other way round, each with its own seed, times 1000 s apart and odometry
-    starting at zero: the recordings, and each one's reference (m, 4) t, x, y, yaw in the world."""
+    starting at zero: the recordings, and each one's reference (m, 4) t, x, y, yaw in the world. ``world`` may
+    be one world a session (a building that changes between sessions: ``sim.world.altered``), driven along the
+    first one's route."""
+    worlds = [world] * n if isinstance(world, World) else list(world)
+    if len(worlds) != n:
+        raise ValueError(f"{len(worlds)} worlds for {n} sessions")
+    world = worlds[0]
     if world.route is None or not world.closed:
         raise ValueError(f"world '{world.name}' has no closed route")
     route = np.asarray(world.route, dtype=np.float64)
     recordings, references = [], []
     for k in range(n):
+        world = worlds[k]
         turned = np.roll(route, -int(round(k * len(route) / n)), axis=0)
         if k % 2:
             turned = turned[::-1]

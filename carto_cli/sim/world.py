@@ -526,3 +526,76 @@ def courtyard(width: float = 40.0, height: float = 30.0, hedges: Material = Mate
     segments, materials = merge_partial(parts)
     return World(segments, route=np.array(route), closed=False, name="courtyard", materials=materials,
                  meta={"hedges": hedges, "glass": glass, "cars": cars})
+
+
+# ---------------------------------------------------------------- a building that changes between sessions
+
+def altered(world: World, *, remove: Iterable[np.ndarray] = (), add: Iterable[np.ndarray] = (),
+            name: str | None = None) -> World:
+    """``world`` as a later session finds it: the segments of ``remove`` (each (k, 4); matched to the world's
+    within 1 mm, either way round) taken out, those of ``add`` put in, the route kept. Opaque worlds only."""
+    if world.materials is not None:
+        raise ValueError("altered() changes opaque worlds only")
+    segments = world.segments
+    gone = np.zeros(len(segments), bool)
+    for seg in (np.asarray(s, float).reshape(-1, 4) for s in remove):
+        for row in seg:
+            same = (np.abs(segments - row).max(axis=1) < 1e-3) | (np.abs(segments - row[[2, 3, 0, 1]]).max(axis=1)
+                                                                 < 1e-3)
+            if not same.any():
+                raise ValueError(f"no segment {row.tolist()} in world '{world.name}'")
+            gone |= same
+    added = [np.asarray(s, float).reshape(-1, 4) for s in add]
+    return World(merge(segments[~gone], *added), route=world.route, closed=world.closed,
+                 name=name or f"{world.name}, altered", meta=dict(world.meta))
+
+
+def rearranged_loop_building() -> tuple[World, World]:
+    """``loop_building()`` and the same building as a later session finds it: the door in the bottom wall at
+    13.2 m closed, the back wall of the room behind the left door moved 1.5 m closer (its side walls shortened),
+    and the cabinet (a 0.4 m pillar) against the bottom wall at 8.4 m taken away."""
+    before = loop_building()
+    # The left room: door centred at (0, 6.4) in the wall x = 0, 2.88 m wide, 3.5 m deep (loop_building's layout)
+    a, b = (0.0, 7.84), (0.0, 4.96)
+    old_room = polyline([a, (-3.5, a[1]), (-3.5, b[1]), b])
+    new_room = polyline([a, (-2.0, a[1]), (-2.0, b[1]), b])
+    after = altered(before, remove=[old_room, box(8.4, 0.5, 0.4, 0.4)],
+                    add=[new_room, polyline([(12.7, 0.0), (13.7, 0.0)])], name="loop building, rearranged")
+    return before, after
+
+
+def wall_cells(world: World, origin: Sequence[float], resolution: float, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the cells of a grid (row = y, lower-left corner ``origin``) that a wall of ``world`` crosses."""
+    out = np.zeros(shape, bool)
+    for x1, y1, x2, y2 in world.segments:
+        n = max(int(math.ceil(math.hypot(x2 - x1, y2 - y1) / (resolution / 4))), 1) + 1
+        t = np.linspace(0.0, 1.0, n)
+        ix = np.floor((x1 + t * (x2 - x1) - origin[0]) / resolution).astype(np.int64)
+        iy = np.floor((y1 + t * (y2 - y1) - origin[1]) / resolution).astype(np.int64)
+        inside = (ix >= 0) & (iy >= 0) & (ix < shape[1]) & (iy < shape[0])
+        out[iy[inside], ix[inside]] = True
+    return out
+
+
+def grown(cells: np.ndarray, by: int) -> np.ndarray:
+    """``cells`` with every cell within ``by`` cells (a square) of one set."""
+    out = cells.copy()
+    for _ in range(by):
+        step = out.copy()
+        step[1:] |= out[:-1]
+        step[:-1] |= out[1:]
+        step[:, 1:] |= step[:, :-1].copy()
+        step[:, :-1] |= step[:, 1:].copy()
+        out = step
+    return out
+
+
+def changed_cells(before: World, after: World, origin: Sequence[float], resolution: float, shape: tuple[int, int],
+                  margin: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ground truth of what changed between two worlds on a grid: (appeared, vanished, unchanged) bool rasters,
+    the cells a wall of ``after`` crosses with no wall of ``before`` within ``margin`` cells, the reverse, and
+    the cells both worlds' walls cross. The margin keeps the ends of a changed wall, where it meets one that
+    stayed, out of both (a map's wall is a cell or two thick)."""
+    a = wall_cells(before, origin, resolution, shape)
+    b = wall_cells(after, origin, resolution, shape)
+    return b & ~grown(a, margin), a & ~grown(b, margin), a & b

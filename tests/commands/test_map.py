@@ -508,3 +508,31 @@ def test_summary_line_wall_includes_compile():
     # A warm run: the run's wall, no note.
     assert summary_line(SimpleNamespace(stats=stats), timer, compiled=False) == (
         "30 scans, 6 nodes, 1 submaps, 0 loop closures, 37.1 s wall, 50 scans/s mapping")
+
+
+def test_sessions_as_last_seen_say_what_is_trimmed_and_continue(tmp_path):
+    """Two sessions of a building that changed between them: the earlier one's superseded submaps are trimmed
+    from map.carto and said (stdout, sessions.json); the trimmed map loads and is continued by a third; with
+    --keep-all-sessions nothing is trimmed."""
+    from carto_cli.commands.map import run_map, sessions_lines
+    from carto_cli.pipeline import Auto
+    from carto_cli.sim.sessions import route_sessions
+    from carto_cli.sim.world import rearranged_loop_building
+
+    recordings, _ = route_sessions(list(rearranged_loop_building()), 2)
+    kept, kept_out = run_map(MapRequest(recordings[0], Auto(), later=(recordings[1],), keep_all_sessions=True),
+                             tmp_path / "kept")
+    whole = load_map(kept_out.state)
+    assert kept.trimmed == () and "trimmed" not in (tmp_path / "kept" / "sessions.json").read_text()
+    result, outputs = run_map(MapRequest(recordings[0], Auto(), later=(recordings[1],)), tmp_path / "ab")
+    assert result.trimmed and any(line.startswith("trimmed: ") for line in sessions_lines(result))
+    report = json.loads((tmp_path / "ab" / "sessions.json").read_text())
+    gone = report["sessions"][0]["trimmed"]
+    saved = load_map(outputs.state)
+    assert len(saved.submaps) == whole.num_submaps - gone["submaps"]
+    assert saved.num_nodes == whole.num_nodes - gone["nodes"]
+    # Every session's trajectory file stays whole: it was written from the poses before trimming
+    assert len(read_trajectory(tmp_path / "ab" / "trajectory_0.tum")) == len(result.sessions[0].times)
+    again, _ = run_map(MapRequest(recordings[1], Auto(), load_state=outputs.state), tmp_path / "abb")
+    assert again.quality is not None and again.quality.ok, again.quality.line()
+    assert all(s.linked for s in again.sessions)

@@ -1,0 +1,111 @@
+#!/usr/bin/env python3
+"""A map that stays current (lifelong mapping), issue 45 item 4: figures for docs/benchmarks.md.
+
+    python bench/lifelong.py [--case changes|repeat|all] [--sessions 10] [--keep-all-sessions] [--out FILE]
+
+* ``changes``: ``sim.world.rearranged_loop_building``: the loop building driven once, then driven again after a
+  door was closed, a room's back wall moved and a cabinet taken away (two sessions, ``carto map A B``). Scored by
+  ``evaluation.changes.score_changes`` on the changed cells the last session saw surely (a moved wall hides the
+  old one behind it: no session can say it is gone), and on the walls both sessions found. Once as last seen
+  (the default), once with every session kept (``--keep-all-sessions``), for comparison.
+* ``repeat``: the loop building driven ``--sessions`` times (``sim.sessions.route_sessions``: each session from
+  another point of the route, every other one the other way round), each session mapped onto the map the one
+  before saved (``carto map S_k --load-state prev/map.carto``, through ``commands.map.run_map``): map.carto's size
+  after every session against its size after the first, and every session's CPU (user + sys of this process) and
+  the peak memory of the run so far.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from carto_cli.commands.map import run_map
+from carto_cli.evaluation.changes import score_changes
+from carto_cli.grid.occupancy_image import AssembledImage
+from carto_cli.mapping import lifelong
+from carto_cli.mapping.lifelong import SURE
+from carto_cli.pipeline import Auto, MapRequest, map_sessions
+from carto_cli.sim.sessions import route_sessions
+from carto_cli.sim.world import loop_building, rearranged_loop_building
+
+
+def _cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    c = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime
+
+
+def changes() -> dict:
+    before, after = rearranged_loop_building()
+    recordings, references = route_sessions([before, after], 2)
+    start = references[0][0, 1:]
+    out = {}
+    for keep in (False, True):
+        cpu = _cpu()
+        result = map_sessions(MapRequest(recordings[0], Auto(), later=(recordings[1],), keep_all_sessions=keep))
+        assert result.graph is not None
+        last = [e for e in result.graph.submaps if e.trajectory == 1]
+        seen = AssembledImage([e.submap.grid for e in last], [e.local_to_global() for e in last])
+        score = score_changes(result.image, before, after, alignment=start, observed=seen, sure=SURE)
+        out["keep-all" if keep else "last-seen"] = {
+            **score.to_dict(), "cpu_s": round(_cpu() - cpu, 1), "verdict": result.quality.verdict
+            if result.quality else None, "trimmed": [x.describe() for x in result.trimmed],
+            "submaps": len(result.graph.submaps), "nodes": result.graph.num_nodes}
+    return out
+
+
+def repeat(sessions: int, keep: bool) -> dict:
+    recordings, _ = route_sessions(loop_building(), sessions)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        previous = None
+        for k, recording in enumerate(recordings):
+            cpu, wall = _cpu(), time.perf_counter()
+            outdir = Path(tmp) / f"s{k}"
+            result, outputs = run_map(MapRequest(recording, Auto(), load_state=previous, keep_all_sessions=keep),
+                                      outdir)
+            assert outputs.state is not None
+            previous = outputs.state
+            rows.append({"session": k + 1, "superseded": lifelong.SUPERSEDED, "map_carto_bytes": previous.stat().st_size,
+                         "cpu_s": round(_cpu() - cpu, 1), "wall_s": round(time.perf_counter() - wall, 1),
+                         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+                         "submaps": len(result.graph.submaps) if result.graph else None,
+                         "nodes": result.graph.num_nodes if result.graph else None,
+                         "verdict": result.quality.verdict if result.quality else None,
+                         "linked": [x.linked for x in result.sessions],
+                         "trimmed": [x.describe() for x in result.trimmed]})
+            rows[-1]["size_ratio"] = round(rows[-1]["map_carto_bytes"] / rows[0]["map_carto_bytes"], 3)
+            print(json.dumps(rows[-1]), flush=True)
+    return {"keep_all_sessions": keep, "sessions": rows}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--case", choices=("changes", "repeat", "all"), default="all")
+    parser.add_argument("--sessions", type=int, default=10)
+    parser.add_argument("--keep-all-sessions", action="store_true", help="repeat: keep every session (comparison)")
+    parser.add_argument("--superseded", type=float, help="the share of a submap later sessions must know for it to "
+                        "be trimmed (default: mapping.lifelong.SUPERSEDED)")
+    parser.add_argument("--out", type=Path, help="write the figures as JSON here too")
+    args = parser.parse_args()
+    if args.superseded is not None:
+        lifelong.SUPERSEDED = args.superseded
+    figures = {}
+    if args.case in ("changes", "all"):
+        figures["changes"] = changes()
+        print(json.dumps(figures["changes"], indent=1), flush=True)
+    if args.case in ("repeat", "all"):
+        figures["repeat"] = repeat(args.sessions, args.keep_all_sessions)
+    if args.out:
+        args.out.write_text(json.dumps(figures, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
