@@ -1,16 +1,17 @@
 #!/usr/bin/env python3
 """A map that stays current (lifelong mapping), issue 45 item 4: figures for docs/benchmarks.md.
 
-    python bench/lifelong.py [--case changes|repeat|all] [--sessions 10] [--keep-all-sessions] [--out FILE]
+    python bench/lifelong.py [--case changes|repeat|all] [--sessions 10] [--policy lifelong|last-seen|fuse] [--out FILE]
 
 * ``changes``: ``sim.world.rearranged_loop_building``: the loop building driven once, then driven again after a
   door was closed, a room's back wall moved and a cabinet taken away (two sessions, ``carto map A B``). Scored by
   ``evaluation.changes.score_changes`` on the changed cells the last session saw surely (a moved wall hides the
-  old one behind it: no session can say it is gone), and on the walls both sessions found. Once as last seen
-  (the default), once with every session kept (``--keep-all-sessions``), for comparison.
+  old one behind it: no session can say it is gone), and on the walls both sessions found. Under each
+  ``mapping.lifelong.SessionPolicy``: last seen (the default), lifelong (``--lifelong``: also trimmed), fused.
 * ``repeat``: the loop building driven ``--sessions`` times (``sim.sessions.route_sessions``: each session from
   another point of the route, every other one the other way round), each session mapped onto the map the one
-  before saved (``carto map S_k --load-state prev/map.carto``, through ``commands.map.run_map``): map.carto's size
+  before saved (``carto map S_k --load-state prev/map.carto [--lifelong]``, through ``commands.map.run_map``, under
+  ``--policy``, lifelong by default): map.carto's size
   after every session against its size after the first, and every session's CPU (user + sys of this process) and
   the peak memory of the run so far.
 """
@@ -30,7 +31,7 @@ from carto_cli.commands.map import run_map
 from carto_cli.evaluation.changes import score_changes
 from carto_cli.grid.occupancy_image import AssembledImage
 from carto_cli.mapping import lifelong
-from carto_cli.mapping.lifelong import SURE
+from carto_cli.mapping.lifelong import SURE, SessionPolicy
 from carto_cli.pipeline import Auto, MapRequest, map_sessions
 from carto_cli.sim.sessions import route_sessions
 from carto_cli.sim.world import loop_building, rearranged_loop_building
@@ -47,21 +48,21 @@ def changes() -> dict:
     recordings, references = route_sessions([before, after], 2)
     start = references[0][0, 1:]
     out = {}
-    for keep in (False, True):
+    for policy in SessionPolicy:
         cpu = _cpu()
-        result = map_sessions(MapRequest(recordings[0], Auto(), later=(recordings[1],), keep_all_sessions=keep))
+        result = map_sessions(MapRequest(recordings[0], Auto(), later=(recordings[1],), sessions=policy))
         assert result.graph is not None
         last = [e for e in result.graph.submaps if e.trajectory == 1]
         seen = AssembledImage([e.submap.grid for e in last], [e.local_to_global() for e in last])
         score = score_changes(result.image, before, after, alignment=start, observed=seen, sure=SURE)
-        out["keep-all" if keep else "last-seen"] = {
+        out[str(policy)] = {
             **score.to_dict(), "cpu_s": round(_cpu() - cpu, 1), "verdict": result.quality.verdict
             if result.quality else None, "trimmed": [x.describe() for x in result.trimmed],
             "submaps": len(result.graph.submaps), "nodes": result.graph.num_nodes}
     return out
 
 
-def repeat(sessions: int, keep: bool) -> dict:
+def repeat(sessions: int, policy: SessionPolicy) -> dict:
     recordings, _ = route_sessions(loop_building(), sessions)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -69,7 +70,7 @@ def repeat(sessions: int, keep: bool) -> dict:
         for k, recording in enumerate(recordings):
             cpu, wall = _cpu(), time.perf_counter()
             outdir = Path(tmp) / f"s{k}"
-            result, outputs = run_map(MapRequest(recording, Auto(), load_state=previous, keep_all_sessions=keep),
+            result, outputs = run_map(MapRequest(recording, Auto(), load_state=previous, sessions=policy),
                                       outdir)
             assert outputs.state is not None
             previous = outputs.state
@@ -83,14 +84,15 @@ def repeat(sessions: int, keep: bool) -> dict:
                          "trimmed": [x.describe() for x in result.trimmed]})
             rows[-1]["size_ratio"] = round(rows[-1]["map_carto_bytes"] / rows[0]["map_carto_bytes"], 3)
             print(json.dumps(rows[-1]), flush=True)
-    return {"keep_all_sessions": keep, "sessions": rows}
+    return {"policy": str(policy), "sessions": rows}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--case", choices=("changes", "repeat", "all"), default="all")
     parser.add_argument("--sessions", type=int, default=10)
-    parser.add_argument("--keep-all-sessions", action="store_true", help="repeat: keep every session (comparison)")
+    parser.add_argument("--policy", type=SessionPolicy, default=SessionPolicy.LIFELONG,
+                        help="repeat: how the sessions are weighed (default lifelong)")
     parser.add_argument("--superseded", type=float, help="the share of a submap later sessions must know for it to "
                         "be trimmed (default: mapping.lifelong.SUPERSEDED)")
     parser.add_argument("--out", type=Path, help="write the figures as JSON here too")
@@ -102,7 +104,7 @@ def main() -> None:
         figures["changes"] = changes()
         print(json.dumps(figures["changes"], indent=1), flush=True)
     if args.case in ("repeat", "all"):
-        figures["repeat"] = repeat(args.sessions, args.keep_all_sessions)
+        figures["repeat"] = repeat(args.sessions, args.policy)
     if args.out:
         args.out.write_text(json.dumps(figures, indent=1) + "\n")
 

@@ -403,9 +403,9 @@ def map_(
         None, "--load-state", metavar="FILE", rich_help_panel=PANEL_MAPPING,
         help="Continue mapping into this map.carto: the recording becomes a new trajectory."
     ),
-    keep_all_sessions: bool = typer.Option(
-        False, "--keep-all-sessions", rich_help_panel=PANEL_MAPPING,
-        help="Several sessions: fuse all (default: last seen wins, superseded submaps trimmed)."
+    lifelong: bool = typer.Option(
+        False, "--lifelong", rich_help_panel=PANEL_MAPPING,
+        help="Several sessions: trim what later ones superseded (the newest always draws)."
     ),
     scan_topic: str | None = SCAN_TOPIC,
     odom_topic: str | None = ODOM_TOPIC,
@@ -440,6 +440,7 @@ def map_(
     from carto_cli.core import parse
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
+    from carto_cli.mapping.lifelong import SessionPolicy
     from carto_cli.pipeline import MapRequest, TopicChoice
 
     recording = recordings[0]
@@ -448,7 +449,7 @@ def map_(
         TopicChoice(scan_topic, odom_topic, imu_topic, odom_frame, base_frame),
         laser_pose=parse.pose(laser_pose, "--laser-pose") if laser_pose else None, use_odometry=not no_odometry,
         loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs, later=tuple(recordings[1:]),
-        keep_all_sessions=keep_all_sessions)
+        sessions=SessionPolicy.LIFELONG if lifelong else SessionPolicy.LAST_SEEN)
     timer = StageTimer()
     label = recording.name + (f" + {len(recordings) - 1} more" if len(recordings) > 1 else "")
     with progress(f"mapping {label}", None, state.quiet) as bar:

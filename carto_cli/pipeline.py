@@ -35,7 +35,7 @@ from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
-from carto_cli.mapping.lifelong import Trimmed, last_seen
+from carto_cli.mapping.lifelong import SessionPolicy, Trimmed, last_seen
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.pose_graph_state import PoseGraphState
 from carto_cli.mapping.quality import LEVELS, MapQuality, QualityCheck, assess
@@ -148,9 +148,9 @@ class MapRequest:
     # Recordings of the same building mapped after ``source``, each a trajectory of its own placed by whole-map
     # loop-closure search (their odometry may restart anywhere)
     later: tuple[str | Path | Recording, ...] = ()
-    # A map of several sessions keeps every session's evidence, fused alike, instead of showing the building as
-    # last seen and trimming what later sessions superseded (mapping.lifelong)
-    keep_all_sessions: bool = False
+    # How a map of several sessions weighs them: the newest sure evidence drawn, also trimming what later sessions
+    # superseded, or all fused alike (mapping.lifelong)
+    sessions: SessionPolicy = SessionPolicy.LAST_SEEN
 
     def __post_init__(self) -> None:
         # Refused before any recording is read or state loaded: mapping would refuse only after both.
@@ -531,18 +531,18 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
                 _finish([e.submap for e in result.graph.submaps if e.trajectory == trajectory])
                 continued = Continued.of_result(result, plan, trajectory)
     assert result is not None
-    if result.sessions and not request.keep_all_sessions:
-        result = _as_last_seen(result, timer)
+    if result.sessions and request.sessions != SessionPolicy.FUSE:
+        result = _as_last_seen(result, timer, trim=request.sessions == SessionPolicy.LIFELONG)
     return result
 
 
-def _as_last_seen(result: MapResult, timer: Any) -> MapResult:
-    """The finished map of several sessions as last seen (``mapping.lifelong``): its graph trimmed of what later
-    sessions superseded, its image with the newest sure evidence winning. The sessions' trajectories were taken
-    before, so each stays whole."""
+def _as_last_seen(result: MapResult, timer: Any, *, trim: bool) -> MapResult:
+    """The finished map of several sessions as last seen (``mapping.lifelong``): its image with the newest sure
+    evidence winning, and with ``trim`` its graph trimmed of what later sessions superseded. The sessions'
+    trajectories were taken before, so each stays whole."""
     assert result.graph is not None and result.options is not None
     with (timer or NullTimer()).stage("last seen"):
-        seen = last_seen(result.graph.to_state(), [x.trajectory for x in result.sessions if x.linked])
+        seen = last_seen(result.graph.to_state(), [x.trajectory for x in result.sessions if x.linked], trim=trim)
         graph = PoseGraph.from_state(result.options, seen.state)
     return dataclasses.replace(result, graph=graph, image=seen.image, trimmed=seen.trimmed)
 

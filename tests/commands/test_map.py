@@ -510,21 +510,22 @@ def test_summary_line_wall_includes_compile():
         "30 scans, 6 nodes, 1 submaps, 0 loop closures, 37.1 s wall, 50 scans/s mapping")
 
 
-def test_sessions_as_last_seen_say_what_is_trimmed_and_continue(tmp_path):
-    """Two sessions of a building that changed between them: the earlier one's superseded submaps are trimmed
-    from map.carto and said (stdout, sessions.json); the trimmed map loads and is continued by a third; with
-    --keep-all-sessions nothing is trimmed."""
+def test_lifelong_sessions_say_what_is_trimmed_and_continue(tmp_path):
+    """Two sessions of a building that changed between them: with --lifelong the earlier one's superseded submaps
+    are trimmed from map.carto and said (stdout, sessions.json); the trimmed map loads and is continued by a third;
+    by default (last seen) nothing is trimmed."""
     from carto_cli.commands.map import run_map, sessions_lines
+    from carto_cli.mapping.lifelong import SessionPolicy
     from carto_cli.pipeline import Auto
     from carto_cli.sim.sessions import route_sessions
     from carto_cli.sim.world import rearranged_loop_building
 
     recordings, _ = route_sessions(list(rearranged_loop_building()), 2)
-    kept, kept_out = run_map(MapRequest(recordings[0], Auto(), later=(recordings[1],), keep_all_sessions=True),
-                             tmp_path / "kept")
+    kept, kept_out = run_map(MapRequest(recordings[0], Auto(), later=(recordings[1],)), tmp_path / "kept")
     whole = load_map(kept_out.state)
     assert kept.trimmed == () and "trimmed" not in (tmp_path / "kept" / "sessions.json").read_text()
-    result, outputs = run_map(MapRequest(recordings[0], Auto(), later=(recordings[1],)), tmp_path / "ab")
+    result, outputs = run_map(MapRequest(recordings[0], Auto(), later=(recordings[1],),
+                                         sessions=SessionPolicy.LIFELONG), tmp_path / "ab")
     assert result.trimmed and any(line.startswith("trimmed: ") for line in sessions_lines(result))
     report = json.loads((tmp_path / "ab" / "sessions.json").read_text())
     gone = report["sessions"][0]["trimmed"]

@@ -6,7 +6,7 @@ import pytest
 
 from carto_cli.evaluation.changes import score_changes
 from carto_cli.grid.occupancy_image import AssembledImage
-from carto_cli.mapping.lifelong import SURE, last_seen
+from carto_cli.mapping.lifelong import SURE, SessionPolicy, last_seen
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.options import load_options
 from carto_cli.pipeline import Auto, MapRequest, map_sessions
@@ -19,7 +19,7 @@ def rearranged():
     """The two sessions mapped keeping both (the old fusion), and the same graph as last seen."""
     before, after = rearranged_loop_building()
     recordings, references = route_sessions([before, after], 2)
-    fused = map_sessions(MapRequest(recordings[0], Auto(), later=(recordings[1],), keep_all_sessions=True))
+    fused = map_sessions(MapRequest(recordings[0], Auto(), later=(recordings[1],), sessions=SessionPolicy.FUSE))
     assert fused.graph is not None and [s.linked for s in fused.sessions] == [True, True]
     state = fused.graph.to_state()
     last = [e for e in state.submaps if e.trajectory == 1]
@@ -78,3 +78,16 @@ def test_nothing_is_trimmed_when_the_later_session_saw_little(rearranged):
     seen = last_seen(partial, [0, 1])
     covered = [x.submaps for x in seen.trimmed]
     assert sum(covered) < sum(1 for e in partial.submaps if e.trajectory == 0)
+
+
+def test_last_seen_without_trimming_keeps_every_wall_and_shows_the_changes(rearranged):
+    """The default for several sessions: the newest sure evidence draws, nothing is removed."""
+    before, after, start, fused, state, _, seen_last = rearranged
+    seen = last_seen(state, [0, 1], trim=False)
+    assert seen.trimmed == () and len(seen.state.submaps) == len(state.submaps)
+    known = np.isfinite(fused.image.probability)
+    assert np.count_nonzero(np.isfinite(seen.image.probability)) == np.count_nonzero(known)
+    old = score_changes(fused.image, before, after, alignment=start, observed=seen_last, sure=SURE)
+    new = score_changes(seen.image, before, after, alignment=start, observed=seen_last, sure=SURE)
+    assert new.changed_shown >= 0.95 > old.changed_shown, (old, new)  # 1.0 against 0.83
+    assert new.unchanged_shown >= old.unchanged_shown - 0.005, (old, new)  # the same 99.4 %
