@@ -216,6 +216,22 @@ def _table(rows: list[dict], foreign_rows: list[dict], commit: str) -> str:
     return "\n".join(lines)
 
 
+def _rows(args: argparse.Namespace) -> list[dict]:
+    rows = []
+    for case in args.cases.split(","):
+        for n in args.sessions:
+            print(f"[{case}] {n} sessions ...", file=sys.stderr, flush=True)
+            row = _child(["sessions", case, str(n)])
+            row["baseline"] = _child(["baseline", case, str(n)])
+            if args.merge is not None:
+                os.environ["CARTO_BENCH_PARTS"] = str(args.merge.resolve())
+                parts = _child(["parts", case, str(n)])
+                row["merge"] = _child(["merge", case, str(n)]) | {"parts_cpu_s": parts["cpu_s"]}
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
+    return rows
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", default="sim,dense-aces,dense-intel,dense-freiburg-079")
@@ -233,18 +249,7 @@ def main() -> None:
         out = foreign(*rest) if kind == "foreign" else one(rest[0], int(rest[1]), kind)
         print(json.dumps(out))
         return
-    rows, foreign_rows = [], []
-    for case in args.cases.split(","):
-        for n in args.sessions:
-            print(f"[{case}] {n} sessions ...", file=sys.stderr, flush=True)
-            row = _child(["sessions", case, str(n)])
-            row["baseline"] = _child(["baseline", case, str(n)])
-            if args.merge is not None:
-                os.environ["CARTO_BENCH_PARTS"] = str(args.merge.resolve())
-                parts = _child(["parts", case, str(n)])
-                row["merge"] = _child(["merge", case, str(n)]) | {"parts_cpu_s": parts["cpu_s"]}
-            rows.append(row)
-            print(json.dumps(row), file=sys.stderr, flush=True)
+    rows, foreign_rows = _rows(args), []
     if not args.no_foreign:
         dense = [c.removeprefix("dense-") for c in args.cases.split(",") if c.startswith("dense-")]
         for i, a in enumerate(dense):
