@@ -477,8 +477,11 @@ def merge_(
                                 help="Exit 3 on a 'suspect' map too, not only a 'failed' one (for CI)."),
     jobs: int | None = JOBS,
 ):
-    """Merge saved maps without their recordings: each later map placed by loop-closure search, as `carto map A B`
-    places a later recording; the same outputs and sessions report. A map linked to none fails (exit 3)."""
+    """Merge saved maps without their recordings, each later one placed by loop closures.
+
+    Each later map is placed by the loop-closure search and link rule that place a later recording of `carto map
+    A B`, then optimized jointly; the same outputs and sessions.json. A map linked to none fails (exit 3), its
+    outputs still written for a look."""
     from carto_cli.commands.map import sessions_lines
     from carto_cli.commands.merge import merged_line, run_merge
     from carto_cli.core.timing import StageTimer, report_tree_text
