@@ -22,6 +22,10 @@ the map's own figure, this process and the pose graph's together):
 * relative pose error: each later session's own SE(2) alignment against the first one's (how far the session is
   misplaced relative to the first as a whole), translation and rotation.
 
+``--merge DIR``: the same parts each mapped alone (``carto map PART``, its map.carto kept under DIR), then merged
+(``carto merge``, ``pipeline.merge_maps``); scored as above, CPU and peak memory of the merge alone (a process of
+its own reading the saved maps).
+
 ``--foreign``: every pair of dense cases given together (the first 40 % of each): a building must not link to
 another; counted links and the verdict.
 """
@@ -114,7 +118,23 @@ def one(case: str, n: int, mode: str) -> dict:
                 out["peak_memory_mb"] = max(out.get("peak_memory_mb") or 0, result.stats.get("peak_memory_mb") or 0)
             out["ate"] = per
         return out
-    result = _map(recordings[0], recordings[1:])
+    if mode == "parts":
+        # Each part mapped alone, as `carto map PART -o DIR/partK` writes it, for the merge row
+        from carto_cli.commands.map import write_outputs
+
+        for k, rec in enumerate(recordings):
+            result = _map(rec)
+            write_outputs(result, _parts_dir(case, n) / f"part{k}", result.options, recordings=[rec.path.name])
+        return out
+    if mode == "merge":
+        from carto_cli.io.map_file import load_map
+        from carto_cli.pipeline import merge_maps
+
+        result = merge_maps([load_map(_parts_dir(case, n) / f"part{k}" / "map.carto") for k in range(n)])
+        out["whole_map_searches"] = result.stats.get("whole_map_searches")
+        out["searches"] = result.stats.get("loop_closure_searches")
+    else:
+        result = _map(recordings[0], recordings[1:])
     out["peak_memory_mb"] = result.stats.get("peak_memory_mb")
     out["verdict"] = str(result.quality.verdict) if result.quality is not None else None
     out["linked"] = sum(s.linked for s in result.sessions)
@@ -132,6 +152,10 @@ def one(case: str, n: int, mode: str) -> dict:
         misplaced.append([float(math.hypot(d[0], d[1])), float(abs(math.degrees(d[2])))] if k else None)
     out["misplaced"] = misplaced
     return out
+
+
+def _parts_dir(case: str, n: int) -> Path:
+    return Path(os.environ["CARTO_BENCH_PARTS"]) / f"{case}-{n}"
 
 
 def foreign(a: str, b: str) -> dict:
@@ -155,6 +179,18 @@ def _child(args: list[str]) -> dict:
     return got
 
 
+def _row(r: dict, base: dict, last_cpu_s: float) -> str:
+    ratio = max((a / b if b > 0 else float("inf") for a, b in zip(r["ate"], base["ate"]) if a is not None),
+                default=float("nan"))
+    placed = [m for m in r["misplaced"] if m is not None]
+    worst = max((m[0] for m in placed), default=0.0)
+    worst_deg = max((m[1] for m in placed), default=0.0)
+    ates = ", ".join("unlinked" if a is None else f"{a:.3f}" for a in r["ate"])
+    return (f"| {r['case']} | {r['sessions']} | {r['linked']}/{r['sessions']} | {r['verdict']} | "
+            f"{ates} | {ratio:.2f} | {worst:.3f} / {worst_deg:.2f} | "
+            f"{r['cpu_s']:.1f} | {r['peak_memory_mb']:.0f} | {last_cpu_s:.1f} |")
+
+
 def _table(rows: list[dict], foreign_rows: list[dict], commit: str) -> str:
     lines = [f"Multi-session mapping (`python bench/sessions.py`, commit {commit}): ATE in m in the common frame (one "
              "alignment for every session), per session, and its ratio to the baseline's over the same scans "
@@ -163,23 +199,37 @@ def _table(rows: list[dict], foreign_rows: list[dict], commit: str) -> str:
              "| case | sessions | linked | verdict | ATE per session (m) | worst ratio | misplaced (m / deg, worst) "
              "| CPU s | peak MB | baseline CPU s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        base = r["baseline"]
-        ratio = max((a / b if b > 0 else float("inf") for a, b in zip(r["ate"], base["ate"]) if a is not None),
-                    default=float("nan"))
-        placed = [m for m in r["misplaced"] if m is not None]
-        worst = max((m[0] for m in placed), default=0.0)
-        worst_deg = max((m[1] for m in placed), default=0.0)
-        ates = ", ".join("unlinked" if a is None else f"{a:.3f}" for a in r["ate"])
-        lines.append(f"| {r['case']} | {r['sessions']} | {r['linked']}/{r['sessions']} | {r['verdict']} | "
-                     f"{ates} | {ratio:.2f} | {worst:.3f} / {worst_deg:.2f} | "
-                     f"{r['cpu_s']:.1f} | {r['peak_memory_mb']:.0f} | {base['cpu_s']:.1f} |")
+    lines += [_row(r, r["baseline"], r["baseline"]["cpu_s"]) for r in rows]
+    merged = [r for r in rows if "merge" in r]
+    if merged:
+        lines += ["", "The same parts each mapped alone, then merged (`--merge`, `carto merge`): the same scores; CPU s "
+                  "and peak MB of the merge alone (reading the saved maps), and the parts' mapping CPU s.", "",
+                  "| case | sessions | linked | verdict | ATE per session (m) | worst ratio | misplaced (m / deg, worst) "
+                  "| merge CPU s | peak MB | parts CPU s |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [_row(r["merge"], r["baseline"], r["merge"]["parts_cpu_s"]) for r in merged]
     if foreign_rows:
         lines += ["", "Two buildings given together (the first 40 % of each): links found and the verdict.", "",
                   "| recordings | links | verdict |", "|---|---|---|"]
         for f in foreign_rows:
             lines.append(f"| {f['pair'][0]} + {f['pair'][1]} | {f['links']} | {f['verdict']} |")
     return "\n".join(lines)
+
+
+def _rows(args: argparse.Namespace) -> list[dict]:
+    rows = []
+    for case in args.cases.split(","):
+        for n in args.sessions:
+            print(f"[{case}] {n} sessions ...", file=sys.stderr, flush=True)
+            row = _child(["sessions", case, str(n)])
+            row["baseline"] = _child(["baseline", case, str(n)])
+            if args.merge is not None:
+                os.environ["CARTO_BENCH_PARTS"] = str(args.merge.resolve())
+                parts = _child(["parts", case, str(n)])
+                row["merge"] = _child(["merge", case, str(n)]) | {"parts_cpu_s": parts["cpu_s"]}
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
+    return rows
 
 
 def main() -> None:
@@ -190,6 +240,8 @@ def main() -> None:
     p.add_argument("--doc", type=Path, default=ROOT / "docs" / "benchmarks.md")
     p.add_argument("--no-doc", action="store_true")
     p.add_argument("--results", type=Path, default=None)
+    p.add_argument("--merge", type=Path, default=None, metavar="DIR",
+                   help="also map the parts alone (their maps kept in DIR) and merge them (`carto merge`)")
     p.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
@@ -197,14 +249,7 @@ def main() -> None:
         out = foreign(*rest) if kind == "foreign" else one(rest[0], int(rest[1]), kind)
         print(json.dumps(out))
         return
-    rows, foreign_rows = [], []
-    for case in args.cases.split(","):
-        for n in args.sessions:
-            print(f"[{case}] {n} sessions ...", file=sys.stderr, flush=True)
-            row = _child(["sessions", case, str(n)])
-            row["baseline"] = _child(["baseline", case, str(n)])
-            rows.append(row)
-            print(json.dumps(row), file=sys.stderr, flush=True)
+    rows, foreign_rows = _rows(args), []
     if not args.no_foreign:
         dense = [c.removeprefix("dense-") for c in args.cases.split(",") if c.startswith("dense-")]
         for i, a in enumerate(dense):

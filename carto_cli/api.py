@@ -28,6 +28,7 @@ import numpy as np
 
 from carto_cli.commands.eval import run_eval, run_eval_sessions
 from carto_cli.commands.map import MapOutputs, check_outdir, run_map, write_outputs
+from carto_cli.commands.merge import load_maps, run_merge
 from carto_cli.commands.relocalize import apply_map_auto, load_relocalization_map
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
@@ -35,6 +36,7 @@ from carto_cli.evaluation.metrics import AteResult, Evaluation
 from carto_cli.io.sources.memory import MemoryRecording
 from carto_cli.options import Options, load_options
 from carto_cli.pipeline import Auto, MapRequest, MapResult, execute, map_sessions, planned
+from carto_cli.pipeline import merge_maps as _merge_maps
 from carto_cli.relocalization import RelocalizationResult, Relocalizer, ScanContext
 
 __all__ = [
@@ -46,6 +48,7 @@ __all__ = [
     "map_recording",
     "map_recordings",
     "map_records",
+    "merge_maps",
     "odometry",
     "options",
     "relocalize",
@@ -121,6 +124,19 @@ def map_recordings(recordings: Sequence[str | Path], *, profile: str | Path | No
     else:
         result = map_sessions(request)
     return MapRun(result, result.configured.options, tuple(Path(r).name for r in recordings))
+
+
+def merge_maps(maps: Sequence[str | Path], *, jobs: int | None = None, outdir: str | Path | None = None,
+               force: bool = False) -> MapRun:
+    """Saved maps (map.carto or .pbstream) made separately into one, as `carto merge`: the first fixes the frame
+    and the options, each later one is placed by loop closures; ``MapRun.sessions`` says where each trajectory is
+    and whether it is linked. With ``outdir`` the outputs are written there too."""
+    if outdir is not None:
+        result, _ = run_merge(maps, Path(outdir), force=force, jobs=jobs)
+    else:
+        result = _merge_maps(load_maps(maps), jobs=jobs)
+    assert result.options is not None  # merge_maps records the first map's
+    return MapRun(result, result.options, tuple(x.name for x in result.sessions))
 
 
 def map_records(records: Iterable[Record], *, laser_pose: Sequence[float] | None = None,

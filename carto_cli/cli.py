@@ -468,6 +468,43 @@ def map_(
             raise typer.Exit(EXIT_CHECK_FAILED)
 
 
+@app.command("merge")
+@handle_errors
+def merge_(
+    maps: list[Path] = typer.Argument(
+        ..., metavar="MAP...",
+        help="map.carto files (or Cartographer's .pbstream) of one building, made separately; the first fixes the "
+             "frame and the options."),
+    outdir: Path = typer.Option(..., "--output", "-o", metavar="DIR", help="Output directory."),
+    force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
+    timings: bool = typer.Option(False, "--timings", rich_help_panel=PANEL_OUTPUT,
+                                 help="Print the per-stage timing tree."),
+    strict: bool = typer.Option(False, "--strict", rich_help_panel=PANEL_OUTPUT,
+                                help="Exit 3 on a 'suspect' map too, not only a 'failed' one (for CI)."),
+    jobs: int | None = JOBS,
+):
+    """Merge saved maps without their recordings, each later one placed by loop closures.
+
+    Each later map is placed by the loop-closure search and link rule that place a later recording of `carto map
+    A B`, then optimized jointly; the same outputs and sessions.json. A map linked to none fails (exit 3), its
+    outputs still written for a look."""
+    from carto_cli.commands.map import sessions_lines
+    from carto_cli.commands.merge import merged_line, run_merge
+    from carto_cli.core.timing import StageTimer, report_tree_text
+
+    timer = StageTimer()
+    result, outputs = run_merge(maps, outdir, force=force, jobs=jobs, timer=timer)
+    if timings:
+        typer.echo(report_tree_text(timer))
+    typer.echo(f"{merged_line(result)} -> {outputs.yaml.parent}")
+    for line in sessions_lines(result):
+        typer.echo(line)
+    if result.quality is not None:
+        typer.echo(result.quality.line(), err=not result.quality.ok)
+        if result.quality.fails(strict=strict):
+            raise typer.Exit(EXIT_CHECK_FAILED)
+
+
 def _finish_gates(gates, junit: Path | None, suite: str, label: str) -> None:
     """JUnit output if asked, one stderr line per failed gate, exit 3 if any failed."""
     from carto_cli.commands.common import record_gates

@@ -36,6 +36,7 @@ from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
 from carto_cli.mapping.lifelong import SessionPolicy, Trimmed, last_seen
+from carto_cli.mapping.merging import merge_states
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.pose_graph_state import PoseGraphState
 from carto_cli.mapping.quality import LEVELS, MapQuality, QualityCheck, assess
@@ -49,7 +50,8 @@ if TYPE_CHECKING:
     from carto_cli.io.loaded_map import LoadedMap
 
 __all__ = ["Auto", "Configured", "Continued", "MapRequest", "MapResult", "Plan", "TopicChoice", "build", "execute",
-           "map_sessions", "planned", "read_options", "resolve_laser_pose", "survey_mount"]
+           "map_sessions", "merge_maps", "planned", "read_options", "resolve_laser_pose", "survey_mount",
+           "with_sessions"]
 
 
 @dataclass(frozen=True)
@@ -474,15 +476,21 @@ def _map_once(plan: Plan, configured: Configured, timer: Any,
 
 
 def _with_sessions(result: MapResult, plan: Plan, trajectory: int) -> MapResult:
-    """A map of several sessions: every session's trajectory after the joint optimization, the links between them,
-    and a verdict that fails when one is linked to none. An unlinked session's submaps are left out of the map
-    image: they lie in a frame of their own, which drawn at the map's origin would overlay unrelated walls."""
+    """``with_sessions`` of a map that continued ``plan.continued``'s, its own trajectory ``trajectory``."""
+    assert plan.continued is not None
+    return with_sessions(result, plan.continued.sessions + (_own_scans(result, plan, trajectory),))
+
+
+def with_sessions(result: MapResult, scans: Sequence[SessionScans]) -> MapResult:
+    """A map of several sessions (``scans``: each one's, in trajectory order): every session's trajectory after the
+    joint optimization, the links between them, and a verdict that fails when one is linked to none. An unlinked
+    session's submaps are left out of the map image: they lie in a frame of their own, which drawn at the map's
+    origin would overlay unrelated walls. ``carto map A B`` and ``carto merge`` both report through it."""
     graph = result.graph
-    assert plan.continued is not None and graph is not None
+    assert graph is not None
     links = session_links(graph)
     first = min(trajectories(graph))
     linked = linked_to(first, links)
-    scans = plan.continued.sessions + (_own_scans(result, plan, trajectory),)
     sessions = tuple(Session(x.trajectory, x.name, x.times, x.poses(graph), x.trajectory in linked) for x in scans)
     unlinked = [x for x in sessions if not x.linked]
     checks = list(result.quality.checks) if result.quality is not None else []
@@ -543,8 +551,80 @@ def _as_last_seen(result: MapResult, timer: Any, *, trim: bool) -> MapResult:
     assert result.graph is not None and result.options is not None
     with (timer or NullTimer()).stage("last seen"):
         seen = last_seen(result.graph.to_state(), [x.trajectory for x in result.sessions if x.linked], trim=trim)
-        graph = PoseGraph.from_state(result.options, seen.state)
+        graph = PoseGraph.from_state(result.options, seen.state) if seen.trimmed else result.graph
     return dataclasses.replace(result, graph=graph, image=seen.image, trimmed=seen.trimmed)
+
+
+def merge_maps(maps: Sequence[LoadedMap], *, timer: Any = None, jobs: int | None = None) -> MapResult:
+    """Saved maps (other robots, other days) into one, without their recordings, in order: the first fixes the map
+    frame and gives the options, each later one is placed by loop-closure search against the ones before it
+    (``mapping.merging``); reported as a map of several recordings (:func:`with_sessions`), drawn as last seen
+    (a later map's sure cells over an earlier's). The maps' last submaps are finished in place."""
+    if len(maps) < 2:
+        raise CartoError("give two maps or more to merge")
+    started = _time.perf_counter()
+    options = maps[0].options
+    merged = merge_states(options, [m.to_state() for m in maps], timer=timer, jobs=jobs)
+    graph = merged.graph
+    scans: list[SessionScans] = []
+    first_node = 0
+    for loaded, renumber in zip(maps, merged.trajectories):
+        scans.extend(_saved_scans(loaded, renumber, first_node))
+        first_node += loaded.num_nodes
+    last = scans[-1]
+    image = AssembledImage([e.submap.grid for e in graph.submaps], [e.local_to_global() for e in graph.submaps])
+    loops = graph.constraints.is_loop_closure
+    closures = np.concatenate([graph.global_poses[graph.constraints.node[loops], :2],
+                               graph.submap_global_poses[graph.constraints.submap[loops], :2]], axis=1)
+    wall = _time.perf_counter() - started
+    count = sum(len(x.times) for x in scans)
+    peak = peak_rss_mb()
+    stats: RunStats = {
+        "maps": len(maps), "scans": count, "poses": count, "nodes": graph.num_nodes, "submaps": len(graph.submaps),
+        "wall_time_s": wall, "scans_per_s": count / wall if wall > 0 else float("nan"),
+        "constraints": len(graph.constraints), "loop_closures": graph.constraints.num_loop_closures,
+        "loop_closure_searches": graph.builder.stats.searched,
+        "whole_map_searches": graph.builder.stats.global_searches,
+        "optimizations": graph.stats.optimizations, "optimization_time_s": graph.stats.optimization_time_s,
+        "precomputation_bytes": graph.builder.stacks.peak_bytes, "precomputations": graph.builder.stacks.misses,
+        "precomputation_evictions": graph.builder.stacks.evictions, "peak_memory_mb": peak}
+    # The scans of the last map as the map's own trajectory (trajectory.tum, map.png), as `carto map A B` has the
+    # last recording's; every map's are in its trajectory_N.tum
+    at = np.searchsorted(last.nodes, np.unique(last.nodes))
+    core = SlamResult(times=last.times, poses=last.poses(graph), local_poses=last.local_poses, node_scans=at,
+                      submaps=[e.submap for e in graph.submaps], submap_poses=graph.submap_global_poses, image=image,
+                      laser_pose=maps[0].laser_pose if maps[0].laser_pose is not None else np.zeros(3), stats=stats,
+                      loop_closures=closures, graph=graph)
+    quality = assess(core)
+    fields = {f.name: getattr(core, f.name) for f in dataclasses.fields(SlamResult)}
+    result = MapResult(**fields, laser_pose_source=maps[0].metadata.laser_pose_source or "", quality=quality,
+                       options=options)
+    # As last seen: where a later map is sure of a cell it draws it (nothing is trimmed)
+    return _as_last_seen(with_sessions(result, scans), timer, trim=False)
+
+
+def _saved_scans(loaded: LoadedMap, renumber: dict[int, int], first_node: int) -> list[SessionScans]:
+    """A saved map's sessions as trajectories ``renumber`` of a merged graph whose node ids start at ``first_node``.
+    A map of one recording keeps every posed scan and each node's scan: by every scan, each carried by the node at
+    or before it as mapping posed it; else (several recordings, a .pbstream) by its nodes, as ``--load-state``."""
+    recordings = loaded.metadata.recordings
+    out = []
+    for t, new in sorted(renumber.items()):
+        nodes = np.flatnonzero(loaded.node_trajectories == t)
+        if not len(nodes):
+            continue
+        name = recordings[t] if t < len(recordings) else f"{loaded.path.name} trajectory {t}"
+        saved = loaded.trajectory
+        if saved is not None and len(saved) and loaded.node_scans is not None and len(renumber) == 1:
+            at = np.clip(np.searchsorted(loaded.node_scans, np.arange(len(saved)), side="right") - 1, 0, None)
+            correction = transform.compose(loaded.node_global_poses[at],
+                                           transform.inverse(loaded.node_local_poses[at]))
+            local = transform.compose(transform.inverse(correction), saved.poses)
+            out.append(SessionScans(new, name, saved.t, local, at + first_node))
+        else:
+            out.append(SessionScans(new, name, loaded.node_times[nodes], loaded.node_local_poses[nodes],
+                                    nodes + first_node))
+    return out
 
 
 def _start_system(plan: Plan, configured: Configured, timer: Any) -> tuple[MappingSystem, int]:

@@ -34,3 +34,27 @@ def written_recordings(tmp_path_factory):
                         topics={"/scan": "sensor_msgs/msg/LaserScan", "/odom": "nav_msgs/msg/Odometry",
                                 "/imu": "sensor_msgs/msg/Imu"})
     return records, paths
+
+
+@pytest.fixture(scope="session")
+def merge_parts(tmp_path_factory):
+    """`carto merge`'s inputs (tests/commands/test_merge.py, tests/mapping/test_merging.py): one simulated recording
+    of the loop building, two laps, cut in the middle (each part's odometry restarted at zero, as after a reboot),
+    each part mapped alone as `carto map PART -o DIR` writes it. The two output directories, and the recording's
+    reference (m, 4) t, x, y, yaw."""
+    from carto_cli.commands.map import run_map
+    from carto_cli.pipeline import Auto, MapRequest
+    from carto_cli.sim.recording import simulate
+    from carto_cli.sim.sessions import cut_sessions
+    from carto_cli.sim.trajectory import follow_route
+    from carto_cli.sim.world import loop_building
+
+    world = loop_building()
+    sim = simulate(world, follow_route(world, laps=2), seed=3)
+    t = sim.ground_truth[:, 0]
+    root = tmp_path_factory.mktemp("merge")
+    dirs = []
+    for k, part in enumerate(cut_sessions(sim.recording(), [0.5 * (t[0] + t[-1])])):
+        run_map(MapRequest(part, Auto()), root / f"part{k}")
+        dirs.append(root / f"part{k}")
+    return dirs, sim.ground_truth

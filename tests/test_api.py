@@ -91,6 +91,23 @@ def test_map_recordings_makes_one_map_of_several(drive, tmp_path):
     assert abs(both[0].translation.rmse - both[1].translation.rmse) < 0.1
 
 
+def test_merge_maps_lays_a_map_on_itself(drive, tmp_path):
+    sim, records = drive
+    bag = tmp_path / "drive.bag"
+    write_recording(iter(records), bag, "ros1", static_transforms=sim.static_transforms)
+    api.map_recording(bag, outdir=tmp_path / "a")
+    run = api.merge_maps([tmp_path / "a" / "map.carto"] * 2, jobs=1)  # the same map twice
+    assert [(s.trajectory, s.name, s.linked) for s in run.sessions] == [(0, "drive.bag", True), (1, "drive.bag", True)]
+    assert np.max(np.hypot(*(run.sessions[0].poses[:, :2] - run.sessions[1].poses[:, :2]).T)) < 0.05
+    assert len(run.result.links) == 1 and run.quality == "ok"
+    run.write(tmp_path / "m")
+    assert (tmp_path / "m" / "trajectory_1.tum").is_file()
+    with pytest.raises(api.CartoError, match="two maps or more"):
+        api.merge_maps([tmp_path / "a" / "map.carto"])
+    with pytest.raises(api.CartoError, match="no such file"):
+        api.merge_maps([tmp_path / "a" / "map.carto", tmp_path / "none.carto"])
+
+
 def test_bad_input_is_a_carto_error(tmp_path):
     with pytest.raises(api.CartoError, match="no scans"):
         api.map_records([api.odometry(0.0, 0.0, 0.0, 0.0)])

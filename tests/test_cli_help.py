@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from carto_cli.cli import app
 
 # Every command and group, checked against the app itself so that a new one cannot be left out.
-COMMANDS = [(), ("info",), ("convert",), ("map",), ("eval",), ("profile",), ("relocalize",), ("render",),
+COMMANDS = [(), ("info",), ("convert",), ("map",), ("merge",), ("eval",), ("profile",), ("relocalize",), ("render",),
             ("tune",), ("options",), ("profiles",), ("profiles", "list"), ("profiles", "show")]
 # Lines at 80 columns. Before the panels: map 111, profile 107, relocalize 93, tune 66; after: 78, 73, 78, 58.
 # The bounds leave room for a new option or two, not for a page that stops being read.

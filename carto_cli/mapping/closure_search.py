@@ -67,13 +67,16 @@ class ClosureSearches:
                               if index in finished and node not in entry.nodes))
 
     def search_submap(self, builder: ConstraintBuilder, graph: GraphView, index: int,
-                      max_constraint_distance: float) -> None:
-        """Start the searches of every earlier key node not in submap ``index`` (newly finished) against it."""
+                      max_constraint_distance: float, among: np.ndarray | None = None) -> None:
+        """Start the searches of every earlier key node not in submap ``index`` (newly finished) against it;
+        ``among``: (N,) bool, only these nodes (a merge searches another map's nodes, not the submap's own)."""
         entry = graph.submaps[index]
         # The distance rule that rejects most of them is applied to all at once here rather than per node in
         # Python. Links between trajectories only ever get added, so a node linked now is still linked when it is
         # chosen.
         searching = np.asarray(graph.node_searches, dtype=bool)
+        if among is not None:
+            searching &= among
         searching[entry.nodes] = False
         traj = np.asarray(graph.node_trajectory)
         linked = np.array([t == entry.trajectory or frozenset((t, entry.trajectory)) in builder.connected

@@ -85,23 +85,42 @@ def _offer_link(graph: PoseGraph, lc: LoopClosure, *, checking: bool = False) ->
             _check_link(graph, lc)
         return True
     earlier, later = sorted(pair)
-    if not any(later in p for p in graph.builder.connected):
+    group, other = _component(graph.builder.connected, later), _component(graph.builder.connected, earlier)
+    if earlier not in group:
         # A session linked for the first time goes where the link puts it at once, and again once the running
-        # optimization (which knew it elsewhere) lands: searches from now on look around its true place
-        _place(graph, earlier, later, frame)
-        graph.placements.append((earlier, later, frame))
+        # optimization (which knew it elsewhere) lands: searches from now on look around its true place. The
+        # trajectories already linked to it go with it (a merged map's own sessions share one frame,
+        # mapping.merging), and the side that holds the lowest trajectory (the map frame's) stays
+        if min(group) < min(other):
+            earlier, later, frame, group = later, earlier, transform.inverse(frame), other
+        _place(graph, earlier, later, frame, group)
+        graph.placements.append((earlier, later, frame, group))
     graph.builder.connected.add(pair)
     return True
 
 
-def _place(graph: PoseGraph, earlier: int, later: int, frame: np.ndarray) -> None:
-    """Move trajectory ``later`` rigidly so that its frame lies at ``frame`` in trajectory ``earlier``'s."""
+def _component(connected: set[frozenset], trajectory: int) -> frozenset[int]:
+    """``trajectory`` and every trajectory linked to it, directly or through others."""
+    reached = {trajectory}
+    grew = True
+    while grew:
+        grew = False
+        for pair in connected:
+            if len(pair & reached) == 1:
+                reached |= pair
+                grew = True
+    return frozenset(reached)
+
+
+def _place(graph: PoseGraph, earlier: int, later: int, frame: np.ndarray, group: frozenset[int]) -> None:
+    """Move trajectory ``later``, and the trajectories ``group`` it is linked to, rigidly so that its frame lies at
+    ``frame`` in trajectory ``earlier``'s."""
     move = transform.compose(transform.compose(_last_correction(graph.submaps, earlier), frame),
                              transform.inverse(_last_correction(graph.submaps, later)))
-    mine = np.asarray(graph.node_trajectory) == later
+    mine = np.isin(np.asarray(graph.node_trajectory), list(group))
     graph._global.array[mine] = transform.compose(move, graph._global.array[mine])
     for entry in graph.submaps:
-        if entry.trajectory == later:
+        if entry.trajectory in group:
             entry.global_pose = transform.compose(move, entry.global_pose)
 
 
@@ -193,7 +212,8 @@ class PoseGraph:
         self.searches = ClosureSearches()
         self.confirmation = ClosureConfirmation()  # with confirm_loop_closures
         self.links = LinkConfirmation()  # the first closures between two trajectories
-        self.placements: list[tuple[int, int, np.ndarray]] = []  # sessions just linked, moved into place at settle
+        # sessions just linked (earlier, later, frame, the trajectories moved), moved into place again at settle
+        self.placements: list[tuple[int, int, np.ndarray, frozenset[int]]] = []
         self.scheduler = OptimizationScheduler()
 
     # ------------------------------------------------------------------ state in and out
@@ -274,6 +294,11 @@ class PoseGraph:
     @property
     def global_poses(self) -> np.ndarray:
         return self._global.array
+
+    @property
+    def finished_submaps(self) -> frozenset[int]:
+        """The submaps this graph has been told are finished (what a node's searches may try)."""
+        return frozenset(self._finished)
 
     @property
     def submap_global_poses(self) -> np.ndarray:
@@ -409,8 +434,8 @@ class PoseGraph:
         if taken is not None:
             self._apply(*taken)
         placements, self.placements = self.placements, []
-        for earlier, later, frame in placements:
-            _place(self, earlier, later, frame)  # again: the optimization just taken knew it elsewhere
+        for earlier, later, frame, group in placements:
+            _place(self, earlier, later, frame, group)  # again: the optimization just taken knew it elsewhere
 
     def _optimize_beside(self) -> None:
         """The periodic optimization, run while the next ``optimize_every_n_nodes`` nodes are added and searched

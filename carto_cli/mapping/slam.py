@@ -62,6 +62,7 @@ class RunStats(TypedDict, total=False):
     mapping's (wall, from the system's start), memory in MB or bytes as named."""
 
     algorithm: str  # GMapping's pipeline names itself; a Cartographer run leaves it out
+    maps: int  # carto merge: the saved maps merged
     scans: int  # fed
     poses: int  # scans that got a pose
     nodes: int
@@ -75,6 +76,7 @@ class RunStats(TypedDict, total=False):
     loop_closures: int
     loop_closure_candidates: int
     loop_closure_searches: int
+    whole_map_searches: int  # carto merge: searches over a whole submap (trajectories not linked yet)
     optimizations: int
     optimization_time_s: float
     precomputation_bytes: int  # the most branch-and-bound stacks held at once
