@@ -101,7 +101,9 @@ class MapResult(SlamResult):
                               "linked": x.linked} | ({"trimmed": trimmed[x.trajectory]}
                                                      if x.trajectory in trimmed else {})
                              for x in self.sessions],
-                "links": [link.to_dict() for link in self.links]}
+                "links": [link.to_dict() for link in self.links],
+                # placements the closures agreed on that would have put a session in another's free space
+                "refused_placements": self.graph.stats.refused_links if self.graph is not None else 0}
 
 
 @dataclass(frozen=True)

@@ -69,3 +69,18 @@ def test_cut_sessions_restart_odometry_and_keep_every_record(two):
     odometry = list(b.records(["/odom"]))
     np.testing.assert_allclose((odometry[0].x, odometry[0].y, odometry[0].yaw), 0.0, atol=1e-12)
     assert len(list(a.records(topics))) + len(list(b.records(topics))) == len(records)
+
+
+def test_a_placement_that_puts_a_session_in_free_space_is_refused(two, monkeypatch):
+    """The link rule's last word is free space (mapping.link_check): here every placement is made to look wrong, so
+    the second session is never linked, and the refusals are counted and said."""
+    from carto_cli.commands.map import sessions_lines
+    from carto_cli.mapping import pose_graph
+
+    recordings, _, _ = two
+    monkeypatch.setattr(pose_graph, "_conflict", lambda graph, lc, frame: 1.0)
+    result = map_sessions(MapRequest(recordings[0], OPTIONS, later=(recordings[1],)))
+    assert [s.linked for s in result.sessions] == [True, False] and result.links == ()
+    assert result.quality is not None and result.quality.verdict == "failed"
+    refused = result.sessions_report()["refused_placements"]
+    assert refused >= 1 and any(f"{refused} placement(s) refused" in line for line in sessions_lines(result))

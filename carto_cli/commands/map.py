@@ -146,6 +146,9 @@ def sessions_lines(result: MapResult) -> list[str]:
     lines += [f"sessions: trajectory {x.trajectory} ({x.name}) is linked to no other: left out of the map"
               for x in result.sessions if not x.linked]
     lines += [f"trimmed: {x.describe()}" for x in result.trimmed]
+    refused = result.graph.stats.refused_links if result.graph is not None else 0
+    if refused:
+        lines.append(f"sessions: {refused} placement(s) refused: they put a session's scans in another's free space")
     return lines
 
 

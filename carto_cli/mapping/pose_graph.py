@@ -33,6 +33,7 @@ from carto_cli.mapping.closure_confirmation import LINK_CHECKS, ClosureConfirmat
 from carto_cli.mapping.closure_search import ClosureSearches, node_data_of, submap_data_of
 from carto_cli.mapping.constraint_builder import ConstraintBuilder, LoopClosure
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
+from carto_cli.mapping.link_check import LINK_CONFLICT, LINK_REACH, free_space_conflict
 from carto_cli.mapping.odometry_log import GrowingArray, OdometryLog
 from carto_cli.mapping.optimization import OptimizationResult, OptimizationSummary, residuals
 from carto_cli.mapping.optimization_scheduler import OptimizationProblem, OptimizationScheduler
@@ -77,6 +78,9 @@ def _offer_link(graph: PoseGraph, lc: LoopClosure, *, checking: bool = False) ->
     cb = graph.pg.constraint_builder
     linking, frame = graph.links.offer(lc, submap_trajectory, graph.submaps[lc.submap].local_pose, node_trajectory,
                                        graph.local_poses[lc.node])
+    if frame is not None and _conflict(graph, lc, frame) > LINK_CONFLICT:
+        graph.stats.refused_links += 1  # placed there, the session would stand in the other's free space
+        return True
     for link in linking:
         graph.constraints.add(link.submap, link.node, link.relative_pose, cb.loop_closure_translation_weight,
                               cb.loop_closure_rotation_weight, ConstraintKind.INTER_SUBMAP)
@@ -95,8 +99,37 @@ def _offer_link(graph: PoseGraph, lc: LoopClosure, *, checking: bool = False) ->
             earlier, later, frame, group = later, earlier, transform.inverse(frame), other
         _place(graph, earlier, later, frame, group)
         graph.placements.append((earlier, later, frame, group))
-    graph.builder.connected.add(pair)
+    # Every trajectory of the one side is now linked to every one of the other: a pair that meets after both were
+    # placed is judged against where they are (a look-alike dropped), never linked afresh by two closures that
+    # agree on a look-alike frame (a ring corridor turned half round) against the placement both already have
+    joined = sorted(group | other)
+    graph.builder.connected.update(frozenset((a, b)) for i, a in enumerate(joined) for b in joined[i + 1:])
     return True
+
+
+def _conflict(graph: PoseGraph, lc: LoopClosure, frame: np.ndarray) -> float:
+    """The share of the later trajectory's returns around ``lc`` that the link ``frame`` (the later trajectory's
+    frame in the earlier's, by trajectory id) puts in the free space of the earlier one and those linked to it
+    (``link_check``)."""
+    entry = graph.submaps[lc.submap]
+    earlier, later = sorted((entry.trajectory, graph.node_trajectory[lc.node]))
+    # The earlier trajectory's local frame in the map where the closure is (its correction there)
+    if entry.trajectory == earlier:
+        correction, anchor = entry.local_to_global(), lc.node
+    else:  # the node is the earlier trajectory's; the later one's scans around the closure are its submap's
+        correction = transform.compose(graph.global_poses[lc.node], transform.inverse(graph.local_poses[lc.node]))
+        anchor = entry.nodes[len(entry.nodes) // 2]
+    place = transform.compose(correction, frame)
+    travel = np.asarray(graph.node_travel)
+    nodes = np.flatnonzero((np.asarray(graph.node_trajectory) == later)
+                           & (np.abs(travel - travel[anchor]) <= LINK_REACH))
+    points = [graph.node_points[n] for n in nodes.tolist()]
+    poses = transform.compose(place, graph.local_poses[nodes])
+    side = _component(graph.builder.connected, earlier)
+    others = [e for e in graph.submaps if e.trajectory in side]
+    share, _ = free_space_conflict(points, poses.reshape(-1, 3), [e.submap.grid for e in others],
+                                   [e.local_to_global() for e in others])
+    return share
 
 
 def _component(connected: set[frozenset], trajectory: int) -> frozenset[int]:
@@ -177,6 +210,7 @@ def _last_correction(submaps: list[SubmapEntry], trajectory: int) -> np.ndarray:
 
 @dataclass
 class PoseGraphStats:
+    refused_links: int = 0  # placements of a session its returns said were wrong (link_check)
     optimizations: int = 0
     optimization_time_s: float = 0.0
     last_summary: OptimizationSummary | None = None
