@@ -18,7 +18,8 @@ from carto_cli.core import transform
 from carto_cli.mapping.constraint_builder import LoopClosure
 
 __all__ = ["CONFIRM_MAX_NODES", "CONFIRM_MAX_ROTATION", "CONFIRM_MAX_TRANSLATION", "CONFIRM_NEIGHBOURS",
-           "LINK_CHECKS", "LINK_PLACES", "LINK_SEPARATION", "ClosureConfirmation", "LinkConfirmation", "PendingClosure"]
+           "LINK_CHECKS", "LINK_FOLLOWED", "LINK_PLACES", "LINK_SEPARATION", "ClosureConfirmation", "LinkConfirmation",
+           "PendingClosure"]
 
 # Two closures to one submap agree when they place their nodes, at most this many nodes apart, within this of
 # local SLAM's relative pose (local SLAM is good to centimetres over a few nodes).
@@ -27,11 +28,14 @@ CONFIRM_MAX_TRANSLATION = 0.2  # m
 CONFIRM_MAX_ROTATION = math.radians(2.0)
 CONFIRM_NEIGHBOURS = 2  # nodes searched at once to confirm a new closure
 # Two trajectories are linked once closures from this many places agree where the one lies in the other: places
-# are different submaps, or nodes at least LINK_SEPARATION apart (a neighbouring node's closure into the same
-# submap is nearly the same scan matched again, no evidence of its own)
+# at least LINK_SEPARATION apart in the later trajectory. A neighbouring node's closure is nearly the same scan
+# matched again, no evidence of its own, even into another submap: every scan lies in two overlapping submaps, and
+# counting those as two places linked a session of a ring corridor turned half round from its first two nodes
+# (bench/sessions.py sim, 5 sessions)
 LINK_PLACES = 2
 LINK_SEPARATION = 2.0  # m
 LINK_CHECKS = 4  # nodes of the session searched where a waiting closure puts them (pose_graph._check_link)
+LINK_FOLLOWED = 3  # waiting placements a pair, each checked again at the session's next key nodes
 
 
 @dataclass
@@ -136,14 +140,28 @@ class LinkConfirmation:
         del self.pending[pair]
         return [o.closure for o in agreeing] + [lc], new.frame
 
+    def waiting(self, trajectory: int) -> list[LoopClosure]:
+        """The newest closure of each placement still waiting that involves ``trajectory`` (up to LINK_FOLLOWED
+        placements a pair, newest first): what the pose graph checks again at each new node of the trajectory,
+        where that placement puts it, until one is confirmed from a second place or refuted."""
+        out = []
+        for pair, offered in self.pending.items():
+            if trajectory not in pair:
+                continue
+            distinct: list[_Offered] = []
+            for o in reversed(offered):
+                if len(distinct) < LINK_FOLLOWED and not any(_same_frame(d, o) for d in distinct):
+                    distinct.append(o)
+            out += [d.closure for d in distinct]
+        return out
+
 
 def _places(offered: list[_Offered]) -> int:
-    """How many independent places ``offered`` come from: greedily, each one in another submap than, or
-    LINK_SEPARATION from, every place counted before it."""
+    """How many independent places ``offered`` come from: greedily, each one LINK_SEPARATION from every place
+    counted before it."""
     counted: list[_Offered] = []
     for o in offered:
-        if all(o.closure.submap != c.closure.submap or math.hypot(*(o.place - c.place)) >= LINK_SEPARATION
-               for c in counted):
+        if all(math.hypot(*(o.place - c.place)) >= LINK_SEPARATION for c in counted):
             counted.append(o)
     return len(counted)
 

@@ -166,18 +166,28 @@ def _within_window(graph: PoseGraph, lc: LoopClosure) -> bool:
             and abs(gap[2]) <= window.angular_search_window)
 
 
-def _check_link(graph: PoseGraph, lc: LoopClosure) -> None:
-    """Search a few other nodes of ``lc``'s node's trajectory where ``lc`` says they are, each in the nearest
-    finished submap of the other trajectory, with a windowed search: closures there that agree link the two at
-    once. Whole-map searches are few (``global_sampling_ratio``), so without this a short session could wait for a
-    second one that never comes, and a wrong candidate is refuted where it would put the session."""
+def _follow_links(graph: PoseGraph, node: int) -> None:
+    """Check the placements still waiting for ``node``'s trajectory where each puts ``node``: as the session moves
+    on, a right one is confirmed from a second place LINK_SEPARATION away, a look-alike refuted."""
+    for lc in graph.links.waiting(graph.node_trajectory[node]):
+        if graph.node_trajectory[lc.node] == graph.node_trajectory[node]:
+            _check_link(graph, lc, [node])
+        # (a placement offered from the other side, the session's own submap matched, waits for a search to come)
+
+
+def _check_link(graph: PoseGraph, lc: LoopClosure, nodes: list[int] | None = None) -> None:
+    """Search a few other nodes of ``lc``'s node's trajectory (``nodes``, default LINK_CHECKS spread over it)
+    where ``lc`` says they are, each in the nearest finished submap of the other trajectory, with a windowed
+    search: closures there that agree link the two at once. Whole-map searches are few
+    (``global_sampling_ratio``), so without this a short session could wait for a second one that never comes, and
+    a wrong candidate is refuted where it would put the session."""
     entry = graph.submaps[lc.submap]
     trajectory = graph.node_trajectory[lc.node]
     # Where the closure puts the node's trajectory, in the map frame of the submap's trajectory
     frame = transform.compose(transform.compose(entry.global_pose, lc.relative_pose),
                               transform.inverse(graph.local_poses[lc.node]))
-    own = [n for n in np.flatnonzero(np.asarray(graph.node_trajectory) == trajectory).tolist()
-           if n != lc.node and len(graph.node_points[n])]
+    own = [n for n in (np.flatnonzero(np.asarray(graph.node_trajectory) == trajectory).tolist() if nodes is None
+                       else nodes) if n != lc.node and len(graph.node_points[n])]
     targets = [i for i in sorted(graph._finished) if graph.submaps[i].trajectory == entry.trajectory]
     if not own or not targets:
         return
@@ -413,6 +423,7 @@ class PoseGraph:
                                                 self.pg.constraint_builder.max_constraint_distance)
                 if self.node_searches[node]:
                     self.searches.search_node(self.builder, self, node, self._finished)
+                    _follow_links(self, node)
 
         self._nodes_since_optimization += 1
         n_every = self.pg.optimize_every_n_nodes

@@ -49,7 +49,7 @@ def test_neighbours_are_the_nearest_searchable_nodes_of_the_trajectory():
     assert c.neighbours(9, 0, [], TRAJECTORIES, points) == [8, 7]  # never trajectory 1's nodes 10 and 11
 
 
-def test_two_trajectories_are_linked_when_closures_into_two_submaps_agree():
+def test_two_trajectories_are_linked_when_closures_from_two_places_agree():
     from carto_cli.core import transform
     from carto_cli.mapping.closure_confirmation import LinkConfirmation
 
@@ -65,12 +65,17 @@ def test_two_trajectories_are_linked_when_closures_into_two_submaps_agree():
     links = LinkConfirmation()
     local = np.array([1.0, 0.5, 0.1])
     assert links.offer(closure(3, 0, local, origin0), 0, origin0, 1, local) == ([], None)  # alone: waits
-    # A second closure into the same submap is no independent evidence; a look-alike elsewhere disagrees
+    # A neighbouring node's closure is no independent evidence, into the same submap or another (every scan lies
+    # in two); a look-alike elsewhere disagrees
     assert links.offer(closure(4, 0, local + 0.1, origin0), 0, origin0, 1, local + 0.1)[0] == []
-    wrong = closure(5, 1, local, origin1, off=(0.0, 0.0, np.pi))
-    assert links.offer(wrong, 0, origin1, 1, local)[0] == []
-    found, got = links.offer(closure(6, 1, local + 0.2, origin1), 0, origin1, 1, local + 0.2)
-    assert [c.node for c in found] == [3, 4, 6] and got is not None
+    assert links.offer(closure(7, 1, local + 0.2, origin1), 0, origin1, 1, local + 0.2)[0] == []
+    far = local + np.array([2.5, 0.0, 0.0])
+    wrong = closure(5, 1, far, origin1, off=(0.0, 0.0, np.pi))
+    assert links.offer(wrong, 0, origin1, 1, far)[0] == []
+    # Both placements wait; each is followed by its newest closure, the newest placement first
+    assert [c.node for c in links.waiting(1)] == [5, 7] and links.waiting(2) == []
+    found, got = links.offer(closure(6, 1, far, origin1), 0, origin1, 1, far)
+    assert [c.node for c in found] == [3, 4, 7, 6] and got is not None
     np.testing.assert_allclose(got, frame, atol=1e-9)
     assert links.pending == {}
     # Offered the other way round (the later trajectory's submap, the earlier one's node): the same frame
