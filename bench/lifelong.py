@@ -12,8 +12,11 @@
   another point of the route, every other one the other way round), each session mapped onto the map the one
   before saved (``carto map S_k --load-state prev/map.carto [--lifelong]``, through ``commands.map.run_map``, under
   ``--policy``, lifelong by default): map.carto's size
-  after every session against its size after the first, and every session's CPU (user + sys of this process) and
-  the peak memory of the run so far.
+  after every session against its size after the first, every session's CPU (user + sys of this process) and
+  the peak memory of the run so far, and how far the new session lies from where it belongs in the FIRST session's
+  map frame (RMSE of its poses against its truth carried by the first session's alignment): a link made half a turn
+  round the ring turns the map frame with it, and stays invisible to the verdict once the sessions it contradicted
+  are trimmed.
 """
 from __future__ import annotations
 
@@ -27,8 +30,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import numpy as np
+
 from carto_cli.commands.map import run_map
+from carto_cli.core import transform
 from carto_cli.evaluation.changes import score_changes
+from carto_cli.evaluation.metrics import align_se2
 from carto_cli.grid.occupancy_image import AssembledImage
 from carto_cli.mapping import lifelong
 from carto_cli.mapping.lifelong import SURE, SessionPolicy
@@ -63,8 +70,9 @@ def changes() -> dict:
 
 
 def repeat(sessions: int, policy: SessionPolicy) -> dict:
-    recordings, _ = route_sessions(loop_building(), sessions)
+    recordings, references = route_sessions(loop_building(), sessions)
     rows = []
+    first_fit = None  # the first session's map frame in the world: where every later session must land
     with tempfile.TemporaryDirectory() as tmp:
         previous = None
         for k, recording in enumerate(recordings):
@@ -83,6 +91,17 @@ def repeat(sessions: int, policy: SessionPolicy) -> dict:
                          "linked": [x.linked for x in result.sessions],
                          "trimmed": [x.describe() for x in result.trimmed]})
             rows[-1]["size_ratio"] = round(rows[-1]["map_carto_bytes"] / rows[0]["map_carto_bytes"], 3)
+            # The new session's poses against its truth carried into the FIRST session's map frame: a link half a
+            # turn round shows here even after the sessions it contradicted were trimmed
+            own = result.sessions[-1] if result.sessions else None
+            poses = own.poses if own is not None else result.poses
+            times = own.times if own is not None else result.times
+            truth = np.column_stack([np.interp(times, references[k][:, 0], references[k][:, i]) for i in (1, 2)])
+            if first_fit is None:
+                first_fit = align_se2(truth, poses[:, :2])
+            placed = transform.apply(first_fit, truth)
+            rows[-1]["error_in_first_frame_m"] = round(float(np.sqrt(np.mean(np.sum((placed - poses[:, :2]) ** 2,
+                                                                                      axis=1)))), 3)
             print(json.dumps(rows[-1]), flush=True)
     return {"policy": str(policy), "sessions": rows}
 
