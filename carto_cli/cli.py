@@ -490,10 +490,13 @@ def merge_(
     outputs still written for a look."""
     from carto_cli.commands.map import sessions_lines
     from carto_cli.commands.merge import merged_line, run_merge
+    from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
 
     timer = StageTimer()
-    result, outputs = run_merge(maps, outdir, force=force, jobs=jobs, timer=timer)
+    with progress(f"merging {len(maps)} maps", None, state.quiet, unit="nodes") as bar:
+        result, outputs = run_merge(maps, outdir, force=force, jobs=jobs, timer=timer, on_total=bar.set_total,
+                                    on_nodes=bar.advance)
     if timings:
         typer.echo(report_tree_text(timer))
     typer.echo(f"{merged_line(result)} -> {outputs.yaml.parent}")

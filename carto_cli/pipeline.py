@@ -557,16 +557,20 @@ def _as_last_seen(result: MapResult, timer: Any, *, trim: bool) -> MapResult:
     return dataclasses.replace(result, graph=graph, image=seen.image, trimmed=seen.trimmed)
 
 
-def merge_maps(maps: Sequence[LoadedMap], *, timer: Any = None, jobs: int | None = None) -> MapResult:
+def merge_maps(maps: Sequence[LoadedMap], *, timer: Any = None, jobs: int | None = None,
+               on_total: Callable[[int], None] | None = None,
+               on_nodes: Callable[[int], None] | None = None) -> MapResult:
     """Saved maps (other robots, other days) into one, without their recordings, in order: the first fixes the map
     frame and gives the options, each later one is placed by loop-closure search against the ones before it
     (``mapping.merging``); reported as a map of several recordings (:func:`with_sessions`), drawn as last seen
-    (a later map's sure cells over an earlier's). The maps' last submaps are finished in place."""
+    (a later map's sure cells over an earlier's). The maps' last submaps are finished in place. ``on_total`` and
+    ``on_nodes``: the searches' progress in nodes (``mapping.merging.merge_states``)."""
     if len(maps) < 2:
         raise CartoError("give two maps or more to merge")
     started = _time.perf_counter()
     options = maps[0].options
-    merged = merge_states(options, [m.to_state() for m in maps], timer=timer, jobs=jobs)
+    merged = merge_states(options, [m.to_state() for m in maps], timer=timer, jobs=jobs, on_total=on_total,
+                          on_nodes=on_nodes)
     graph = merged.graph
     scans: list[SessionScans] = []
     first_node = 0

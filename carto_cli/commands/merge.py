@@ -2,7 +2,7 @@
 robots or on other days, into one map without their recordings, written as `carto map A B` writes its map."""
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,16 +27,18 @@ def load_maps(paths: Sequence[str | Path]) -> list[LoadedMap]:
 
 
 def run_merge(paths: Sequence[str | Path], outdir: Path, *, force: bool = False, jobs: int | None = None,
-              timer: Any = None, state: bool = True) -> tuple[MapResult, MapOutputs]:
+              timer: Any = None, state: bool = True, on_total: Callable[[int], None] | None = None,
+              on_nodes: Callable[[int], None] | None = None) -> tuple[MapResult, MapOutputs]:
     """Merge the maps of ``paths`` in order (the first fixes the map frame and gives the options; a .pbstream
     holds none: carto's defaults) and write every output of `carto map` into ``outdir`` as one set: map.pgm /
     .yaml / .png, trajectory.tum (the last map's), trajectory_N.tum per trajectory, map.carto with every
     trajectory (``state``), summary.json and sessions.json. An earlier map in ``outdir`` is replaced only with
-    ``force`` (checked before anything is read); a missing or bad map writes nothing."""
+    ``force`` (checked before anything is read); a missing or bad map writes nothing. ``on_total`` / ``on_nodes``:
+    the searches' progress, in nodes."""
     outdir = Path(outdir)
     check_outdir(outdir, force=force)
     maps = load_maps(paths)
-    result = merge_maps(maps, timer=timer, jobs=jobs)
+    result = merge_maps(maps, timer=timer, jobs=jobs, on_total=on_total, on_nodes=on_nodes)
     recordings = [x.name for x in result.sessions]
     outputs = write_outputs(result, outdir, result.options, state=state, recordings=recordings, jobs=jobs)
     if timer is not None:

@@ -17,7 +17,7 @@ stop as soon as every appended trajectory is linked.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,11 +95,14 @@ def key_nodes(options: Options, local_poses: np.ndarray, trajectories: np.ndarra
 
 
 def merge_states(options: Options, states: Sequence[PoseGraphState], *, timer: StageTimer | NullTimer | None = None,
-                 jobs: int | None = 1) -> MergedGraph:
+                 jobs: int | None = 1, on_total: Callable[[int], None] | None = None,
+                 on_nodes: Callable[[int], None] | None = None) -> MergedGraph:
     """``states`` (each a map's graph) into one graph, in order: the first fixes the map frame, each later one is
     appended and placed by loop-closure search against the ones before it (module doc), then the final
     optimization. Every submap is finished first (a saved map's last ones may not be: its recording is over, and a
-    whole-map search matches only finished submaps), in ``states`` themselves."""
+    whole-map search matches only finished submaps), in ``states`` themselves. ``on_total`` hears how many
+    appended key nodes there are to search (each twice: whole-map until linked, then windowed), ``on_nodes`` each
+    batch done (the whole-map pass's rest at once when it stops early)."""
     if not states:
         raise ValueError("no map to merge")
     for state in states:
@@ -112,11 +115,14 @@ def merge_states(options: Options, states: Sequence[PoseGraphState], *, timer: S
         renumbers.append(renumber)
     merged.node_searches = key_nodes(options, merged.node_local_poses, merged.node_trajectories)
     graph = PoseGraph.from_state(options, merged, timer=timer, jobs=jobs)
+    appended = np.isin(merged.node_trajectories, [t for r in renumbers[1:] for t in r.values()])
+    if on_total is not None:
+        on_total(2 * int(np.count_nonzero(appended & merged.node_searches)))
     try:
         earlier: set[int] = set(renumbers[0].values())
         for renumber in renumbers[1:]:
             own = set(renumber.values())
-            _join(graph, own, earlier)
+            _join(graph, own, earlier, on_nodes or (lambda n: None))
             earlier |= own
         graph.optimize(final=True)
     finally:
@@ -137,7 +143,7 @@ def _linked(graph: PoseGraph, own: set[int], earlier: set[int]) -> bool:
     return own <= reached
 
 
-def _join(graph: PoseGraph, own: set[int], earlier: set[int]) -> None:
+def _join(graph: PoseGraph, own: set[int], earlier: set[int], on_nodes: Callable[[int], None]) -> None:
     """Place the appended trajectories ``own`` against ``earlier``'s (module doc)."""
     traj = np.asarray(graph.node_trajectory)
     searching = np.asarray(graph.node_searches, dtype=bool)
@@ -168,6 +174,10 @@ def _join(graph: PoseGraph, own: set[int], earlier: set[int]) -> None:
         ready = [i for i in own_submaps if i not in done and last_node[i] <= batch[-1]]
         done.update(ready)
         search(batch, ready)
+        on_nodes(len(batch))
+    else:
+        start = len(own_nodes)
+    on_nodes(len(own_nodes) - min(start, len(own_nodes)))  # the whole-map pass stopped early: its rest is skipped
     if not _linked(graph, own, earlier):
         search([], [i for i in own_submaps if i not in done])
     # Linked: the whole overlap again, within the windows around where the link put the appended map (the whole-map
@@ -177,3 +187,4 @@ def _join(graph: PoseGraph, own: set[int], earlier: set[int]) -> None:
     again_nodes = [n for n in own_nodes if graph.node_trajectory[n] not in still]
     again_submaps = [i for i in own_submaps if graph.submaps[i].trajectory not in still]
     search(again_nodes, again_submaps)
+    on_nodes(len(own_nodes))

@@ -51,6 +51,19 @@ def test_two_maps_made_alone_are_linked_and_written_as_one(merge_parts, tmp_path
     assert merged.metadata.recordings == tuple(p.metadata.recordings[0] for p in parts)
 
 
+def test_the_merge_reports_its_progress_in_nodes(merge_parts, tmp_path):
+    from carto_cli.commands.merge import run_merge
+
+    (a, b), _ = merge_parts
+    totals, done = [], []
+    run_merge([a / "map.carto", b / "map.carto"], tmp_path / "out", jobs=1, on_total=totals.append,
+              on_nodes=done.append)
+    # Each appended key node twice (whole-map until linked, then windowed): the count ends at the total announced
+    (total,) = totals
+    searching = int(load_map(b / "map.carto").num_nodes)
+    assert 0 < total <= 2 * searching and sum(done) == total and all(n >= 0 for n in done)
+
+
 def test_a_map_of_another_building_is_linked_to_nothing(merge_parts, tmp_path):
     from carto_cli.commands.map import run_map
     from carto_cli.pipeline import Auto, MapRequest
