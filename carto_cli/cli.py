@@ -436,7 +436,7 @@ def map_(
     directory is kept unless --force. carto judges its own map: 'map quality: ok | suspect | failed' with the
     reasons (also in summary.json); a 'failed' map (or a 'suspect' one with --strict) exits 3, its outputs
     still written for a look."""
-    from carto_cli.commands.map import run_map, sessions_lines, summary_line
+    from carto_cli.commands.map import run_map, summary_line
     from carto_cli.core import parse
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
@@ -459,13 +459,7 @@ def map_(
         typer.echo(f"carto: warning: {warning}", err=True)
     if timings:
         typer.echo(report_tree_text(timer))
-    typer.echo(f"{summary_line(result, timer)} -> {outputs.yaml.parent}")
-    for line in sessions_lines(result):
-        typer.echo(line)
-    if result.quality is not None:
-        typer.echo(result.quality.line(), err=not result.quality.ok)
-        if result.quality.fails(strict=strict):
-            raise typer.Exit(EXIT_CHECK_FAILED)
+    _say_map(f"{summary_line(result, timer)} -> {outputs.yaml.parent}", result, strict)
 
 
 @app.command("merge")
@@ -488,7 +482,6 @@ def merge_(
     Each later map is placed by the loop-closure search and link rule that place a later recording of `carto map
     A B`, then optimized jointly; the same outputs and sessions.json. A map linked to none fails (exit 3), its
     outputs still written for a look."""
-    from carto_cli.commands.map import sessions_lines
     from carto_cli.commands.merge import merged_line, run_merge
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
@@ -499,7 +492,15 @@ def merge_(
                                     on_nodes=bar.advance)
     if timings:
         typer.echo(report_tree_text(timer))
-    typer.echo(f"{merged_line(result)} -> {outputs.yaml.parent}")
+    _say_map(f"{merged_line(result)} -> {outputs.yaml.parent}", result, strict)
+
+
+def _say_map(summary: str, result, strict: bool) -> None:
+    """A map just written, as `carto map` and `carto merge` say it: its summary, its sessions, its verdict (exit 3
+    when it fails)."""
+    from carto_cli.commands.map import sessions_lines
+
+    typer.echo(summary)
     for line in sessions_lines(result):
         typer.echo(line)
     if result.quality is not None:

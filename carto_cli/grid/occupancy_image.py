@@ -91,6 +91,16 @@ def _known_corners(grid: ProbabilityGrid) -> np.ndarray | None:
     return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
 
 
+def known_box(grid: ProbabilityGrid, correction: np.ndarray) -> np.ndarray | None:
+    """The bounding box (xmin, ymin, xmax, ymax) of ``grid``'s known cells placed at ``correction``; None when it
+    knows none."""
+    corners = _known_corners(grid)
+    if corners is None:
+        return None
+    placed = transform.apply(transform.as_pose(correction), corners)
+    return np.concatenate([placed.min(axis=0), placed.max(axis=0)])
+
+
 # Rows of the map assembled at a time: the accumulators (12 bytes a cell) exist for one strip only.
 STRIP_ROWS = 256
 # Maps up to this many cells are assembled whole when mapping ends (4 bytes a cell: 200 MB); larger ones are

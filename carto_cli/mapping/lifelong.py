@@ -31,7 +31,7 @@ import numpy as np
 
 from carto_cli.core import transform
 from carto_cli.core.enums import TextEnum
-from carto_cli.grid.occupancy_image import AssembledImage, logodds
+from carto_cli.grid.occupancy_image import AssembledImage, known_box, logodds
 from carto_cli.mapping.pose_graph_state import PoseGraphState, SubmapEntry
 
 __all__ = ["SUPERSEDED", "SURE", "LastSeen", "SessionPolicy", "Trimmed", "last_seen", "superseded"]
@@ -113,7 +113,7 @@ def superseded(state: PoseGraphState, order: dict[int, int], sure: float = SURE)
     knows surely, and how many of them each later trajectory is the newest to know. Submaps of trajectories not in
     ``order`` get 0."""
     entries = state.submaps
-    boxes = [_box(e) for e in entries]
+    boxes = [known_box(e.submap.grid, e.local_to_global()) for e in entries]
     fraction = np.zeros(len(entries))
     newest: list[dict] = [{} for _ in entries]
     for i, entry in enumerate(entries):
@@ -136,19 +136,6 @@ def superseded(state: PoseGraphState, order: dict[int, int], sure: float = SURE)
         by_rank = {k: t for t, k in order.items()}
         newest[i] = {by_rank[int(r)]: int(c) for r, c in zip(ranks, counts)}
     return fraction, newest
-
-
-def _box(entry: SubmapEntry) -> np.ndarray | None:
-    """The submap's known cells' bounding box in the map frame, (xmin, ymin, xmax, ymax)."""
-    grid = entry.submap.grid
-    b = grid.known_bounds
-    if b is None:
-        return None
-    res, (ox, oy) = grid.resolution, grid.origin
-    corners = np.array([[ox + b[0] * res, oy + b[1] * res], [ox + (b[2] + 1) * res, oy + b[1] * res],
-                        [ox + (b[2] + 1) * res, oy + (b[3] + 1) * res], [ox + b[0] * res, oy + (b[3] + 1) * res]])
-    pts = transform.apply(entry.local_to_global(), corners)
-    return np.concatenate([pts.min(axis=0), pts.max(axis=0)])
 
 
 def _overlap(a: np.ndarray, b: np.ndarray) -> bool:

@@ -28,7 +28,7 @@ from numba import njit
 
 from carto_cli.core import transform
 from carto_cli.core.kernels import register_warm_up
-from carto_cli.grid.occupancy_image import AssembledImage
+from carto_cli.grid.occupancy_image import AssembledImage, known_box
 from carto_cli.grid.probability_grid import ProbabilityGrid
 
 __all__ = ["LINK_CONFLICT", "LINK_RANGE", "LINK_REACH", "free_space_conflict"]
@@ -93,14 +93,8 @@ def free_space_conflict(points: Sequence[np.ndarray], poses: np.ndarray, grids: 
 
 def _overlaps(grid: ProbabilityGrid, correction: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
     """Whether ``grid``'s known cells, at ``correction``, reach the box ``lo``-``hi``."""
-    b = grid.known_bounds
-    if b is None:
-        return False
-    res, (ox, oy) = grid.resolution, grid.origin
-    corners = np.array([[ox + b[0] * res, oy + b[1] * res], [ox + (b[2] + 1) * res, oy + b[1] * res],
-                        [ox + (b[2] + 1) * res, oy + (b[3] + 1) * res], [ox + b[0] * res, oy + (b[3] + 1) * res]])
-    box = transform.apply(correction, corners)
-    return bool(np.all(box.min(axis=0) <= hi) and np.all(box.max(axis=0) >= lo))
+    box = known_box(grid, correction)
+    return box is not None and bool(np.all(box[:2] <= hi) and np.all(box[2:] >= lo))
 
 
 @register_warm_up(system="cartographer")
