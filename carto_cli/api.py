@@ -35,7 +35,7 @@ from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angle
 from carto_cli.evaluation.metrics import AteResult, Evaluation
 from carto_cli.io.sources.memory import MemoryRecording
 from carto_cli.options import Options, load_options
-from carto_cli.pipeline import Auto, MapRequest, MapResult, execute, map_sessions, planned
+from carto_cli.pipeline import Auto, MapRequest, MapResult, map_sessions
 from carto_cli.pipeline import merge_maps as _merge_maps
 from carto_cli.relocalization import RelocalizationResult, Relocalizer, ScanContext
 
@@ -99,26 +99,26 @@ def options(profile: str | Path | None = None, overrides: Sequence[str] = ()) ->
 
 def map_recording(recording: str | Path, *, profile: str | Path | None = None, overrides: Sequence[str] = (),
                   algorithm: str | None = None, jobs: int | None = None, outdir: str | Path | None = None,
-                  force: bool = False) -> MapRun:
-    """Map a recording file as `carto map` does; with ``outdir`` the outputs are written there too."""
-    request = MapRequest(Path(recording), options(profile, overrides), algorithm, jobs=jobs)
+                  force: bool = False, clean: bool = True) -> MapRun:
+    """Map a recording file as `carto map` does; with ``outdir`` the outputs are written there too. ``clean``
+    False: as `carto map --no-clean`."""
+    request = MapRequest(Path(recording), options(profile, overrides), algorithm, jobs=jobs, clean=clean)
     if outdir is not None:
         result, _ = run_map(request, Path(outdir), force=force)
     else:
-        with planned(request) as plan:  # nothing written: the caller wants the result only
-            result = execute(plan)
+        result = map_sessions(request)  # nothing written: the caller wants the result only
     return MapRun(result, result.configured.options, (Path(recording).name,))
 
 
 def map_recordings(recordings: Sequence[str | Path], *, profile: str | Path | None = None,
                    overrides: Sequence[str] = (), jobs: int | None = None, outdir: str | Path | None = None,
-                   force: bool = False) -> MapRun:
+                   force: bool = False, clean: bool = True) -> MapRun:
     """Several recordings of one building into one map, as `carto map A B ...`: each a trajectory, placed by
     loop closures; ``MapRun.sessions`` says where each is and whether it is linked (``result.links``: how)."""
     if not recordings:
         raise CartoError("no recording to map")
     first, *later = (Path(r) for r in recordings)
-    request = MapRequest(first, options(profile, overrides), jobs=jobs, later=tuple(later))
+    request = MapRequest(first, options(profile, overrides), jobs=jobs, later=tuple(later), clean=clean)
     if outdir is not None:
         result, _ = run_map(request, Path(outdir), force=force)
     else:
@@ -141,10 +141,10 @@ def merge_maps(maps: Sequence[str | Path], *, jobs: int | None = None, outdir: s
 
 def map_records(records: Iterable[Record], *, laser_pose: Sequence[float] | None = None,
                 profile: str | Path | None = None, overrides: Sequence[str] = (), algorithm: str | None = None,
-                jobs: int | None = None) -> MapRun:
+                jobs: int | None = None, clean: bool = True) -> MapRun:
     """Map scans (and odometry / IMU) a program holds, with no file: :func:`scan`, :func:`odometry` or
     ``carto_cli.core.records`` objects, in any order (sorted by time here). ``laser_pose`` (x, y, yaw): the
-    laser on the robot (default: at the robot's origin)."""
+    laser on the robot (default: at the robot's origin). ``clean`` False: as `carto map --no-clean`."""
     statics: list[Transform] = []
     if laser_pose is not None:
         x, y, yaw = (float(v) for v in laser_pose)
@@ -152,9 +152,9 @@ def map_records(records: Iterable[Record], *, laser_pose: Sequence[float] | None
     recording = MemoryRecording(records, statics)
     if not any(t.kind == "scan" for t in recording.topics()):
         raise CartoError("no scans to map")
-    request = MapRequest(recording, options(profile, overrides), algorithm, laser_pose=laser_pose, jobs=jobs)
-    with planned(request) as plan:
-        result = execute(plan)
+    request = MapRequest(recording, options(profile, overrides), algorithm, laser_pose=laser_pose, jobs=jobs,
+                         clean=clean)
+    result = map_sessions(request)
     return MapRun(result, result.configured.options, ("memory",))
 
 

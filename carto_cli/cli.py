@@ -407,6 +407,8 @@ def map_(
         False, "--lifelong", rich_help_panel=PANEL_MAPPING,
         help="Several sessions: trim what later ones superseded (the newest always draws)."
     ),
+    no_clean: bool = typer.Option(False, "--no-clean", rich_help_panel=PANEL_MAPPING,
+                                  help="Keep what was seen through after it was last hit (people, carts)."),
     scan_topic: str | None = SCAN_TOPIC,
     odom_topic: str | None = ODOM_TOPIC,
     imu_topic: str | None = IMU_TOPIC,
@@ -422,6 +424,8 @@ def map_(
     max_z: float | None = MAP_MAX_Z,
     no_state: bool = typer.Option(False, "--no-state", rich_help_panel=PANEL_OUTPUT,
                                   help="Do not write map.carto (the file relocalize loads)."),
+    show_removed: bool = typer.Option(False, "--show-removed", rich_help_panel=PANEL_OUTPUT,
+                                      help="Mark in map.png what cleaning drew free."),
     timings: bool = typer.Option(False, "--timings", rich_help_panel=PANEL_OUTPUT,
                                  help="Print the per-stage timing tree."),
     strict: bool = typer.Option(False, "--strict", rich_help_panel=PANEL_OUTPUT,
@@ -449,12 +453,13 @@ def map_(
         TopicChoice(scan_topic, odom_topic, imu_topic, odom_frame, base_frame),
         laser_pose=parse.pose(laser_pose, "--laser-pose") if laser_pose else None, use_odometry=not no_odometry,
         loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs, later=tuple(recordings[1:]),
-        sessions=SessionPolicy.LIFELONG if lifelong else SessionPolicy.LAST_SEEN)
+        sessions=SessionPolicy.LIFELONG if lifelong else SessionPolicy.LAST_SEEN, clean=not no_clean)
     timer = StageTimer()
     label = recording.name + (f" + {len(recordings) - 1} more" if len(recordings) > 1 else "")
     with progress(f"mapping {label}", None, state.quiet) as bar:
         result, outputs = run_map(request, outdir, timer=timer, on_scan=bar.advance, on_total=bar.set_total,
-                                  on_configured=_say_configured, state=not no_state, force=force)
+                                  on_configured=_say_configured, state=not no_state, force=force,
+                                  show_removed=show_removed)
     for warning in result.warnings:
         typer.echo(f"carto: warning: {warning}", err=True)
     if timings:
@@ -498,10 +503,10 @@ def merge_(
 def _say_map(summary: str, result, strict: bool) -> None:
     """A map just written, as `carto map` and `carto merge` say it: its summary, its sessions, its verdict (exit 3
     when it fails)."""
-    from carto_cli.commands.map import sessions_lines
+    from carto_cli.commands.map import cleaning_lines, sessions_lines
 
     typer.echo(summary)
-    for line in sessions_lines(result):
+    for line in sessions_lines(result) + cleaning_lines(result):
         typer.echo(line)
     if result.quality is not None:
         typer.echo(result.quality.line(), err=not result.quality.ok)
@@ -820,12 +825,18 @@ def render_(
     force: bool = typer.Option(False, "--force", "-f", help="Replace a map already in the output directory."),
     pbstream: bool = typer.Option(False, "--pbstream", help="Also write map.pbstream: the map as Cartographer's "
                                   "state (its tools and --load_state_filename read it)."),
+    keep_transient: bool = typer.Option(
+        False, "--keep-transient", rich_help_panel=PANEL_IMAGE,
+        help="Draw what cleaning removed when the map was made (people, carts, doors that opened)."),
+    show_removed: bool = typer.Option(False, "--show-removed", rich_help_panel=PANEL_IMAGE,
+                                      help="Mark in map.png what cleaning removed (orange)."),
 ):
     """Re-export a saved map without its recording: map.pgm + map.yaml (nav2 / map_server) and map.png."""
     from carto_cli.commands.render import run_render
 
     done = run_render(map_file, outdir, resolution=resolution, mode=mode, occupied_thresh=occupied_thresh,
-                      free_thresh=free_thresh, png_scale=png_scale, force=force, pbstream=pbstream)
+                      free_thresh=free_thresh, png_scale=png_scale, force=force, pbstream=pbstream,
+                      keep_transient=keep_transient, show_removed=show_removed)
     h, w = done.image.shape
     extra = f", {done.pbstream}" if done.pbstream else ""
     typer.echo(f"{w} x {h} cells at {done.image.resolution:g} m -> {done.image_file}, {done.yaml}, {done.png}{extra}")

@@ -27,13 +27,14 @@ from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
 from carto_cli.core.timing import NullTimer
 from carto_cli.gmapping import ALGORITHMS, GMAPPING_PIPELINE, Algorithm
-from carto_cli.grid.occupancy_image import AssembledImage
+from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
+from carto_cli.mapping.cleaning import Transients, cleaned_probability, find_transients
 from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
 from carto_cli.mapping.lifelong import SessionPolicy, Trimmed, last_seen
 from carto_cli.mapping.merging import merge_states
@@ -69,6 +70,8 @@ class MapResult(SlamResult):
     sessions: tuple[Session, ...] = ()
     links: tuple[SessionLink, ...] = ()
     trimmed: tuple[Trimmed, ...] = ()  # what later sessions superseded, trimmed from the graph (mapping.lifelong)
+    # What cleaning drew free (mapping.cleaning): None when the map was not cleaned (--no-clean, or too large)
+    transients: Transients | None = None
 
     @property
     def configured(self) -> Configured:
@@ -91,6 +94,8 @@ class MapResult(SlamResult):
             "laser_pose_source": self.laser_pose_source,
             "odometry": None if self.selection is None else self.selection.describe_odometry(),
             "warnings": list(self.warnings),
+            "cleaning": None if self.transients is None else {
+                "removed_cells": len(self.transients), "occupied_cells": self.transients.candidates},
         } | ({"sessions": self.sessions_report()} if self.sessions else {})
 
     def sessions_report(self) -> dict:
@@ -155,6 +160,9 @@ class MapRequest:
     # How a map of several sessions weighs them: the newest sure evidence drawn, also trimming what later sessions
     # superseded, or all fused alike (mapping.lifelong)
     sessions: SessionPolicy = SessionPolicy.LAST_SEEN
+    # After the final optimization, draw free what the whole recording saw through after it was last hit
+    # (people, carts, a door that opened: mapping.cleaning)
+    clean: bool = True
 
     def __post_init__(self) -> None:
         # Refused before any recording is read or state loaded: mapping would refuse only after both.
@@ -526,6 +534,7 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
             raise CartoError("no such file or directory", source)
     result: MapResult | None = None
     continued: Continued | None = None
+    returns: dict[int, np.ndarray] = {}  # every session's nodes' returns, by node (cleaning's evidence)
     first = dataclasses.replace(request, later=(), algorithm=request.system)
     for source in (request.source,) + request.later:
         one = first if result is None else dataclasses.replace(
@@ -535,6 +544,7 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
             if on_plan is not None:
                 on_plan(plan)
             result = execute(plan, timer=timer, on_scan=on_scan)
+            returns.update(enumerate(result.node_returns, start=result.first_node))
             if request.later:
                 trajectory = plan.continued.next_trajectory if plan.continued is not None else 0
                 assert result.graph is not None  # Cartographer's
@@ -543,7 +553,28 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
     assert result is not None
     if result.sessions and request.sessions != SessionPolicy.FUSE:
         result = _as_last_seen(result, timer, trim=request.sessions == SessionPolicy.LIFELONG)
+    if request.clean:
+        # Trimming renumbered the nodes: what is left of them is judged by the returns the graph keeps
+        result = cleaned(result, timer, {} if result.trimmed else returns)
     return result
+
+
+def cleaned(result: MapResult, timer: Any = None, returns: dict[int, np.ndarray] | None = None) -> MapResult:
+    """``result`` with its image cleaned of what stood only a while (``mapping.cleaning``), judged by every
+    node's returns at its final pose (``returns``, by node; a node without: its loop-closure points, all a
+    saved map keeps). A map too large to hold whole is left as it is (``transients`` None)."""
+    image, graph = result.image, result.graph
+    if graph is None or graph.num_nodes == 0 or image.shape[0] * image.shape[1] > EAGER_CELLS:
+        return result
+    returns = returns or {}
+    points = [returns.get(i, p) for i, p in enumerate(graph.node_points)]
+    with (timer or NullTimer()).stage("clean"):
+        found = find_transients(image.probability, image.origin, image.resolution, points,
+                                np.asarray(graph.global_poses), np.asarray(graph.node_times), result.laser_pose)
+        if len(found):
+            image = OccupancyImage(cleaned_probability(image.probability, image.origin, image.resolution, found),
+                                   image.resolution, image.origin)
+    return dataclasses.replace(result, image=image, transients=found)
 
 
 def _as_last_seen(result: MapResult, timer: Any, *, trim: bool) -> MapResult:

@@ -16,8 +16,8 @@ from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options
 from carto_cli.pipeline import Configured, MapRequest, MapResult, Plan, map_sessions
 
-__all__ = ["OUTPUT_NAMES", "MapOutputs", "check_outdir", "compile_note", "default_outdir", "run_map", "sessions_lines",
-           "summary_line", "write_outputs"]
+__all__ = ["OUTPUT_NAMES", "MapOutputs", "check_outdir", "cleaning_lines", "compile_note", "default_outdir",
+           "run_map", "sessions_lines", "summary_line", "write_outputs"]
 
 OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.tum", "map.carto", "summary.json")
 # A map of several recordings also gets one trajectory file per recording (its trajectory id in the name) and the
@@ -39,10 +39,11 @@ class MapOutputs:
 
 
 def write_outputs(result: MapResult, outdir: Path, options: Options | None = None, *, state: bool = True,
-                  recordings=(), jobs: int | None = None) -> MapOutputs:
+                  recordings=(), jobs: int | None = None, show_removed: bool = False) -> MapOutputs:
     """Every output of ``result`` in ``outdir``, as one set: written to a staging directory first and moved into
     place together, so an interrupted or failed write leaves the earlier set (or nothing) as it was. Whether
-    an existing set may be replaced is :func:`check_outdir`'s question, asked before mapping."""
+    an existing set may be replaced is :func:`check_outdir`'s question, asked before mapping. ``show_removed``:
+    map.png marks what cleaning drew free."""
     outdir = Path(outdir)
     if 0 in result.image.shape:
         raise CartoError("the map is empty: no scan was inserted", outdir)
@@ -51,7 +52,9 @@ def write_outputs(result: MapResult, outdir: Path, options: Options | None = Non
     names = OUTPUT_NAMES + SESSION_NAMES + tuple(sorted(set(sessions) | {p.name for p in outdir.glob(SESSION_GLOB)}))
     with output_set(outdir, names) as staging:
         write_map(staging, result.image)
-        write_png(staging / "map.png", render_png(result.image, result.poses, result.loop_closures))
+        removed = result.transients.centres() if show_removed and result.transients is not None else None
+        write_png(staging / "map.png", render_png(result.image, result.poses, result.loop_closures,
+                                                  removed_xy=removed))
         write_trajectory(staging / "trajectory.tum", Trajectory.from_poses(result.times, result.poses), fmt="tum")
         wrote_state = False
         if state and options is not None and result.graph is not None:
@@ -106,12 +109,13 @@ def run_map(
     on_configured: Callable[[Configured], None] | None = None,
     state: bool = True,
     force: bool = False,
+    show_removed: bool = False,
 ) -> tuple[MapResult, MapOutputs]:
     """Map as ``request`` asks and write every output (to ``default_outdir`` of the recording when ``outdir`` is
     None); ``state``: map.carto too. ``on_configured`` hears the options and system chosen (again when auto fell
     back to another system), ``on_total`` the scans to come, ``on_scan`` each scan fed. ``timer`` is stopped once
     the outputs are written. An earlier map in the output directory is replaced only with ``force`` (checked
-    before mapping)."""
+    before mapping). ``show_removed``: map.png marks what cleaning drew free."""
     if outdir is None:
         if not isinstance(request.source, (str, Path)):
             raise CartoError("a recording in memory has no name to make an output directory of: give outdir")
@@ -133,7 +137,8 @@ def run_map(
     if result.auto is not plans[0].configured.auto and on_configured is not None:
         on_configured(result.configured)  # auto tried another system (execute): say what came of it
     recordings = plans[-1].recordings
-    outputs = write_outputs(result, outdir, result.options, state=state, recordings=recordings, jobs=request.jobs)
+    outputs = write_outputs(result, outdir, result.options, state=state, recordings=recordings, jobs=request.jobs,
+                            show_removed=show_removed)
     if timer is not None:
         timer.stop()
     return result, outputs
@@ -150,6 +155,15 @@ def sessions_lines(result: MapResult) -> list[str]:
     if refused:
         lines.append(f"sessions: {refused} placement(s) refused: they put a session's scans in another's free space")
     return lines
+
+
+def cleaning_lines(result: MapResult) -> list[str]:
+    """What cleaning drew free, in one line (none when it found nothing or did not run)."""
+    found = result.transients
+    if found is None or not len(found):
+        return []
+    return [f"cleaned: {len(found)} of {found.candidates} occupied cells drawn free, seen through after they were "
+            "last hit (people, carts, doors; kept in map.carto; --no-clean keeps them)"]
 
 
 def summary_line(result: MapResult, timer=None, compiled: bool | None = None) -> str:

@@ -15,6 +15,7 @@ from carto_cli.io.loaded_map import LoadedMap
 from carto_cli.io.map_file import load_map
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.pbstream import save_pbstream
+from carto_cli.mapping.cleaning import cleaned_probability
 
 __all__ = ["RENDER_OUTPUTS", "Rendered", "map_image_of", "run_render"]
 
@@ -40,12 +41,15 @@ def map_image_of(loaded: LoadedMap, resolution: float | None = None) -> Assemble
 
 def run_render(map_file: Path, outdir: Path, *, resolution: float | None = None, mode: str = "trinary",
                occupied_thresh: float | None = None, free_thresh: float | None = None,
-               png_scale: int | None = None, force: bool = False, pbstream: bool = False) -> Rendered:
+               png_scale: int | None = None, force: bool = False, pbstream: bool = False,
+               keep_transient: bool = False, show_removed: bool = False) -> Rendered:
     """Write map.pgm (or map.scale.png with ``mode`` 'scale') + map.yaml and map.png of ``map_file`` into
     ``outdir`` as one set; an earlier set there is replaced only with ``force``. Thresholds are probabilities;
     without them a cell is occupied or free by the balance of its evidence, as `carto map` writes it. ``map_file``
     is a map.carto or Cartographer's .pbstream; ``pbstream`` also writes the map as Cartographer's state
-    (map.pbstream: Cartographer's tools and ``--load_state_filename`` read it)."""
+    (map.pbstream: Cartographer's tools and ``--load_state_filename`` read it). What cleaning drew free when the
+    map was made (``LoadedMap.transients``) is drawn free again unless ``keep_transient``; ``show_removed`` marks it
+    in map.png."""
     if resolution is not None and not resolution > 0:
         raise CartoError(f"--resolution must be > 0 m, got {resolution:g}")
     if png_scale is not None and png_scale < 1:
@@ -57,9 +61,13 @@ def run_render(map_file: Path, outdir: Path, *, resolution: float | None = None,
     if taken and not force:
         raise CartoError(f"already holds a map ({', '.join(taken)}); --force replaces it, or give another -o", outdir)
     loaded = load_map(map_file)
-    image = map_image_of(loaded, resolution)
+    image: OccupancyImage | AssembledImage = map_image_of(loaded, resolution)
     if 0 in image.shape:
         raise CartoError("the map has no known cell to render", map_file)
+    removed = loaded.transients
+    if removed is not None and len(removed) and not keep_transient:
+        image = OccupancyImage(cleaned_probability(image.probability, image.origin, image.resolution, removed),
+                               image.resolution, image.origin)
     trajectory = None if loaded.trajectory is None else loaded.trajectory.poses
     if trajectory is None and loaded.num_nodes:
         trajectory = np.asarray(loaded.node_global_poses)
@@ -68,7 +76,8 @@ def run_render(map_file: Path, outdir: Path, *, resolution: float | None = None,
                                np.asarray(loaded.submap_global_poses)[loaded.constraints.submap[mask], :2]], axis=1)
     with output_set(outdir, RENDER_OUTPUTS) as staging:
         img, yml = write_map(staging, image, mode=mode, occupied_thresh=occupied_thresh, free_thresh=free_thresh)
-        write_png(staging / "map.png", render_png(image, trajectory, closures, scale=png_scale))
+        marked = removed.centres() if show_removed and removed is not None else None
+        write_png(staging / "map.png", render_png(image, trajectory, closures, scale=png_scale, removed_xy=marked))
         if pbstream:
             save_pbstream(staging / "map.pbstream", loaded)
     return Rendered(outdir / img.name, outdir / yml.name, outdir / "map.png", image,

@@ -50,7 +50,7 @@ def score_changes(image: OccupancyImage | AssembledImage, before: World, after: 
     last session's own image, in the same frame), where that knows it with log-odds at least ``sure`` (a moved
     wall hides the old one behind it: no session can tell that it is gone)."""
     res = float(image.resolution)
-    prob, origin = _in_world(np.asarray(image.probability, dtype=np.float64), np.asarray(image.origin, float), res,
+    prob, origin = in_world(np.asarray(image.probability, dtype=np.float64), np.asarray(image.origin, float), res,
                              np.zeros(3) if alignment is None else np.asarray(alignment, dtype=np.float64))
     shape = prob.shape
     appeared, vanished, unchanged = changed_cells(before, after, tuple(origin), res, shape)
@@ -59,7 +59,7 @@ def score_changes(image: OccupancyImage | AssembledImage, before: World, after: 
     near_known = grown(known, 1)
     a, v, u = appeared & near_known, vanished & near_known, unchanged & near_known
     if observed is not None:
-        seen, _ = _in_world(np.asarray(observed.probability, dtype=np.float64),
+        seen, _ = in_world(np.asarray(observed.probability, dtype=np.float64),
                                       np.asarray(observed.origin, float), float(observed.resolution),
                                       np.zeros(3) if alignment is None else np.asarray(alignment, dtype=np.float64),
                                       onto=(origin, shape))
@@ -70,7 +70,7 @@ def score_changes(image: OccupancyImage | AssembledImage, before: World, after: 
                        int(u.sum()), int((u & occupied).sum()))
 
 
-def _in_world(prob: np.ndarray, origin: np.ndarray, res: float, start: np.ndarray,
+def in_world(prob: np.ndarray, origin: np.ndarray, res: float, start: np.ndarray,
               onto: tuple[np.ndarray, tuple[int, int]] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The image resampled (nearest cell) onto a grid in the world's frame (``onto``: its origin and shape; None:
     one covering the image), the map frame being the frame of ``start`` (a pose in the world)."""

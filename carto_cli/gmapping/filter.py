@@ -30,6 +30,7 @@ from carto_cli.core.timing import NullTimer
 from carto_cli.gmapping import Algorithm, loops, matcher, motion, refine, resampling
 from carto_cli.gmapping.maps import CELL_BYTES, TILE, TiledMaps
 from carto_cli.grid.occupancy_image import OccupancyImage
+from carto_cli.mapping.cleaning import compact_returns
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.slam import RunStats, SlamResult
 from carto_cli.mapping.submaps import ActiveSubmaps
@@ -375,7 +376,8 @@ class GMappingSlam:
         return SlamResult(
             times=np.array(self._scan_times), poses=poses, local_poses=poses.copy(), node_scans=node_scans,
             submaps=submaps, submap_poses=graph.submap_global_poses, image=image, laser_pose=self.laser_pose,
-            stats=stats, graph=graph, unrefined_node_poses=unrefined if refined else None)
+            stats=stats, graph=graph, unrefined_node_poses=unrefined if refined else None,
+            node_returns=[compact_returns(b.data.returns) for b in self._step_beams])
 
     def _map(self, steps: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
         """The map drawn again from the processed scans at ``steps`` (one particle's worth of tiles)."""

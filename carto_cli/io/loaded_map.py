@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli.io.trajectory import Trajectory
+from carto_cli.mapping.cleaning import Transients
 from carto_cli.mapping.constraints import ConstraintSet
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.pose_graph_state import PoseGraphState, SubmapEntry
@@ -54,6 +55,7 @@ class LoadedMap:
     node_scans: np.ndarray | None  # (N,) index into ``trajectory`` of each node, when known
     laser_pose: np.ndarray | None  # (3,) laser in the tracking frame, when known
     ignored_options: tuple[str, ...] = ()  # option keys in the file this carto does not know
+    transients: Transients | None = None  # what cleaning drew free in the map as written (mapping.cleaning)
 
     @property
     def num_nodes(self) -> int:

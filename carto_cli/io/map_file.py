@@ -33,6 +33,9 @@ Header keys: ``format``, ``format_version``, ``carto_version``, ``created`` (UTC
     constraint_submap constraint_node (K) constraint_relative (K,3)
     constraint_translation_weight constraint_rotation_weight (K) constraint_kind (K) uint8
     trajectory_time (S) trajectory_pose (S,3) laser_pose (3)       -- optional
+    transient_centre transient_span [first, last hit time] transient_evidence [hits, rays after] (T,2)
+                                                                   -- optional: what cleaning drew free
+                                                                      (header key transient_resolution)
 """
 from __future__ import annotations
 
@@ -54,6 +57,7 @@ from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.io import container
 from carto_cli.io.loaded_map import LoadedMap, MapMetadata
 from carto_cli.io.trajectory import Trajectory
+from carto_cli.mapping.cleaning import Transients
 from carto_cli.mapping.constraints import ConstraintKind, ConstraintSet
 from carto_cli.mapping.pose_graph import PoseGraph
 from carto_cli.mapping.pose_graph_state import PoseGraphState
@@ -115,8 +119,32 @@ def save_map(path: str | Path, result_or_graph, options: Options, *, trajectory=
         if selection is not None and getattr(selection, "scan", None):
             meta["scan_topic"] = str(selection.scan)
         meta["stats"] = _json_safe_stats(result.stats)
+        transients = getattr(result, "transients", None)
+        if transients is not None and len(transients):
+            arrays.update(_transient_arrays(transients))
+            meta["transient_resolution"] = float(transients.resolution)
 
     return container.write(path, MAP_FORMAT, {**meta, "options": options_to_dict(options)}, arrays, jobs)
+
+
+def _transient_arrays(transients: Transients) -> dict[str, np.ndarray]:
+    return {"transient_centre": transients.centres().astype(np.float64),
+            "transient_span": np.asarray(transients.spans, np.float64),
+            "transient_evidence": np.column_stack([transients.hits, transients.after]).astype(np.int64)}
+
+
+def _transients(header: dict, arrays: dict[str, np.ndarray], bad) -> Transients | None:
+    """What cleaning removed, as saved (None: nothing, or a map from before cleaning)."""
+    centre = arrays.get("transient_centre")
+    if centre is None:
+        return None
+    span, evidence = arrays.get("transient_span"), arrays.get("transient_evidence")
+    resolution = header.get("transient_resolution")
+    t = len(centre)
+    if (span is None or evidence is None or centre.shape != (t, 2) or span.shape != (t, 2)
+            or evidence.shape != (t, 2) or not isinstance(resolution, (int, float)) or not resolution > 0):
+        raise bad("inconsistent transient arrays")
+    return Transients.of_centres(float(resolution), centre, span, evidence[:, 0], evidence[:, 1])
 
 
 def _graph_of(obj) -> tuple[PoseGraph, Any]:
@@ -378,6 +406,7 @@ def _build(header: dict, arrays: dict[str, np.ndarray], path: Path) -> LoadedMap
         node_local_poses=arrays["node_local_pose"], node_global_poses=arrays["node_global_pose"],
         node_odometry=arrays["node_odometry"], node_points=node_points, constraints=cs,
         trajectory=trajectory, node_scans=node_scans, laser_pose=laser_pose, ignored_options=ignored,
+        transients=_transients(header, arrays, bad),
     )
 
 

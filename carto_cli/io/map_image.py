@@ -161,6 +161,7 @@ _FOOTER_PX = 34
 PATH_BGR = (40, 40, 220)
 START_BGR = (200, 90, 10)
 LOOP_CLOSURE_BGR = (60, 170, 60)
+REMOVED_BGR = (0, 140, 255)  # orange: what cleaning drew free (--show-removed)
 
 
 def to_png_pixels(image: OccupancyImage | AssembledImage) -> np.ndarray:
@@ -199,10 +200,12 @@ def render_png(
     constraints_xy: np.ndarray | None = None,
     scale: int | None = None,
     legend: bool = True,
+    removed_xy: np.ndarray | None = None,
 ) -> np.ndarray:
     """BGR image for people: the map (``to_png_pixels``) scaled by ``scale`` (default ``png_scale_for``),
     loop-closure constraints in green, the trajectory in red with its start (blue dot, drawn last so nothing hides
-    it) and end (red square), and below it a footer with a scale bar and a legend."""
+    it) and end (red square), and below it a footer with a scale bar and a legend. ``removed_xy``: the centres of
+    cells cleaning drew free (``mapping.cleaning``), marked in orange."""
     longest = max(image.shape) if 0 not in image.shape else 1
     if longest > PNG_MAX_PX:
         # A campus at 5 cm is 20,000 cells across: drawn whole it would take gigabytes, and no screen shows it.
@@ -214,6 +217,8 @@ def render_png(
     bgr = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     if scale > 1:
         bgr = cv2.resize(bgr, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    if removed_xy is not None and len(removed_xy):
+        _mark_cells(bgr, image, removed_xy, scale)
     shift = 4  # cv2 draws with fixed-point sub-pixel coordinates
     one = 1 << shift
 
@@ -237,10 +242,20 @@ def render_png(
         cv2.circle(bgr, tuple(pts[0]), r, START_BGR, -1, cv2.LINE_AA, shift)
     if not legend:
         return bgr
-    return _with_footer(bgr, image.resolution / scale)
+    return _with_footer(bgr, image.resolution / scale, removed=removed_xy is not None and len(removed_xy) > 0)
 
 
-def _with_footer(bgr: np.ndarray, metres_per_px: float) -> np.ndarray:
+def _mark_cells(bgr: np.ndarray, image, xy: np.ndarray, scale: int) -> None:
+    """Paint the cells holding the points ``xy`` (map frame) in ``REMOVED_BGR``, each as its scale x scale block."""
+    at = np.floor(image.world_to_pixel(np.asarray(xy, np.float64).reshape(-1, 2))).astype(np.int64)
+    h, w = bgr.shape[0] // scale, bgr.shape[1] // scale
+    at = at[(at[:, 0] >= 0) & (at[:, 1] >= 0) & (at[:, 0] < w) & (at[:, 1] < h)]
+    for dy in range(scale):
+        for dx in range(scale):
+            bgr[at[:, 1] * scale + dy, at[:, 0] * scale + dx] = REMOVED_BGR
+
+
+def _with_footer(bgr: np.ndarray, metres_per_px: float, removed: bool = False) -> np.ndarray:
     """The map above a white strip holding a scale bar (1 / 2 / 5 x 10^k m, about a quarter of the width) and the
     legend: free, wall, unknown, trajectory, start, end, loop closure."""
     h, w = bgr.shape[:2]
@@ -258,7 +273,7 @@ def _with_footer(bgr: np.ndarray, metres_per_px: float) -> np.ndarray:
     x = 12 + bar_px + cv2.getTextSize(label, font, size, 1)[0][0] + 14
     items = [("free", (PNG_FREE,) * 3, "box"), ("wall", (0, 0, 0), "box"), ("unknown", (PNG_UNKNOWN,) * 3, "box"),
              ("path", PATH_BGR, "line"), ("start", START_BGR, "dot"), ("end", PATH_BGR, "square"),
-             ("loop closure", LOOP_CLOSURE_BGR, "line")]
+             ("loop closure", LOOP_CLOSURE_BGR, "line")] + ([("removed", REMOVED_BGR, "box")] if removed else [])
     for text, colour, kind in items:
         if x + 27 + cv2.getTextSize(text, font, size, 1)[0][0] > width:
             x, y = 8, y + row

@@ -25,6 +25,7 @@ from carto_cli.core.parallel import available_cores
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer, StageTimer
 from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
+from carto_cli.mapping.cleaning import compact_returns
 from carto_cli.mapping.graph_runner import GraphPlace, GraphRunner, start_graph
 from carto_cli.mapping.local_slam import LocalSlam
 from carto_cli.mapping.pose_graph import PoseGraph
@@ -108,6 +109,10 @@ class SlamResult:
     # (N, 3) the nodes' poses before a final refinement that made the map consistent (GMapping's loop step and
     # re-matching): the verdict judges them too, since consistency after that refinement is what it maximized
     unrefined_node_poses: np.ndarray | None = None
+    # Every node of this run (graph nodes first_node, first_node + 1, ...): its inserted returns in its own frame,
+    # in cm (cleaning.compact_returns), for judging what the map saw through after it was hit (mapping.cleaning)
+    node_returns: list[np.ndarray] = field(default_factory=list)
+    first_node: int = 0
 
 
 class Slam:
@@ -134,6 +139,7 @@ class Slam:
         self._first_node = self.graph.num_nodes
         self._times: list[float] = []
         self._local_poses: list[np.ndarray] = []
+        self._node_returns: list[np.ndarray] = []
         self._scan_node: list[int] = []  # latest node at or before each posed scan
         self._node_scans: list[int] = []
         self.num_scans = 0
@@ -169,6 +175,7 @@ class Slam:
                 self.runner.add_node(result.time, result.local_pose, ins.loop_closure_points, list(ins.submaps),
                                      self.trajectory_id, finished)
                 self._node_scans.append(len(self._times))
+                self._node_returns.append(compact_returns(ins.range_data_local.returns, result.local_pose))
         if result is None or not self._node_scans:
             return False  # nothing to anchor a scan to before the first node
         self._times.append(result.time)
@@ -242,6 +249,7 @@ class Slam:
             times=np.array(self._times), poses=poses, local_poses=local_arr,
             node_scans=np.array(self._node_scans, int), submaps=submaps, submap_poses=submap_poses, image=image,
             laser_pose=self.laser_pose, stats=stats, loop_closures=_closure_segments(graph), graph=graph,
+            node_returns=self._node_returns, first_node=self._first_node,
         )
 
 

@@ -135,11 +135,17 @@ class Lidar:
     def measure(self, poses, segments, rng: np.random.Generator, material=None) -> np.ndarray:
         """Noisy float32 ranges (m, n) from sensor ``poses`` (m, 3); ``material`` as for ``cast`` (its
         draws take one key from ``rng`` first; without it ``rng`` is used exactly as before)."""
+        return self.noisy(self.true_ranges(poses, segments, rng, material), rng)
+
+    def true_ranges(self, poses, segments, rng: np.random.Generator, material=None) -> np.ndarray:
+        """Exact ranges (m, n), inf beyond ``max_range`` (the first half of ``measure``)."""
         if material is None:
-            true = cast(np.atleast_2d(poses), self.angles(), segments, self.max_range)
-        else:
-            key = int(rng.integers(0, 2**62))
-            true = cast(np.atleast_2d(poses), self.angles(), segments, self.max_range, material=material, key=key)
+            return cast(np.atleast_2d(poses), self.angles(), segments, self.max_range)
+        key = int(rng.integers(0, 2**62))
+        return cast(np.atleast_2d(poses), self.angles(), segments, self.max_range, material=material, key=key)
+
+    def noisy(self, true: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """``true`` ranges with the noise model's noise, limits and dropouts, as float32."""
         sigma = self.noise + self.noise_per_metre * np.where(np.isfinite(true), true, 0.0)
         noisy = true + sigma * rng.standard_normal(true.shape)
         noisy[noisy > self.max_range] = np.inf

@@ -19,7 +19,8 @@ from carto_cli.core.errors import TopicError
 from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
 from carto_cli.core.transform import wrap_angle
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo
-from carto_cli.sim.lidar import Lidar
+from carto_cli.sim.lidar import Lidar, cast
+from carto_cli.sim.movers import Mover, segments_at
 from carto_cli.sim.odometry import ImuModel, OdometryModel, gyro_and_accel, wheel_odometry
 from carto_cli.sim.trajectory import Trajectory
 from carto_cli.sim.world import World
@@ -63,6 +64,7 @@ class Simulation:
     imu_times: np.ndarray  # (j,)
     imu_gyro: np.ndarray  # (j, 3)
     imu_accel: np.ndarray  # (j, 3)
+    movers: tuple[Mover, ...] = ()  # people, carts, doors: cast after the walls, at each scan's own time
 
     @property
     def ground_truth(self) -> np.ndarray:
@@ -89,10 +91,23 @@ class Simulation:
         """Noisy ranges of every scan, (n,) float32 each, in scan order."""
         rng = np.random.default_rng(np.random.SeedSequence(self.seed).spawn(3)[0])
         for i in range(0, len(self.scan_times), _CHUNK):
-            chunk = self.lidar.measure(self.laser_poses(self.scan_times[i:i + _CHUNK]), self.world.segments, rng,
-                                       self.world.materials)
+            times = self.scan_times[i:i + _CHUNK]
+            poses = self.laser_poses(times)
+            true = self.lidar.true_ranges(poses, self.world.segments, rng, self.world.materials)
+            if self.movers:
+                true = self._with_movers(true, poses, times)
+            chunk = self.lidar.noisy(true, rng)
             for row in chunk:
                 yield row.copy()  # a record owns its array, not a view into the chunk
+
+    def _with_movers(self, true: np.ndarray, poses: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """``true`` ranges cut short where a mover there at the scan's time stands in the way."""
+        angles = self.lidar.angles()
+        for k, (pose, t) in enumerate(zip(poses, times)):
+            seg = segments_at(self.movers, float(t - self.start_time))
+            if len(seg):
+                true[k] = np.minimum(true[k], cast(pose, angles, seg, self.lidar.max_range))
+        return true
 
     def records(self, topics: Iterable[str] | None = None) -> Iterator[Record]:
         """Scan / Odometry / Imu records in time order (all three topics when None)."""
@@ -182,13 +197,15 @@ def simulate(
     seed: int = 0,
     laser_pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
     start_time: float = 1000.0,
+    movers: tuple[Mover, ...] = (),
 ) -> Simulation:
     """Simulate a robot driving ``trajectory`` in ``world`` for ``duration`` s (default: all of it), scanning with
     ``lidar`` (its beams, field of view, range and noise model).
 
     Sample times are ``start_time + k / rate``; a rate of 0 turns a sensor off.
     The clock starts at ``start_time`` rather than 0 so that code treating 0 as
-    "no time" is caught.
+    "no time" is caught. ``movers`` (``sim.movers``: people, carts, doors; their tracks in s since the start)
+    stand in the laser's way while they are there.
     """
     duration = trajectory.duration if duration is None else float(duration)
     if duration <= 0:
@@ -204,5 +221,5 @@ def simulate(
         start_time=float(start_time), seed=seed,
         scan_times=start_time + _sample_times(duration, scan_rate),
         odometry=np.column_stack([start_time + odom_t, odom]).reshape(-1, 6),
-        imu_times=start_time + imu_t, imu_gyro=gyro, imu_accel=accel,
+        imu_times=start_time + imu_t, imu_gyro=gyro, imu_accel=accel, movers=tuple(movers),
     )

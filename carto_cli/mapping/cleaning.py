@@ -1,0 +1,272 @@
+"""Clean a finished map of what was only there for a while: people, carts, a door that was open.
+
+An online mapper decides about a cell as scans come; a batch one can ask, once the final optimization has placed
+every node, what the whole recording saw there. For every occupied cell of the finished image:
+
+* its **hits**: returns of the nodes that ended within ``SPAN_REACH`` cells of it, and the first and last time one
+  did (the time span of the structure there, a 5 x 5 neighbourhood because node returns are thinned);
+* its **pass-throughs**: rays of the nodes that crossed it and went on at least ``MARGIN`` further (a ray that
+  stops just behind a cell was stopped by what is in it, to within a pose's error), split by time into before,
+  during and after its hit span. A ray that meets a straight piece of wall at less than ``GRAZING`` to it is not
+  counted: the rays that skim a wall from afar cross the edge of its thick band in any map.
+
+A cell whose structure was seen through at least ``MIN_AFTER`` times after its last hit, at least ``AFTER_SHARE``
+of every look at it, is **transient**: whatever stood there left. It is drawn free in the map, and kept, with its
+time span and its evidence, in the result so that the state (map.carto) can say what was removed. A wall seen
+from one side only is never crossed; a cabinet put down for good and seen to the end is never seen through after
+its last hit; both stay.
+
+The returns are the nodes' own (``PoseGraph.node_points``) at their optimized poses, with every node's rays from
+the laser's mount: the SLAM core's record of every scan it kept.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from scipy import ndimage
+
+from carto_cli.core.kernels import register_warm_up
+
+__all__ = ["AFTER_RATIO", "GRAZING", "MARGIN", "MIN_AFTER", "Transients", "cleaned_probability", "compact_returns",
+           "find_transients"]
+
+SPAN_REACH = 2  # cells around a return whose time span it extends
+MARGIN = 0.25  # m: a ray crosses a cell only if it ends at least this far beyond it
+GRAZING = math.radians(30.0)  # a ray meeting a straight wall at less than this does not count as crossing it
+COHERENT = 0.5  # structure-tensor coherence above which a cell's structure counts as a straight wall
+MIN_AFTER = 10  # nodes seeing through a cell after some time, at least, for what stood there to have gone
+AFTER_RATIO = 3.0  # ... and this many times as many as still hit it after that time (people walking through)
+BINS = 64  # the recording's time in this many bins, where a departure is looked for
+OCCUPIED = 0.5  # a cell is occupied above this probability (map.pgm's balance of evidence)
+FREE = 0.3  # what a removed cell is drawn as: free by the same balance
+
+
+@dataclass(frozen=True)
+class Transients:
+    """Cells of a finished map's image found transient: (ix, iy) on the image grid (``origin``, ``resolution``;
+    iy grows with y), each with the time span of its hits, its hits, and the rays through it after that span."""
+
+    resolution: float
+    origin: tuple[float, float]
+    cells: np.ndarray  # (n, 2) int64 ix iy
+    spans: np.ndarray  # (n, 2) float64 first and last hit time
+    hits: np.ndarray  # (n,) int64
+    after: np.ndarray  # (n,) int64
+    candidates: int = 0  # occupied cells judged
+
+    def __len__(self) -> int:
+        return len(self.cells)
+
+    def centres(self) -> np.ndarray:
+        """(n, 2) the cells' centres in the map frame."""
+        return (np.asarray(self.origin) + (self.cells + 0.5) * self.resolution).reshape(-1, 2)
+
+    def cells_on(self, origin: tuple[float, float], resolution: float, shape: tuple[int, int]) -> np.ndarray:
+        """(k, 2) ix iy of the cells of another grid (``origin``, ``resolution``, ``shape`` (H, W)) holding a
+        transient cell's centre: the same cells on the grid they were found on."""
+        at = np.floor((self.centres() - np.asarray(origin, np.float64)) / float(resolution)).astype(np.int64)
+        inside = (at[:, 0] >= 0) & (at[:, 1] >= 0) & (at[:, 0] < shape[1]) & (at[:, 1] < shape[0])
+        return at[inside]
+
+    @classmethod
+    def of_centres(cls, resolution: float, centres: np.ndarray, spans: np.ndarray, hits: np.ndarray,
+                   after: np.ndarray, candidates: int = 0) -> Transients:
+        """As saved (the cells' centres in the map frame), on a grid of ``resolution`` through (0, 0)."""
+        cells = np.floor(np.asarray(centres, np.float64).reshape(-1, 2) / resolution).astype(np.int64)
+        return cls(float(resolution), (0.0, 0.0), cells, np.asarray(spans, np.float64).reshape(-1, 2),
+                   np.asarray(hits, np.int64).reshape(-1), np.asarray(after, np.int64).reshape(-1), candidates)
+
+    @classmethod
+    def none(cls, resolution: float = 0.05, origin: tuple[float, float] = (0.0, 0.0), candidates: int = 0
+             ) -> Transients:
+        return cls(resolution, origin, np.zeros((0, 2), np.int64), np.zeros((0, 2)), np.zeros(0, np.int64),
+                   np.zeros(0, np.int64), candidates)
+
+
+@njit(cache=True, nogil=True)
+def _bin(t, t0, width, bins):
+    return min(max(int((t - t0) / width), 0), bins - 1)
+
+
+@njit(cache=True, nogil=True)
+def _hits(points, offsets, poses, times, index, gox, goy, res, reach, t0, width, hits, first):
+    """Per occupied cell and time bin: the nodes with a return within ``reach`` cells; and the first one's time."""
+    ny, nx = index.shape
+    bins = hits.shape[1]
+    seen = np.full(hits.shape[0], -1, np.int64)
+    for i in range(offsets.shape[0] - 1):
+        c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        b = _bin(times[i], t0, width, bins)
+        for k in range(offsets[i], offsets[i + 1]):
+            x = c * points[k, 0] - s * points[k, 1] + poses[i, 0]
+            y = s * points[k, 0] + c * points[k, 1] + poses[i, 1]
+            ix = int(math.floor((x - gox) / res))
+            iy = int(math.floor((y - goy) / res))
+            for cy in range(max(iy - reach, 0), min(iy + reach + 1, ny)):
+                for cx in range(max(ix - reach, 0), min(ix + reach + 1, nx)):
+                    j = index[cy, cx]
+                    if j < 0 or seen[j] == i:
+                        continue
+                    seen[j] = i
+                    hits[j, b] += 1
+                    first[j] = min(first[j], times[i])
+
+
+@njit(cache=True, nogil=True)
+def _crossings(points, offsets, poses, sensor, times, index, tangent, coherent, gox, goy, res, margin, grazing_cos,
+               t0, width, passes):
+    """Walk every ray from the sensor to ``margin`` short of its return, cell by cell (Amanatides and Woo), and
+    count per occupied cell and time bin the nodes whose rays cross it."""
+    ny, nx = index.shape
+    bins = passes.shape[1]
+    seen = np.full(passes.shape[0], -1, np.int64)
+    for i in range(offsets.shape[0] - 1):
+        c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        ox = c * sensor[0] - s * sensor[1] + poses[i, 0]
+        oy = s * sensor[0] + c * sensor[1] + poses[i, 1]
+        b = _bin(times[i], t0, width, bins)
+        for k in range(offsets[i], offsets[i + 1]):
+            ex = c * points[k, 0] - s * points[k, 1] + poses[i, 0]
+            ey = s * points[k, 0] + c * points[k, 1] + poses[i, 1]
+            dx, dy = ex - ox, ey - oy
+            length = math.sqrt(dx * dx + dy * dy)
+            if length <= margin:
+                continue
+            ux, uy = dx / length, dy / length
+            reach = (length - margin) / res
+            px, py = (ox - gox) / res, (oy - goy) / res
+            cx, cy = int(math.floor(px)), int(math.floor(py))
+            sx = 1 if ux > 0 else -1
+            sy = 1 if uy > 0 else -1
+            tdx = abs(1.0 / ux) if ux != 0 else np.inf
+            tdy = abs(1.0 / uy) if uy != 0 else np.inf
+            tx = ((cx + (1 if ux > 0 else 0)) - px) / ux if ux != 0 else np.inf
+            ty = ((cy + (1 if uy > 0 else 0)) - py) / uy if uy != 0 else np.inf
+            walked = 0.0
+            while walked < reach:
+                if 0 <= cx < nx and 0 <= cy < ny:
+                    j = index[cy, cx]
+                    if j >= 0 and seen[j] != i and not (
+                            coherent[j] and abs(ux * tangent[j, 0] + uy * tangent[j, 1]) > grazing_cos):
+                        seen[j] = i
+                        passes[j, b] += 1
+                if tx < ty:
+                    walked = tx
+                    tx += tdx
+                    cx += sx
+                else:
+                    walked = ty
+                    ty += tdy
+                    cy += sy
+
+
+def _structure(occupied: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell of ``cells`` (n, 2 ix iy): the unit direction along its structure, and whether that structure is
+    straight (the occupied mask's structure tensor over 5 x 5 cells: coherent where one direction dominates)."""
+    mask = ndimage.gaussian_filter(occupied.astype(np.float32), 1.0)
+    gy, gx = np.gradient(mask)
+    jxx = ndimage.uniform_filter(gx * gx, 5)[cells[:, 1], cells[:, 0]]
+    jxy = ndimage.uniform_filter(gx * gy, 5)[cells[:, 1], cells[:, 0]]
+    jyy = ndimage.uniform_filter(gy * gy, 5)[cells[:, 1], cells[:, 0]]
+    trace = jxx + jyy
+    coherence = np.sqrt((jxx - jyy) ** 2 + 4 * jxy ** 2) / np.maximum(trace, 1e-12)
+    normal = 0.5 * np.arctan2(2 * jxy, jxx - jyy)  # the gradient's direction: across the wall
+    tangent = np.column_stack([-np.sin(normal), np.cos(normal)]).astype(np.float64)
+    return tangent, (coherence > COHERENT) & (trace > 1e-9)
+
+
+RETURN_UNIT = 0.01  # m: returns kept for cleaning as int16 multiples of this (up to 327 m), 4 bytes a point
+
+
+def compact_returns(returns: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
+    """``returns`` (n, 2) in a frame where the node is at ``pose`` (None: in the node's frame), as int16 cm in
+    the node's frame: what cleaning keeps of every node while mapping."""
+    pts = np.asarray(returns, np.float64).reshape(-1, 2)
+    if pose is not None:
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        d = pts - np.asarray(pose[:2], np.float64)
+        pts = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    limit = np.iinfo(np.int16).max
+    return np.clip(np.rint(pts / RETURN_UNIT), -limit, limit).astype(np.int16)
+
+
+def _flat(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The nodes' points as one (P, 2) float64 array in metres (int16 ones are ``compact_returns``') and P + 1
+    offsets."""
+    counts = np.array([len(p) for p in points], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    metres = [np.asarray(p, np.float64).reshape(-1, 2) * (RETURN_UNIT if np.asarray(p).dtype == np.int16 else 1.0)
+              for p in points]
+    flat = np.concatenate(metres) if points else np.zeros((0, 2))
+    return np.ascontiguousarray(flat), offsets
+
+
+def find_transients(probability: np.ndarray, origin: tuple[float, float], resolution: float,
+                    points: list[np.ndarray], poses: np.ndarray, times: np.ndarray,
+                    sensor: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Transients:
+    """The transient cells of a finished image (``probability`` (H, W), row 0 at the lowest y, NaN unknown),
+    judged by every node's returns ``points[i]`` (its own frame) at ``poses[i]`` (map frame), taken at
+    ``times[i]``, the laser at ``sensor`` in the node's frame."""
+    prob = np.asarray(probability)
+    occupied = np.nan_to_num(prob, nan=0.0) > OCCUPIED
+    iy, ix = np.nonzero(occupied)
+    if len(ix) == 0 or len(points) == 0:
+        return Transients.none(resolution, origin, len(ix))
+    cells = np.column_stack([ix, iy]).astype(np.int64)
+    index = np.full(prob.shape, -1, np.int32)
+    index[iy, ix] = np.arange(len(ix), dtype=np.int32)
+    flat, offsets = _flat(points)
+    poses = np.ascontiguousarray(poses, np.float64).reshape(-1, 3)
+    times = np.ascontiguousarray(times, np.float64).reshape(-1)
+    n = len(ix)
+    t0, t1 = float(times.min()), float(times.max())
+    width = max((t1 - t0) / BINS, 1e-3)
+    hits = np.zeros((n, BINS), np.uint16)
+    passes = np.zeros((n, BINS), np.uint16)
+    first = np.full(n, np.inf)
+    gox, goy = float(origin[0]), float(origin[1])
+    _hits(flat, offsets, poses, times, index, gox, goy, float(resolution), SPAN_REACH, t0, width, hits, first)
+    tangent, coherent = _structure(occupied, cells)
+    _crossings(flat, offsets, poses, np.asarray(sensor, np.float64), times, index, tangent, coherent, gox, goy,
+               float(resolution), MARGIN, math.cos(GRAZING), t0, width, passes)
+    gone, left, hits_before, passes_after = _departures(hits, passes)
+    spans = np.column_stack([first[gone], t0 + left[gone] * width])
+    return Transients(float(resolution), (gox, goy), cells[gone], spans, hits_before[gone], passes_after[gone], n)
+
+
+def _departures(hits: np.ndarray, passes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per cell (rows of per-bin counts): whether something there left (a bin boundary before which it was hit
+    and after which it was seen through ``MIN_AFTER`` times, ``AFTER_RATIO`` times as often as hit); the first
+    such boundary (in bins), the hits before it and the pass-throughs after it."""
+    h_after = np.cumsum(hits[:, ::-1], axis=1, dtype=np.int64)[:, ::-1]  # [:, k]: hits in bins k and later
+    p_after = np.cumsum(passes[:, ::-1], axis=1, dtype=np.int64)[:, ::-1]
+    h_before = h_after[:, :1] - h_after
+    left = (h_before[:, 1:] > 0) & (p_after[:, 1:] >= MIN_AFTER) & (p_after[:, 1:] >= AFTER_RATIO * h_after[:, 1:])
+    gone = np.asarray(left.any(axis=1))
+    k = np.argmax(left, axis=1) + 1
+    rows = np.arange(len(k))
+    return gone, k, h_before[rows, k], p_after[rows, k]
+
+
+def cleaned_probability(probability: np.ndarray, origin: tuple[float, float], resolution: float,
+                        transients: Transients) -> np.ndarray:
+    """A copy of ``probability`` (a grid at ``origin``, ``resolution``) with the transient cells drawn free (no
+    more than ``FREE``)."""
+    out = np.array(probability, dtype=np.float32, copy=True)
+    cells = transients.cells_on(origin, resolution, out.shape)
+    if len(cells):
+        ix, iy = cells[:, 0], cells[:, 1]
+        out[iy, ix] = np.fmin(out[iy, ix], np.float32(FREE))
+    return out
+
+
+@register_warm_up
+def warm_up() -> None:
+    prob = np.full((12, 12), 0.2, np.float32)
+    prob[6, 6] = 0.9
+    find_transients(prob, (0.0, 0.0), 0.05, [np.array([[0.33, 0.33]]), np.array([[0.5, 0.5]])],
+                    np.zeros((2, 3)), np.array([0.0, 1.0]))
+
