@@ -77,10 +77,23 @@ class Mover:
         return np.column_stack([gx[:, 0], gy[:, 0], gx[:, 1], gy[:, 1]])
 
 
-def segments_at(movers: Sequence[Mover], t: float) -> np.ndarray:
-    """Every mover's outline there at ``t``, as one (k, 4) array."""
+KEEP_CLEAR = 0.3  # m: no mover's outline comes closer than this to the robot's laser (people step aside)
+
+
+def segments_at(movers: Sequence[Mover], t: float, clear_of: np.ndarray | None = None) -> np.ndarray:
+    """Every mover's outline there at ``t``, as one (k, 4) array; with ``clear_of`` (x, y: the laser), not those
+    that would come within ``KEEP_CLEAR`` of it: a walker drawn through the robot would blind its laser from
+    inside, where a person would have stepped aside."""
     parts = [m.segments(t) for m in movers]
+    if clear_of is not None:
+        parts = [p for p in parts if not len(p) or _distance(p, clear_of) >= KEEP_CLEAR]
     return np.concatenate(parts) if parts else np.zeros((0, 4))
+
+
+def _distance(segments: np.ndarray, xy: np.ndarray) -> float:
+    a, d = segments[:, :2], segments[:, 2:] - segments[:, :2]
+    u = np.clip(((xy - a) * d).sum(1) / np.maximum((d * d).sum(1), 1e-18), 0.0, 1.0)
+    return float(np.hypot(*(a + u[:, None] * d - xy).T).min())
 
 
 def footprint(movers: Sequence[Mover], times: np.ndarray, origin: Sequence[float], resolution: float,
@@ -131,7 +144,7 @@ def walker(world: World, rng: np.random.Generator, duration: float) -> Mover:
     side, from a random point, for the whole recording."""
     pts = _route_points(world)
     heading = np.gradient(pts, axis=0)
-    side = rng.uniform(0.3, 0.6) * rng.choice([-1.0, 1.0])
+    side = rng.uniform(0.4, 0.7) * rng.choice([-1.0, 1.0])
     lane = np.array([p if (q := _aside(world, p, h, side, PERSON_RADIUS + 0.15)) is None else q
                      for p, h in zip(pts, heading)])
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(lane, axis=0).T))])

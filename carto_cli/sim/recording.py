@@ -104,7 +104,7 @@ class Simulation:
         """``true`` ranges cut short where a mover there at the scan's time stands in the way."""
         angles = self.lidar.angles()
         for k, (pose, t) in enumerate(zip(poses, times)):
-            seg = segments_at(self.movers, float(t - self.start_time))
+            seg = segments_at(self.movers, float(t - self.start_time), clear_of=pose[:2])
             if len(seg):
                 true[k] = np.minimum(true[k], cast(pose, angles, seg, self.lidar.max_range))
         return true
