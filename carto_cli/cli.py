@@ -407,6 +407,11 @@ def map_(
         False, "--lifelong", rich_help_panel=PANEL_MAPPING,
         help="Several sessions: trim what later ones superseded (the newest always draws)."
     ),
+    align: str = typer.Option(
+        "auto", "--align", metavar="auto|none", rich_help_panel=PANEL_MAPPING,
+        help="auto: turn a new map square to its walls (under 0.5° or no clear direction: kept); none: the frame "
+             "of the first scan."
+    ),
     scan_topic: str | None = SCAN_TOPIC,
     odom_topic: str | None = ODOM_TOPIC,
     imu_topic: str | None = IMU_TOPIC,
@@ -440,6 +445,7 @@ def map_(
     from carto_cli.core import parse
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
+    from carto_cli.mapping.alignment import Align
     from carto_cli.mapping.lifelong import SessionPolicy
     from carto_cli.pipeline import MapRequest, TopicChoice
 
@@ -449,7 +455,8 @@ def map_(
         TopicChoice(scan_topic, odom_topic, imu_topic, odom_frame, base_frame),
         laser_pose=parse.pose(laser_pose, "--laser-pose") if laser_pose else None, use_odometry=not no_odometry,
         loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs, later=tuple(recordings[1:]),
-        sessions=SessionPolicy.LIFELONG if lifelong else SessionPolicy.LAST_SEEN)
+        sessions=SessionPolicy.LIFELONG if lifelong else SessionPolicy.LAST_SEEN,
+        align=Align.named(align))
     timer = StageTimer()
     label = recording.name + (f" + {len(recordings) - 1} more" if len(recordings) > 1 else "")
     with progress(f"mapping {label}", None, state.quiet) as bar:
@@ -459,6 +466,8 @@ def map_(
         typer.echo(f"carto: warning: {warning}", err=True)
     if timings:
         typer.echo(report_tree_text(timer))
+    if result.alignment is not None:
+        typer.echo(f"aligned: {result.alignment.describe()}")
     _say_map(f"{summary_line(result, timer)} -> {outputs.yaml.parent}", result, strict)
 
 

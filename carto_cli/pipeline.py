@@ -34,6 +34,8 @@ from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
+from carto_cli.mapping import alignment
+from carto_cli.mapping.alignment import Align, Squaring
 from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
 from carto_cli.mapping.lifelong import SessionPolicy, Trimmed, last_seen
 from carto_cli.mapping.merging import merge_states
@@ -69,6 +71,7 @@ class MapResult(SlamResult):
     sessions: tuple[Session, ...] = ()
     links: tuple[SessionLink, ...] = ()
     trimmed: tuple[Trimmed, ...] = ()  # what later sessions superseded, trimmed from the graph (mapping.lifelong)
+    alignment: Squaring | None = None  # how --align turned the map frame (None: not asked)
 
     @property
     def configured(self) -> Configured:
@@ -91,7 +94,8 @@ class MapResult(SlamResult):
             "laser_pose_source": self.laser_pose_source,
             "odometry": None if self.selection is None else self.selection.describe_odometry(),
             "warnings": list(self.warnings),
-        } | ({"sessions": self.sessions_report()} if self.sessions else {})
+        } | ({"sessions": self.sessions_report()} if self.sessions else {}) | (
+            {"align": self.alignment.to_dict()} if self.alignment is not None else {})
 
     def sessions_report(self) -> dict:
         """What sessions.json holds: every recording's trajectory and whether it is in the map, and the links."""
@@ -155,6 +159,8 @@ class MapRequest:
     # How a map of several sessions weighs them: the newest sure evidence drawn, also trimming what later sessions
     # superseded, or all fused alike (mapping.lifelong)
     sessions: SessionPolicy = SessionPolicy.LAST_SEEN
+    # A new map's frame turned square to its building once mapped (mapping.alignment); a continued map keeps its own
+    align: Align = Align.AUTO
 
     def __post_init__(self) -> None:
         # Refused before any recording is read or state loaded: mapping would refuse only after both.
@@ -543,7 +549,27 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
     assert result is not None
     if result.sessions and request.sessions != SessionPolicy.FUSE:
         result = _as_last_seen(result, timer, trim=request.sessions == SessionPolicy.LIFELONG)
-    return result
+    return _aligned(result, request, timer)
+
+
+def _aligned(result: MapResult, request: MapRequest, timer: Any) -> MapResult:
+    """``result`` square to its building as ``request.align`` asks (``mapping.alignment``): every trajectory of a
+    new map turned together, once; a map that continues a saved one keeps that one's frame, which its earlier
+    trajectories, and whatever was placed in it since, are in."""
+    if request.align == Align.NONE:
+        return result
+    with (timer or NullTimer()).stage("align"):
+        if request.load_state is not None:
+            found = Squaring(0.0, "frame of the loaded map kept")
+        else:
+            found = alignment.squaring(alignment.wall_axes(result.image))
+        rotation = found.rotation
+        if rotation:
+            result = dataclasses.replace(
+                alignment.turned(result, rotation),
+                sessions=tuple(dataclasses.replace(x, poses=alignment.turned_poses(x.poses, rotation))
+                               for x in result.sessions))
+    return dataclasses.replace(result, alignment=found, stats=result.stats | {"aligned_deg": math.degrees(rotation)})
 
 
 def _as_last_seen(result: MapResult, timer: Any, *, trim: bool) -> MapResult:
