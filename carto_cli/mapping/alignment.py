@@ -136,10 +136,8 @@ def _wall_cells(image: OccupancyImage | AssembledImage) -> tuple[np.ndarray, np.
         ys.append((top - iy).astype(np.float64))  # rows run top down: a y-up coordinate
         ws.append(evidence[iy, ix].astype(np.float64))
         top -= rows.shape[0]
-    if not xs:
-        return np.zeros(0), np.zeros(0), np.zeros(0)
-    x, y, w = np.concatenate(xs), np.concatenate(ys), np.concatenate(ws)
-    return x - x.mean(), y - y.mean(), w
+    x, y, w = (np.concatenate(v) if v else np.zeros(0) for v in (xs, ys, ws))
+    return (x - x.mean(), y - y.mean(), w) if len(x) else (x, y, w)
 
 
 @njit(cache=True, nogil=True)
@@ -219,8 +217,9 @@ def _resampled(image: OccupancyImage, rotation: float) -> OccupancyImage:
     h, w = image.shape
     corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], dtype=np.float64) * res + np.asarray(image.origin)
     placed = transform.rotate(rotation, corners)
-    lo = np.floor(placed.min(axis=0) / res) * res
-    hi = np.ceil(placed.max(axis=0) / res) * res
+    # a corner a turn puts on a cell's edge (a quarter turn: all) stays there, not one cell out by rounding
+    lo = np.floor(placed.min(axis=0) / res + 1e-9) * res
+    hi = np.ceil(placed.max(axis=0) / res - 1e-9) * res
     nx, ny = (int(round(v)) for v in (hi - lo) / res)
     out = np.full((ny, nx), np.nan, np.float32)
     c, s = math.cos(rotation), math.sin(rotation)
