@@ -569,7 +569,9 @@ def _aligned(result: MapResult, request: MapRequest, timer: Any) -> MapResult:
                 alignment.turned(result, rotation),
                 sessions=tuple(dataclasses.replace(x, poses=alignment.turned_poses(x.poses, rotation))
                                for x in result.sessions))
-    return dataclasses.replace(result, alignment=found, stats=result.stats | {"aligned_deg": math.degrees(rotation)})
+    # In the statistics (and so in map.carto's metadata) only when turned: a map square already is saved as before
+    stats = result.stats | {"aligned_deg": math.degrees(rotation)} if rotation else result.stats
+    return dataclasses.replace(result, alignment=found, stats=stats)
 
 
 def _as_last_seen(result: MapResult, timer: Any, *, trim: bool) -> MapResult:

@@ -61,6 +61,7 @@ COARSE_STEP = math.radians(0.5)
 COARSE_BIN = 4.0
 FINE_SPAN = math.radians(1.0)
 FINE_STEP = math.radians(0.02)
+MAX_MOVES = 4
 # The sharpest direction's score over the median direction's, less one, below which the map is said to have no
 # clear direction (clutter, a round hall: every direction projects alike)
 MIN_CONTRAST = 0.15
@@ -111,11 +112,22 @@ def wall_axes(image: OccupancyImage | AssembledImage) -> Axes:
     scores = _sharpness(x, y, w, coarse, COARSE_BIN)
     median = float(np.median(scores))
     best = float(coarse[int(np.argmax(scores))])
-    fine = best + np.arange(-FINE_SPAN, FINE_SPAN + FINE_STEP / 2, FINE_STEP)
-    sharp = _sharpness(x, y, w, fine, 1.0)
-    k = int(np.clip(np.argmax(sharp), 1, len(fine) - 2))
-    return Axes(_square_turn(float(fine[k]) + _vertex(sharp[k - 1:k + 2]) * FINE_STEP),
-                float(scores.max()) / median - 1.0 if median > 0 else 0.0)
+    angle = _finest(x, y, w, best)
+    return Axes(_square_turn(angle), float(scores.max()) / median - 1.0 if median > 0 else 0.0)
+
+
+def _finest(x: np.ndarray, y: np.ndarray, w: np.ndarray, best: float) -> float:
+    """The sharpest direction at one cell's bins near ``best``. The window follows its peak when that lies at an
+    end: the coarse bins may favour the many short walls and the fine ones a few long ones a degree apart (a map
+    whose far end bent)."""
+    for _ in range(MAX_MOVES):
+        fine = best + np.arange(-FINE_SPAN, FINE_SPAN + FINE_STEP / 2, FINE_STEP)
+        sharp = _sharpness(x, y, w, fine, 1.0)
+        k = int(np.argmax(sharp))
+        if 0 < k < len(fine) - 1:
+            return float(fine[k]) + _vertex(sharp[k - 1:k + 2]) * FINE_STEP
+        best = float(fine[k])
+    return best
 
 
 def _vertex(three: np.ndarray) -> float:
