@@ -34,6 +34,7 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
 from carto_cli.evaluation.metrics import AteResult, Evaluation
 from carto_cli.io.sources.memory import MemoryRecording
+from carto_cli.mapping.alignment import Align
 from carto_cli.options import Options, load_options
 from carto_cli.pipeline import Auto, MapRequest, MapResult, execute, map_sessions, planned
 from carto_cli.pipeline import merge_maps as _merge_maps
@@ -99,14 +100,14 @@ def options(profile: str | Path | None = None, overrides: Sequence[str] = ()) ->
 
 def map_recording(recording: str | Path, *, profile: str | Path | None = None, overrides: Sequence[str] = (),
                   algorithm: str | None = None, jobs: int | None = None, outdir: str | Path | None = None,
-                  force: bool = False) -> MapRun:
-    """Map a recording file as `carto map` does; with ``outdir`` the outputs are written there too."""
-    request = MapRequest(Path(recording), options(profile, overrides), algorithm, jobs=jobs)
+                  force: bool = False, align: str = "auto") -> MapRun:
+    """Map a recording file as `carto map` does; with ``outdir`` the outputs are written there too. ``align``:
+    "auto" turns the map square to its walls, "none" keeps the frame of the first scan (``carto map --align``)."""
+    request = MapRequest(Path(recording), options(profile, overrides), algorithm, jobs=jobs, align=Align.named(align))
     if outdir is not None:
         result, _ = run_map(request, Path(outdir), force=force)
     else:
-        with planned(request) as plan:  # nothing written: the caller wants the result only
-            result = execute(plan)
+        result = map_sessions(request)  # nothing written: the caller wants the result only
     return MapRun(result, result.configured.options, (Path(recording).name,))
 
 
