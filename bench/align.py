@@ -53,7 +53,7 @@ def measure(path: Path, angles: list[float]) -> dict:
     errors = {}
     for deg in angles:
         found = wall_axes(_image(loaded, math.radians(deg))).angle
-        errors[deg] = abs(math.degrees(math.remainder(found - axes.angle - math.radians(deg), math.pi / 2)))
+        errors[deg] = abs(math.degrees(transform.wrap_angle_scalar(4 * (found - axes.angle - math.radians(deg))) / 4))
     worst = max(errors, key=lambda d: errors[d])
     return {"map": str(path), "cells": base.shape[0] * base.shape[1], "turned_cells": turned.shape[0] * turned.shape[1],
             "walls_deg": math.degrees(axes.angle), "contrast": axes.contrast, "errors_deg": errors,

@@ -408,9 +408,8 @@ def map_(
         help="Several sessions: trim what later ones superseded (the newest always draws)."
     ),
     align: str = typer.Option(
-        "auto", "--align", metavar="auto|none", rich_help_panel=PANEL_MAPPING,
-        help="auto: turn a new map square to its walls (under 0.5° or no clear direction: kept); none: the frame "
-             "of the first scan."
+        "auto", "--align", metavar="MODE", rich_help_panel=PANEL_MAPPING, show_default=False,
+        help="auto (default): turn a new map square to its walls (not under 0.5°); none."
     ),
     scan_topic: str | None = SCAN_TOPIC,
     odom_topic: str | None = ODOM_TOPIC,

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from carto_cli.core.errors import CartoError
+from carto_cli.core.transform import wrap_angle_scalar
 from carto_cli.grid.occupancy_image import AssembledImage, OccupancyImage
 from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.mapping.alignment import (
@@ -46,7 +47,7 @@ def _building(angle_deg: float, size: float = 20.0) -> OccupancyImage:
 
 def _quarter_error(found: float, angle_deg: float) -> float:
     """Degrees between two directions taken modulo 90°."""
-    return abs(math.degrees(math.remainder(found - math.radians(angle_deg), math.pi / 2)))
+    return abs(math.degrees(wrap_angle_scalar(4 * (found - math.radians(angle_deg))) / 4))
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.3, 4.0, 17.0, 30.0, 44.8, 45.0, 45.2, 60.0, 75.0, 89.6, 90.0])
