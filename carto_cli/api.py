@@ -34,6 +34,7 @@ from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Odometry, Record, Scan, Transform, beam_angles, yaw_quaternion
 from carto_cli.evaluation.metrics import AteResult, Evaluation
 from carto_cli.io.sources.memory import MemoryRecording
+from carto_cli.mapping.alignment import Align
 from carto_cli.options import Options, load_options
 from carto_cli.pipeline import Auto, MapRequest, MapResult, map_sessions
 from carto_cli.pipeline import merge_maps as _merge_maps
@@ -99,10 +100,12 @@ def options(profile: str | Path | None = None, overrides: Sequence[str] = ()) ->
 
 def map_recording(recording: str | Path, *, profile: str | Path | None = None, overrides: Sequence[str] = (),
                   algorithm: str | None = None, jobs: int | None = None, outdir: str | Path | None = None,
-                  force: bool = False, clean: bool = True) -> MapRun:
+                  force: bool = False, clean: bool = True, align: str = "auto") -> MapRun:
     """Map a recording file as `carto map` does; with ``outdir`` the outputs are written there too. ``clean``
-    False: as `carto map --no-clean`."""
-    request = MapRequest(Path(recording), options(profile, overrides), algorithm, jobs=jobs, clean=clean)
+    False: as `carto map --no-clean`. ``align``: "auto" turns the map square to its walls, "none" keeps the
+    frame of the first scan (``carto map --align``)."""
+    request = MapRequest(Path(recording), options(profile, overrides), algorithm, jobs=jobs, clean=clean,
+                         align=Align.named(align))
     if outdir is not None:
         result, _ = run_map(request, Path(outdir), force=force)
     else:

@@ -397,7 +397,7 @@ def map_(
     algorithm: str | None = ALGORITHM,
     no_loop_closure: bool = typer.Option(
         False, "--no-loop-closure", rich_help_panel=PANEL_MAPPING,
-        help="Local SLAM only: no loop closure, no optimization (for tuning local SLAM)."
+        help="Local SLAM only (to tune local SLAM)."
     ),
     load_state: Path | None = typer.Option(
         None, "--load-state", metavar="FILE", rich_help_panel=PANEL_MAPPING,
@@ -405,10 +405,14 @@ def map_(
     ),
     lifelong: bool = typer.Option(
         False, "--lifelong", rich_help_panel=PANEL_MAPPING,
-        help="Several sessions: trim what later ones superseded (the newest always draws)."
+        help="Several recordings: trim the superseded."
+    ),
+    align: str = typer.Option(
+        "auto", "--align", metavar="MODE", rich_help_panel=PANEL_MAPPING, show_default=False,
+        help="auto (default): square to the walls; none."
     ),
     no_clean: bool = typer.Option(False, "--no-clean", rich_help_panel=PANEL_MAPPING,
-                                  help="Keep what was seen through after it was last hit (people, carts)."),
+                                  help="Keep what left during the recording."),
     scan_topic: str | None = SCAN_TOPIC,
     odom_topic: str | None = ODOM_TOPIC,
     imu_topic: str | None = IMU_TOPIC,
@@ -444,6 +448,7 @@ def map_(
     from carto_cli.core import parse
     from carto_cli.core.progress import progress
     from carto_cli.core.timing import StageTimer, report_tree_text
+    from carto_cli.mapping.alignment import Align
     from carto_cli.mapping.lifelong import SessionPolicy
     from carto_cli.pipeline import MapRequest, TopicChoice
 
@@ -453,7 +458,8 @@ def map_(
         TopicChoice(scan_topic, odom_topic, imu_topic, odom_frame, base_frame),
         laser_pose=parse.pose(laser_pose, "--laser-pose") if laser_pose else None, use_odometry=not no_odometry,
         loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs, later=tuple(recordings[1:]),
-        sessions=SessionPolicy.LIFELONG if lifelong else SessionPolicy.LAST_SEEN, clean=not no_clean)
+        sessions=SessionPolicy.LIFELONG if lifelong else SessionPolicy.LAST_SEEN, clean=not no_clean,
+        align=Align.named(align))
     timer = StageTimer()
     label = recording.name + (f" + {len(recordings) - 1} more" if len(recordings) > 1 else "")
     with progress(f"mapping {label}", None, state.quiet) as bar:
@@ -464,6 +470,8 @@ def map_(
         typer.echo(f"carto: warning: {warning}", err=True)
     if timings:
         typer.echo(report_tree_text(timer))
+    if result.alignment is not None:
+        typer.echo(f"aligned: {result.alignment.describe()}")
     _say_map(f"{summary_line(result, timer)} -> {outputs.yaml.parent}", result, strict)
 
 

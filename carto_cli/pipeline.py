@@ -34,6 +34,8 @@ from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
 from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
+from carto_cli.mapping import alignment
+from carto_cli.mapping.alignment import Align, Squaring
 from carto_cli.mapping.cleaning import Transients, cleaned_probability, find_transients
 from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
 from carto_cli.mapping.lifelong import SessionPolicy, Trimmed, last_seen
@@ -72,6 +74,7 @@ class MapResult(SlamResult):
     trimmed: tuple[Trimmed, ...] = ()  # what later sessions superseded, trimmed from the graph (mapping.lifelong)
     # What cleaning drew free (mapping.cleaning): None when the map was not cleaned (--no-clean, or too large)
     transients: Transients | None = None
+    alignment: Squaring | None = None  # how --align turned the map frame (None: not asked)
 
     @property
     def configured(self) -> Configured:
@@ -96,7 +99,8 @@ class MapResult(SlamResult):
             "warnings": list(self.warnings),
             "cleaning": None if self.transients is None else {
                 "removed_cells": len(self.transients), "occupied_cells": self.transients.candidates},
-        } | ({"sessions": self.sessions_report()} if self.sessions else {})
+        } | ({"sessions": self.sessions_report()} if self.sessions else {}) | (
+            {"align": self.alignment.to_dict()} if self.alignment is not None else {})
 
     def sessions_report(self) -> dict:
         """What sessions.json holds: every recording's trajectory and whether it is in the map, and the links."""
@@ -163,6 +167,8 @@ class MapRequest:
     # After the final optimization, draw free what the whole recording saw through after it was last hit
     # (people, carts, a door that opened: mapping.cleaning)
     clean: bool = True
+    # A new map's frame turned square to its building once mapped (mapping.alignment); a continued map keeps its own
+    align: Align = Align.AUTO
 
     def __post_init__(self) -> None:
         # Refused before any recording is read or state loaded: mapping would refuse only after both.
@@ -553,10 +559,33 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
     assert result is not None
     if result.sessions and request.sessions != SessionPolicy.FUSE:
         result = _as_last_seen(result, timer, trim=request.sessions == SessionPolicy.LIFELONG)
+    result = _aligned(result, request, timer)
     if request.clean:
         # Trimming renumbered the nodes: what is left of them is judged by the returns the graph keeps
         result = cleaned(result, timer, {} if result.trimmed else returns)
     return result
+
+
+def _aligned(result: MapResult, request: MapRequest, timer: Any) -> MapResult:
+    """``result`` square to its building as ``request.align`` asks (``mapping.alignment``): every trajectory of a
+    new map turned together, once; a map that continues a saved one keeps that one's frame, which its earlier
+    trajectories, and whatever was placed in it since, are in."""
+    if request.align == Align.NONE:
+        return result
+    with (timer or NullTimer()).stage("align"):
+        if request.load_state is not None:
+            found = Squaring(0.0, "frame of the loaded map kept")
+        else:
+            found = alignment.squaring(alignment.wall_axes(result.image))
+        rotation = found.rotation
+        if rotation:
+            result = dataclasses.replace(
+                alignment.turned(result, rotation),
+                sessions=tuple(dataclasses.replace(x, poses=alignment.turned_poses(x.poses, rotation))
+                               for x in result.sessions))
+    # In the statistics (and so in map.carto's metadata) only when turned: a map square already is saved as before
+    stats = result.stats | {"aligned_deg": math.degrees(rotation)} if rotation else result.stats
+    return dataclasses.replace(result, alignment=found, stats=stats)
 
 
 def cleaned(result: MapResult, timer: Any = None, returns: dict[int, np.ndarray] | None = None) -> MapResult:

@@ -120,6 +120,7 @@ class AssembledImage:
         """``layers``: one int per grid, higher newer; a cell takes the newest layer whose mean log-odds there is
         at least ``sure`` in magnitude, else the mean of all. None: every grid averaged alike."""
         self._parts = []
+        self._margin = int(margin_cells)
         self._layered = layers is not None
         self._sure = float(sure)
         ranks = list(layers) if layers is not None else [0] * len(grids)
@@ -160,6 +161,13 @@ class AssembledImage:
 
     def world_to_pixel(self, xy: np.ndarray) -> np.ndarray:
         return _world_to_pixel(xy, self.origin, self.resolution, self.shape[0])
+
+    def moved(self, frame: np.ndarray) -> AssembledImage:
+        """The same submaps, layers and margin with the map frame moved by ``frame`` (x, y, yaw: every correction
+        composed after it): the image a map whose poses were all moved so would assemble, not a resampled one."""
+        corrections = [transform.compose(frame, corr) for _, corr, _, _ in self._parts]
+        return AssembledImage([grid for grid, _, _, _ in self._parts], corrections, self.resolution, self._margin,
+                              layers=[rank for *_, rank in self._parts] if self._layered else None, sure=self._sure)
 
     def _strip(self, y0: int, y1: int) -> np.ndarray:
         """float32 probabilities of rows [y0, y1) (row 0 at the bottom), NaN where unknown."""

@@ -91,6 +91,7 @@ class RunStats(TypedDict, total=False):
     unconverged_matches: int  # scan-to-map: Gauss-Newton runs that stopped at the iteration limit
     graph_process_peak_memory_mb: float  # the pose graph's own process, when it ran in one (else 0)
     peak_memory_mb: float | None  # this process's, or with the graph's process while it ran if higher
+    aligned_deg: float  # --align: the turn given to the map frame (0: none), also in map.carto's metadata
 
 
 @dataclass(frozen=True)

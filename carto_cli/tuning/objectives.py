@@ -400,12 +400,15 @@ def _with_time(value: float, metrics: dict, result, time_weight: float, s_per_sc
 def _sessions_score(case: SessionsCase, options: Options, objective: str, max_scans: int | None,
                     time_weight: float) -> tuple[float, dict]:
     """(score, metrics) of ``options`` on recordings mapped together (module doc: Sessions)."""
+    from carto_cli.mapping.alignment import Align
     from carto_cli.pipeline import MapRequest, map_sessions
 
     first, *later = (p.recording() for p in case.parts)
     mounts: list[np.ndarray] = []  # each recording's laser on its robot, as its plan resolved it
     started = time.perf_counter()  # every session's mapping, reading included (the result's stats are the last one's)
-    result = map_sessions(MapRequest(first, options, max_scans=max_scans, later=tuple(later)),
+    # A trial is scored on its trajectories, in one frame with one alignment: turning the map square costs time
+    # and changes no score
+    result = map_sessions(MapRequest(first, options, max_scans=max_scans, later=tuple(later), align=Align.NONE),
                           on_plan=lambda plan: mounts.append(plan.mount))
     wall = time.perf_counter() - started
     sessions = result.sessions
