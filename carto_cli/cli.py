@@ -470,8 +470,6 @@ def map_(
         typer.echo(f"carto: warning: {warning}", err=True)
     if timings:
         typer.echo(report_tree_text(timer))
-    if result.alignment is not None:
-        typer.echo(f"aligned: {result.alignment.describe()}")
     _say_map(f"{summary_line(result, timer)} -> {outputs.yaml.parent}", result, strict)
 
 
@@ -514,7 +512,9 @@ def _say_map(summary: str, result, strict: bool) -> None:
     from carto_cli.commands.map import cleaning_lines, sessions_lines
 
     typer.echo(summary)
-    for line in sessions_lines(result) + cleaning_lines(result):
+    aligned = getattr(result, "alignment", None)
+    for line in sessions_lines(result) + ([f"aligned: {aligned.describe()}"] if aligned else []) + cleaning_lines(
+            result):
         typer.echo(line)
     if result.quality is not None:
         typer.echo(result.quality.line(), err=not result.quality.ok)

@@ -1,23 +1,28 @@
 """Clean a finished map of what was only there for a while: people, carts, a door that was open.
 
 An online mapper decides about a cell as scans come; a batch one can ask, once the final optimization has placed
-every node, what the whole recording saw there. For every occupied cell of the finished image:
+every node, what the whole recording saw there and when. For every occupied cell of the finished image, in
+``BINS`` bins of the recording's time:
 
-* its **hits**: returns of the nodes that ended within ``SPAN_REACH`` cells of it, and the first and last time one
-  did (the time span of the structure there, a 5 x 5 neighbourhood because node returns are thinned);
-* its **pass-throughs**: rays of the nodes that crossed it and went on at least ``MARGIN`` further (a ray that
-  stops just behind a cell was stopped by what is in it, to within a pose's error), split by time into before,
-  during and after its hit span. A ray that meets a straight piece of wall at less than ``GRAZING`` to it is not
-  counted: the rays that skim a wall from afar cross the edge of its thick band in any map.
+* its **hits**: the returns that ended in it, and where in the cell they ended on average (what stood there);
+* its **pass-throughs**: rays that crossed the cell within ``PASS_RADIUS`` of that point and went on at least
+  ``MARGIN`` further (a ray that stops just behind a cell was stopped by what is in it, to within a pose's
+  error). A ray beside the point only skirted a chair's leg filling a corner of the cell; a ray that meets a
+  straight piece of wall at less than ``GRAZING`` skims it, as every map's rays skim the edge of its walls'
+  bands, and neither counts.
 
-A cell whose structure was seen through at least ``MIN_AFTER`` times after its last hit, at least ``AFTER_SHARE``
-of every look at it, is **transient**: whatever stood there left. It is drawn free in the map, and kept, with its
-time span and its evidence, in the result so that the state (map.carto) can say what was removed. A wall seen
-from one side only is never crossed; a cabinet put down for good and seen to the end is never seen through after
-its last hit; both stay.
+Whatever stood in a cell **left** at a bin boundary before which it was hit, after which it was seen through at
+least ``MIN_AFTER`` times and ``AFTER_RATIO`` times as often as hit (people walking through the place a cart
+stood still hit it now and then), and while it was hit it was not seen through more than ``POROUS`` times per hit
+(something that let rays through while there was never solid: legs, a railing). Such a cell is **transient**
+unless one of its 8 neighbours is occupied and stays: the edge of a wall band seen through by a later pass a cell
+off belongs to the wall. A transient cell is drawn free; the result keeps it with its time span and evidence, so
+that the state (map.carto) says what was removed. A wall seen from one side only is never crossed; a cabinet put
+down for good and seen to the end is never seen through after it came; both stay.
 
-The returns are the nodes' own (``PoseGraph.node_points``) at their optimized poses, with every node's rays from
-the laser's mount: the SLAM core's record of every scan it kept.
+The evidence is every node's inserted returns (``compact_returns``, kept by the mapping system) or, for a node
+without (a saved map's), its loop-closure points, at its optimized pose with its rays from the laser's mount.
+``bench/clean.py`` measures it (docs/benchmarks.md).
 """
 from __future__ import annotations
 
@@ -30,15 +35,16 @@ from scipy import ndimage
 
 from carto_cli.core.kernels import register_warm_up
 
-__all__ = ["AFTER_RATIO", "GRAZING", "MARGIN", "MIN_AFTER", "Transients", "cleaned_probability", "compact_returns",
-           "find_transients"]
+__all__ = ["AFTER_RATIO", "GRAZING", "MARGIN", "MIN_AFTER", "PASS_RADIUS", "POROUS", "Transients",
+           "cleaned_probability", "compact_returns", "find_transients"]
 
-SPAN_REACH = 2  # cells around a return whose time span it extends
+PASS_RADIUS = 0.015  # m: a ray passes through what a cell held if it comes this near where its returns ended
 MARGIN = 0.25  # m: a ray crosses a cell only if it ends at least this far beyond it
 GRAZING = math.radians(30.0)  # a ray meeting a straight wall at less than this does not count as crossing it
 COHERENT = 0.5  # structure-tensor coherence above which a cell's structure counts as a straight wall
-MIN_AFTER = 10  # nodes seeing through a cell after some time, at least, for what stood there to have gone
+MIN_AFTER = 10  # rays through a cell after some time, at least, for what stood there to have gone
 AFTER_RATIO = 3.0  # ... and this many times as many as still hit it after that time (people walking through)
+POROUS = 1.0  # ... and before that time seen through while hit no more than this many times per hit
 BINS = 64  # the recording's time in this many bins, where a departure is looked for
 OCCUPIED = 0.5  # a cell is occupied above this probability (map.pgm's balance of evidence)
 FREE = 0.3  # what a removed cell is drawn as: free by the same balance
@@ -47,12 +53,13 @@ FREE = 0.3  # what a removed cell is drawn as: free by the same balance
 @dataclass(frozen=True)
 class Transients:
     """Cells of a finished map's image found transient: (ix, iy) on the image grid (``origin``, ``resolution``;
-    iy grows with y), each with the time span of its hits, its hits, and the rays through it after that span."""
+    iy grows with y), each with its time span (its first hit, and the time it left, to a bin), the returns that
+    hit it before and the rays through it after."""
 
     resolution: float
     origin: tuple[float, float]
     cells: np.ndarray  # (n, 2) int64 ix iy
-    spans: np.ndarray  # (n, 2) float64 first and last hit time
+    spans: np.ndarray  # (n, 2) float64: first hit, and the time it left
     hits: np.ndarray  # (n,) int64
     after: np.ndarray  # (n,) int64
     candidates: int = 0  # occupied cells judged
@@ -92,11 +99,11 @@ def _bin(t, t0, width, bins):
 
 
 @njit(cache=True, nogil=True)
-def _hits(points, offsets, poses, times, index, gox, goy, res, reach, t0, width, hits, first):
-    """Per occupied cell and time bin: the nodes with a return within ``reach`` cells; and the first one's time."""
+def _hits(points, offsets, poses, times, index, gox, goy, res, t0, width, hits, first, centre):
+    """Per occupied cell and time bin: the returns that ended in it; the first one's time, and the sum of where
+    they ended (``centre``: x, y, count), whose mean is where in the cell the thing they hit stood."""
     ny, nx = index.shape
     bins = hits.shape[1]
-    seen = np.full(hits.shape[0], -1, np.int64)
     for i in range(offsets.shape[0] - 1):
         c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
         b = _bin(times[i], t0, width, bins)
@@ -105,24 +112,27 @@ def _hits(points, offsets, poses, times, index, gox, goy, res, reach, t0, width,
             y = s * points[k, 0] + c * points[k, 1] + poses[i, 1]
             ix = int(math.floor((x - gox) / res))
             iy = int(math.floor((y - goy) / res))
-            for cy in range(max(iy - reach, 0), min(iy + reach + 1, ny)):
-                for cx in range(max(ix - reach, 0), min(ix + reach + 1, nx)):
-                    j = index[cy, cx]
-                    if j < 0 or seen[j] == i:
-                        continue
-                    seen[j] = i
-                    hits[j, b] += 1
-                    first[j] = min(first[j], times[i])
+            if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+                continue
+            j = index[iy, ix]
+            if j < 0:
+                continue
+            if hits[j, b] < 65535:
+                hits[j, b] += 1
+            first[j] = min(first[j], times[i])
+            centre[j, 0] += x
+            centre[j, 1] += y
+            centre[j, 2] += 1.0
 
 
 @njit(cache=True, nogil=True)
-def _crossings(points, offsets, poses, sensor, times, index, tangent, coherent, gox, goy, res, margin, grazing_cos,
-               t0, width, passes):
+def _crossings(points, offsets, poses, sensor, times, index, tangent, coherent, centre, gox, goy, res, margin,
+               radius, grazing_cos, t0, width, passes):
     """Walk every ray from the sensor to ``margin`` short of its return, cell by cell (Amanatides and Woo), and
-    count per occupied cell and time bin the nodes whose rays cross it."""
+    count per occupied cell and time bin the rays that pass within ``radius`` of where its returns ended: through
+    what was hit there, not beside a table leg that fills a corner of the cell."""
     ny, nx = index.shape
     bins = passes.shape[1]
-    seen = np.full(passes.shape[0], -1, np.int64)
     for i in range(offsets.shape[0] - 1):
         c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
         ox = c * sensor[0] - s * sensor[1] + poses[i, 0]
@@ -149,10 +159,12 @@ def _crossings(points, offsets, poses, sensor, times, index, tangent, coherent, 
             while walked < reach:
                 if 0 <= cx < nx and 0 <= cy < ny:
                     j = index[cy, cx]
-                    if j >= 0 and seen[j] != i and not (
+                    if j >= 0 and centre[j, 2] > 0 and not (
                             coherent[j] and abs(ux * tangent[j, 0] + uy * tangent[j, 1]) > grazing_cos):
-                        seen[j] = i
-                        passes[j, b] += 1
+                        mx = centre[j, 0] / centre[j, 2] - ox
+                        my = centre[j, 1] / centre[j, 2] - oy
+                        if abs(ux * my - uy * mx) <= radius and passes[j, b] < 65535:
+                            passes[j, b] += 1
                 if tx < ty:
                     walked = tx
                     tx += tdx
@@ -227,26 +239,44 @@ def find_transients(probability: np.ndarray, origin: tuple[float, float], resolu
     hits = np.zeros((n, BINS), np.uint16)
     passes = np.zeros((n, BINS), np.uint16)
     first = np.full(n, np.inf)
+    centre = np.zeros((n, 3))
     gox, goy = float(origin[0]), float(origin[1])
-    _hits(flat, offsets, poses, times, index, gox, goy, float(resolution), SPAN_REACH, t0, width, hits, first)
+    _hits(flat, offsets, poses, times, index, gox, goy, float(resolution), t0, width, hits, first, centre)
     tangent, coherent = _structure(occupied, cells)
-    _crossings(flat, offsets, poses, np.asarray(sensor, np.float64), times, index, tangent, coherent, gox, goy,
-               float(resolution), MARGIN, math.cos(GRAZING), t0, width, passes)
+    _crossings(flat, offsets, poses, np.asarray(sensor, np.float64), times, index, tangent, coherent, centre, gox,
+               goy, float(resolution), MARGIN, PASS_RADIUS, math.cos(GRAZING), t0, width, passes)
     gone, left, hits_before, passes_after = _departures(hits, passes)
+    gone &= ~_beside(cells, gone, prob.shape)
     spans = np.column_stack([first[gone], t0 + left[gone] * width])
     return Transients(float(resolution), (gox, goy), cells[gone], spans, hits_before[gone], passes_after[gone], n)
 
 
+def _beside(cells: np.ndarray, gone: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Per cell: whether an occupied cell that stays is among its 8 neighbours. The edge of a wall band, seen
+    through by a later pass whose pose differs by a cell, belongs to the wall; whatever stood free of the walls,
+    or reached them by one cell, goes all but that cell."""
+    stays = np.zeros(shape, bool)
+    stays[cells[~gone, 1], cells[~gone, 0]] = True
+    near = ndimage.binary_dilation(stays, structure=np.ones((3, 3), bool))
+    return near[cells[:, 1], cells[:, 0]]
+
+
 def _departures(hits: np.ndarray, passes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per cell (rows of per-bin counts): whether something there left (a bin boundary before which it was hit
-    and after which it was seen through ``MIN_AFTER`` times, ``AFTER_RATIO`` times as often as hit); the first
-    such boundary (in bins), the hits before it and the pass-throughs after it."""
+    and after which it was seen through ``MIN_AFTER`` times, ``AFTER_RATIO`` times as often as hit, and not
+    porous before); the first such boundary with the most hits before it (in bins), those hits and the pass-throughs
+    after it."""
     h_after = np.cumsum(hits[:, ::-1], axis=1, dtype=np.int64)[:, ::-1]  # [:, k]: hits in bins k and later
     p_after = np.cumsum(passes[:, ::-1], axis=1, dtype=np.int64)[:, ::-1]
     h_before = h_after[:, :1] - h_after
-    left = (h_before[:, 1:] > 0) & (p_after[:, 1:] >= MIN_AFTER) & (p_after[:, 1:] >= AFTER_RATIO * h_after[:, 1:])
+    # Seen through while it was being hit: a chair's leg filling a corner of the cell, not something that left
+    through = np.cumsum(np.where(hits > 0, passes, 0), axis=1, dtype=np.int64)
+    through = np.concatenate([np.zeros((len(hits), 1), np.int64), through], axis=1)[:, :-1]  # [:, k]: bins < k
+    left = ((h_before[:, 1:] > 0) & (p_after[:, 1:] >= MIN_AFTER) & (p_after[:, 1:] >= AFTER_RATIO * h_after[:, 1:])
+            & (through[:, 1:] <= POROUS * h_before[:, 1:]))
     gone = np.asarray(left.any(axis=1))
-    k = np.argmax(left, axis=1) + 1
+    # The boundary with the most hits before it, the first of them: right after what left was last hit
+    k = np.argmax(np.where(left, h_before[:, 1:], -1), axis=1) + 1
     rows = np.arange(len(k))
     return gone, k, h_before[rows, k], p_after[rows, k]
 

@@ -174,6 +174,8 @@ def standing(world: World, robot: np.ndarray, rng: np.random.Generator, until: f
     """A person standing 5-20 s beside the robot's path, there as the robot comes by and gone by ``until`` s
     (None: no room)."""
     stay = rng.uniform(*STANDING_TIME)
+    if until - stay <= robot[0, 0] + 5.0:
+        return None
     t = rng.uniform(robot[0, 0] + 5.0, until - stay)
     p = _beside_robot(world, robot, t, 0.5 * stay, rng.uniform(0.7, 1.0) * rng.choice([-1.0, 1.0]),
                       PERSON_RADIUS + 0.15)
@@ -184,7 +186,10 @@ def standing(world: World, robot: np.ndarray, rng: np.random.Generator, until: f
 
 def cart(world: World, robot: np.ndarray, rng: np.random.Generator, until: float, stay: float = 60.0
          ) -> Mover | None:
-    """A cart parked beside the robot's path for ``stay`` s, there as the robot comes by and gone by ``until``."""
+    """A cart parked beside the robot's path for ``stay`` s, there as the robot comes by and gone by ``until``
+    (None: no room, or no time)."""
+    if until - stay <= robot[0, 0] + 5.0:
+        return None
     t = rng.uniform(robot[0, 0] + 5.0, until - stay)
     length, width = CART_SIZE
     p = _beside_robot(world, robot, t, 0.5 * stay, rng.uniform(0.75, 0.85) * rng.choice([-1.0, 1.0]), 0.4)
