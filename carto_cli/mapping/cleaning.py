@@ -35,8 +35,8 @@ from scipy import ndimage
 
 from carto_cli.core.kernels import register_warm_up
 
-__all__ = ["AFTER_RATIO", "GRAZING", "MARGIN", "MIN_AFTER", "PASS_RADIUS", "POROUS", "Transients",
-           "cleaned_probability", "compact_returns", "find_transients"]
+__all__ = ["AFTER_RATIO", "GRAZING", "MARGIN", "MIN_AFTER", "PASS_RADIUS", "POROUS", "Evidence", "Transients",
+           "cleaned_probability", "compact_returns", "find_transients", "flat_points", "gather_evidence"]
 
 PASS_RADIUS = 0.015  # m: a ray passes through what a cell held if it comes this near where its returns ended
 MARGIN = 0.25  # m: a ray crosses a cell only if it ends at least this far beyond it
@@ -205,7 +205,7 @@ def compact_returns(returns: np.ndarray, pose: np.ndarray | None = None) -> np.n
     return np.clip(np.rint(pts / RETURN_UNIT), -limit, limit).astype(np.int16)
 
 
-def _flat(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def flat_points(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The nodes' points as one (P, 2) float64 array in metres (int16 ones are ``compact_returns``') and P + 1
     offsets."""
     counts = np.array([len(p) for p in points], np.int64)
@@ -216,39 +216,68 @@ def _flat(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(flat), offsets
 
 
-def find_transients(probability: np.ndarray, origin: tuple[float, float], resolution: float,
+@dataclass(frozen=True)
+class Evidence:
+    """What the recording saw of every occupied cell of an image: ``cells`` (n, 2) ix iy; per cell and time bin
+    (``BINS`` bins of ``width`` s from ``t0``) the returns that ended in it (``hits``) and the rays through it
+    near where they ended (``passes``); each cell's first hit time and ``centre`` (sum of x, sum of y, count of its
+    returns)."""
+
+    cells: np.ndarray
+    hits: np.ndarray  # (n, BINS) uint16
+    passes: np.ndarray  # (n, BINS) uint16
+    first: np.ndarray  # (n,)
+    centre: np.ndarray  # (n, 3)
+    t0: float
+    width: float
+
+
+def gather_evidence(probability: np.ndarray, origin: tuple[float, float], resolution: float,
                     points: list[np.ndarray], poses: np.ndarray, times: np.ndarray,
-                    sensor: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Transients:
-    """The transient cells of a finished image (``probability`` (H, W), row 0 at the lowest y, NaN unknown),
-    judged by every node's returns ``points[i]`` (its own frame) at ``poses[i]`` (map frame), taken at
-    ``times[i]``, the laser at ``sensor`` in the node's frame."""
+                    sensor: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0), *,
+                    grazing: float = GRAZING) -> Evidence:
+    """The evidence on every occupied cell of ``probability`` (H, W; row 0 at the lowest y, NaN unknown) from
+    every node's returns ``points[i]`` (its own frame; int16 ones are ``compact_returns``') at ``poses[i]`` (map
+    frame), taken at ``times[i]``, the laser at ``sensor`` in the node's frame. ``grazing``: rays meeting a
+    straight wall at less than this angle are not counted as crossing it (0: every ray counts)."""
     prob = np.asarray(probability)
     occupied = np.nan_to_num(prob, nan=0.0) > OCCUPIED
     iy, ix = np.nonzero(occupied)
-    if len(ix) == 0 or len(points) == 0:
-        return Transients.none(resolution, origin, len(ix))
-    cells = np.column_stack([ix, iy]).astype(np.int64)
-    index = np.full(prob.shape, -1, np.int32)
-    index[iy, ix] = np.arange(len(ix), dtype=np.int32)
-    flat, offsets = _flat(points)
-    poses = np.ascontiguousarray(poses, np.float64).reshape(-1, 3)
-    times = np.ascontiguousarray(times, np.float64).reshape(-1)
     n = len(ix)
-    t0, t1 = float(times.min()), float(times.max())
-    width = max((t1 - t0) / BINS, 1e-3)
-    hits = np.zeros((n, BINS), np.uint16)
-    passes = np.zeros((n, BINS), np.uint16)
-    first = np.full(n, np.inf)
-    centre = np.zeros((n, 3))
-    gox, goy = float(origin[0]), float(origin[1])
-    _hits(flat, offsets, poses, times, index, gox, goy, float(resolution), t0, width, hits, first, centre)
+    cells = np.column_stack([ix, iy]).astype(np.int64)
+    times = np.ascontiguousarray(times, np.float64).reshape(-1)
+    t0 = float(times.min()) if len(times) else 0.0
+    width = max((float(times.max()) - t0) / BINS, 1e-3) if len(times) else 1.0
+    evidence = Evidence(cells, np.zeros((n, BINS), np.uint16), np.zeros((n, BINS), np.uint16), np.full(n, np.inf),
+                        np.zeros((n, 3)), t0, width)
+    if n == 0 or len(points) == 0:
+        return evidence
+    index = np.full(prob.shape, -1, np.int32)
+    index[iy, ix] = np.arange(n, dtype=np.int32)
+    flat, offsets = flat_points(points)
+    poses = np.ascontiguousarray(poses, np.float64).reshape(-1, 3)
+    gox, goy, res = float(origin[0]), float(origin[1]), float(resolution)
+    _hits(flat, offsets, poses, times, index, gox, goy, res, t0, width, evidence.hits, evidence.first,
+          evidence.centre)
     tangent, coherent = _structure(occupied, cells)
-    _crossings(flat, offsets, poses, np.asarray(sensor, np.float64), times, index, tangent, coherent, centre, gox,
-               goy, float(resolution), MARGIN, PASS_RADIUS, math.cos(GRAZING), t0, width, passes)
-    gone, left, hits_before, passes_after = _departures(hits, passes)
-    gone &= ~_beside(cells, gone, prob.shape)
-    spans = np.column_stack([first[gone], t0 + left[gone] * width])
-    return Transients(float(resolution), (gox, goy), cells[gone], spans, hits_before[gone], passes_after[gone], n)
+    _crossings(flat, offsets, poses, np.asarray(sensor, np.float64), times, index, tangent, coherent, evidence.centre,
+               gox, goy, res, MARGIN, PASS_RADIUS, math.cos(grazing), t0, width, evidence.passes)
+    return evidence
+
+
+def find_transients(probability: np.ndarray, origin: tuple[float, float], resolution: float,
+                    points: list[np.ndarray], poses: np.ndarray, times: np.ndarray,
+                    sensor: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Transients:
+    """The transient cells of a finished image, judged by the evidence of :func:`gather_evidence` (the same
+    arguments)."""
+    e = gather_evidence(probability, origin, resolution, points, poses, times, sensor)
+    if len(e.cells) == 0:
+        return Transients.none(resolution, origin, 0)
+    gone, left, hits_before, passes_after = _departures(e.hits, e.passes)
+    gone &= ~_beside(e.cells, gone, np.shape(probability))
+    spans = np.column_stack([e.first[gone], e.t0 + left[gone] * e.width])
+    return Transients(float(resolution), (float(origin[0]), float(origin[1])), e.cells[gone], spans,
+                      hits_before[gone], passes_after[gone], len(e.cells))
 
 
 def _beside(cells: np.ndarray, gone: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -164,20 +164,10 @@ def test_the_kernels_count_what_the_reference_counts():
     points, poses, times = _scene([(cart, 0.0, 20.0)], n=12, duration=40.0)
     points = [p[::24] for p in points]  # 30 rays a node: the reference walks them in Python
     prob, origin = _image(points, poses)
-    occupied = prob > 0.5
-    iy, ix = np.nonzero(occupied)
-    n = len(ix)
-    index = np.full(prob.shape, -1, np.int32)
-    index[iy, ix] = np.arange(n, dtype=np.int32)
-    flat, offsets = cleaning._flat(points)
     t0, width = 0.0, 40.0 / cleaning.BINS
-    hits = np.zeros((n, cleaning.BINS), np.uint16)
-    passes = np.zeros((n, cleaning.BINS), np.uint16)
-    first, centre = np.full(n, np.inf), np.zeros((n, 3))
-    cleaning._hits(flat, offsets, poses, times, index, origin[0], origin[1], RES, t0, width, hits, first, centre)
-    no_wall = np.zeros(n, bool)  # every ray counts: the reference has no grazing exemption
-    cleaning._crossings(flat, offsets, poses, np.zeros(3), times, index, np.zeros((n, 2)), no_wall, centre,
-                        origin[0], origin[1], RES, cleaning.MARGIN, cleaning.PASS_RADIUS, 1.0, t0, width, passes)
+    e = cleaning.gather_evidence(prob, origin, RES, points, poses, times, grazing=0.0)  # times span 0-40 s
+    ix, iy = e.cells[:, 0], e.cells[:, 1]
+    hits, passes, centre = e.hits, e.passes, e.centre
     ref_hits, ref_sums, ref_passes = _reference(prob, origin, points, poses, times, width, t0)
     assert np.array_equal(hits, ref_hits[iy, ix])
     assert np.allclose(centre, ref_sums[iy, ix])
@@ -194,7 +184,7 @@ def test_returns_are_kept_to_the_centimetre_in_the_nodes_frame():
     kept = compact_returns(placed, pose)
     assert kept.dtype == np.int16
     assert np.allclose(kept * cleaning.RETURN_UNIT, local, atol=0.006)
-    flat, offsets = cleaning._flat([kept, local])
+    flat, offsets = cleaning.flat_points([kept, local])
     assert np.allclose(flat[:2], local, atol=0.006) and offsets.tolist() == [0, 2, 4]
 
 
