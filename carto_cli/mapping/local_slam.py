@@ -148,6 +148,25 @@ class LocalSlam:
             unknown_probability=c.unknown_probability,
         )
 
+    def _match(self, grid: ProbabilityGrid, points: np.ndarray,
+               prediction: np.ndarray) -> tuple[np.ndarray, float | None, float]:
+        """(pose, correlative score or None, least-squares cost) of ``points`` matched in ``grid`` from
+        ``prediction``, transient points left out."""
+        timer = self.timer
+        with timer.stage("transient"):
+            points = self._static(grid, points, prediction, "transient_matching")
+        initial = prediction
+        score = None
+        if self.options.use_online_correlative_scan_matching:
+            with timer.stage("correlative"):
+                result = correlative.match(grid, points, prediction, **self._search_window(prediction))
+                initial = result.pose
+                score = result.score
+        with timer.stage("least squares"):
+            ls = self.ceres.match(grid, points, initial, target_translation=prediction[:2])
+            self.stats.ls_iterations += ls.iterations
+        return ls.pose, score, ls.cost
+
     def _static(self, grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray, counter: str) -> np.ndarray:
         """``points`` without those :func:`transient_mask` finds at ``pose`` (all of them when too many look
         transient); the dropped ones counted in ``stats.<counter>``."""
@@ -214,20 +233,7 @@ class LocalSlam:
         matching = self.submaps.matching_submap
         if matching is not None:
             with timer.stage("match"):
-                initial = prediction
-                with timer.stage("transient"):
-                    points = self._static(matching.grid, points, prediction, "transient_matching")
-                if o.use_online_correlative_scan_matching:
-                    with timer.stage("correlative"):
-                        window = self._search_window(prediction)
-                        result = correlative.match(matching.grid, points, prediction, **window)
-                        initial = result.pose
-                        score = result.score
-                with timer.stage("least squares"):
-                    ls = self.ceres.match(matching.grid, points, initial, target_translation=prediction[:2])
-                    pose = ls.pose
-                    ls_cost = ls.cost
-                    self.stats.ls_iterations += ls.iterations
+                pose, score, ls_cost = self._match(matching.grid, points, prediction)
             self.stats.matched += 1
 
         with timer.stage("extrapolate"):

@@ -173,7 +173,9 @@ class Submaps:
 class TransientPoints:
     # carto addition (not in Cartographer): a person or a cart crossing space the submap has seen through many
     # times is matched as if it were a wall, and once inserted it is a wall later scans match against.
-    enabled: bool = _opt(True, "carto: leave points in confidently free space, away from walls, out of local "
+    # Off by default: on simulated crowds it did not lower the trajectory's error (docs/benchmarks.md, "Crowds do
+    # not bend the trajectory"), and on the static benchmarks the few points it drops still move the result.
+    enabled: bool = _opt(False, "carto: leave points in confidently free space, away from walls, out of local "
                          "matching, submap insertion and the node's loop-closure points")
     max_free_probability: float = _opt(0.3, "carto: a point's cell must be at most this likely occupied "
                                        "(about 20 rays through it with the stock miss probability)", gt=0, lt=0.5)
