@@ -28,10 +28,12 @@ from carto_cli.core import kernels, transform
 from carto_cli.core.kernels import register_warm_up
 from carto_cli.core.records import Imu, Odometry, Scan
 from carto_cli.core.timing import NullTimer, StageTimer
+from carto_cli.grid.probability_grid import ProbabilityGrid
 from carto_cli.mapping.extrapolator import PoseExtrapolator
 from carto_cli.mapping.motion_filter import MotionFilter
 from carto_cli.mapping.submaps import ActiveSubmaps, Submap
 from carto_cli.matching import correlative, least_squares
+from carto_cli.matching.transient import transient_mask
 from carto_cli.options import TrajectoryBuilder2D
 from carto_cli.sensor.range_filter import RangeData, accumulate, crop_polar, crop_scan
 from carto_cli.sensor.voxel_filter import adaptive_voxel_filter, voxel_filter
@@ -64,6 +66,8 @@ class LocalSlamStats:
     matched: int = 0
     nodes: int = 0
     ls_iterations: int = 0
+    transient_matching: int = 0  # points left out of matching as transient (people, carts)
+    transient_inserted: int = 0  # returns kept out of the submaps as transient
     finished_submaps: list = field(default_factory=list)
 
 
@@ -144,6 +148,39 @@ class LocalSlam:
             unknown_probability=c.unknown_probability,
         )
 
+    def _match(self, grid: ProbabilityGrid, points: np.ndarray,
+               prediction: np.ndarray) -> tuple[np.ndarray, float | None, float]:
+        """(pose, correlative score or None, least-squares cost) of ``points`` matched in ``grid`` from
+        ``prediction``, transient points left out."""
+        timer = self.timer
+        with timer.stage("transient"):
+            points = self._static(grid, points, prediction, "transient_matching")
+        initial = prediction
+        score = None
+        if self.options.use_online_correlative_scan_matching:
+            with timer.stage("correlative"):
+                result = correlative.match(grid, points, prediction, **self._search_window(prediction))
+                initial = result.pose
+                score = result.score
+        with timer.stage("least squares"):
+            ls = self.ceres.match(grid, points, initial, target_translation=prediction[:2])
+            self.stats.ls_iterations += ls.iterations
+        return ls.pose, score, ls.cost
+
+    def _static(self, grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray, counter: str) -> np.ndarray:
+        """``points`` without those :func:`transient_mask` finds at ``pose`` (all of them when too many look
+        transient); the dropped ones counted in ``stats.<counter>``."""
+        t = self.options.transient_points
+        if not t.enabled or len(points) == 0:
+            return points
+        mask = transient_mask(grid, points, pose, max_free_probability=t.max_free_probability,
+                              clearance=t.clearance)
+        dropped = int(mask.sum())
+        if dropped == 0 or dropped > t.max_fraction * len(points):
+            return points
+        setattr(self.stats, counter, getattr(self.stats, counter) + dropped)
+        return points[~mask]
+
     def add_odometry(self, odometry: Odometry) -> None:
         self._has_odometry = True
         self.extrapolator.add_odometry(odometry)
@@ -196,18 +233,7 @@ class LocalSlam:
         matching = self.submaps.matching_submap
         if matching is not None:
             with timer.stage("match"):
-                initial = prediction
-                if o.use_online_correlative_scan_matching:
-                    with timer.stage("correlative"):
-                        window = self._search_window(prediction)
-                        result = correlative.match(matching.grid, points, prediction, **window)
-                        initial = result.pose
-                        score = result.score
-                with timer.stage("least squares"):
-                    ls = self.ceres.match(matching.grid, points, initial, target_translation=prediction[:2])
-                    pose = ls.pose
-                    ls_cost = ls.cost
-                    self.stats.ls_iterations += ls.iterations
+                pose, score, ls_cost = self._match(matching.grid, points, prediction)
             self.stats.matched += 1
 
         with timer.stage("extrapolate"):
@@ -219,6 +245,12 @@ class LocalSlam:
             similar = self.motion_filter.is_similar(scan.time, pose)
         if similar:
             return out
+        if matching is not None:
+            with timer.stage("transient"):
+                # Judged again at the matched pose: a person inserted as a wall is matched against by the
+                # scans that follow, and stays in the map.
+                data = RangeData(data.origin, self._static(matching.grid, data.returns, pose, "transient_inserted"),
+                                 data.misses)
         with timer.stage("insert"):
             local_data = data.transformed(pose)
             inserted = self.submaps.insert(local_data, timer)

@@ -73,6 +73,8 @@ class RunStats(TypedDict, total=False):
     first_pass_wall_time_s: float
     scans_per_s: float
     empty_scans: int
+    transient_points: int  # Cartographer: scan points left out of local matching as transient (people, carts)
+    transient_returns: int  # and returns kept out of the submaps
     constraints: int
     loop_closures: int
     loop_closure_candidates: int
@@ -236,6 +238,8 @@ class Slam:
             "wall_time_s": wall,
             "scans_per_s": n_scans / wall if wall > 0 else float("nan"),
             "empty_scans": self.local.stats.empty_scans,
+            "transient_points": self.local.stats.transient_matching,
+            "transient_returns": self.local.stats.transient_inserted,
             "constraints": len(graph.constraints),
             "loop_closures": graph.constraints.num_loop_closures,
             "optimizations": graph.stats.optimizations,

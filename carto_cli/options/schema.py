@@ -170,6 +170,22 @@ class Submaps:
 
 
 @dataclass(frozen=True)
+class TransientPoints:
+    # carto addition (not in Cartographer): a person or a cart crossing space the submap has seen through many
+    # times is matched as if it were a wall, and once inserted it is a wall later scans match against.
+    # Off by default: on simulated crowds it did not lower the trajectory's error (docs/benchmarks.md, "Crowds do
+    # not bend the trajectory"), and on the static benchmarks the few points it drops still move the result.
+    enabled: bool = _opt(False, "carto: leave points in confidently free space, away from walls, out of local "
+                         "matching, submap insertion and the node's loop-closure points")
+    max_free_probability: float = _opt(0.3, "carto: a point's cell must be at most this likely occupied "
+                                       "(about 20 rays through it with the stock miss probability)", gt=0, lt=0.5)
+    clearance: float = _opt(0.25, "carto: no cell this near the point may be occupied (a wall point of a "
+                            "slightly wrong pose keeps its pull)", unit="m", ge=0)
+    max_fraction: float = _opt(0.5, "carto: when more of a scan than this looks transient the pose is more "
+                               "likely wrong than the scan crowded: every point is kept", gt=0, le=1)
+
+
+@dataclass(frozen=True)
 class TrajectoryBuilder2D:
     min_range: float = _opt(0.0, "returns closer than this are dropped", unit="m", ge=0)
     max_range: float = _opt(30.0, "returns farther than this become misses", unit="m", gt=0)
@@ -190,6 +206,7 @@ class TrajectoryBuilder2D:
     pose_extrapolator: PoseExtrapolator = _section(PoseExtrapolator)
     submaps: Submaps = _section(Submaps)
     use_imu_data: bool = _opt(False, "use IMU angular velocity for the yaw prediction (2D does not need it)")
+    transient_points: TransientPoints = _section(TransientPoints)
 
 
 # --------------------------------------------------------------------------- pose_graph
