@@ -559,11 +559,21 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
     assert result is not None
     if result.sessions and request.sessions != SessionPolicy.FUSE:
         result = _as_last_seen(result, timer, trim=request.sessions == SessionPolicy.LIFELONG)
+    # Trimming renumbered the nodes: what is left of them is judged by the returns the graph keeps
+    return finished(result, request, timer, {} if result.trimmed else returns)
+
+
+def finished(result: MapResult, request: MapRequest, timer: Any = None,
+             returns: dict[int, np.ndarray] | None = None) -> MapResult:
+    """The last steps of every map, once its poses are final: turned square to its building (``request.align``),
+    then cleaned of what left during the recording (``request.clean``), judged by ``returns`` (by node; None: the
+    result's own nodes')."""
     result = _aligned(result, request, timer)
-    if request.clean:
-        # Trimming renumbered the nodes: what is left of them is judged by the returns the graph keeps
-        result = cleaned(result, timer, {} if result.trimmed else returns)
-    return result
+    if not request.clean:
+        return result
+    if returns is None:
+        returns = dict(enumerate(result.node_returns, start=result.first_node))
+    return cleaned(result, timer, returns)
 
 
 def _aligned(result: MapResult, request: MapRequest, timer: Any) -> MapResult:

@@ -12,7 +12,7 @@ from carto_cli.core.timing import StageTimer
 from carto_cli.evaluation.gates import GateResult, compare_profiles
 from carto_cli.evaluation.profiling import build_report, calibrate, merge_repeats
 from carto_cli.io.atomic import write_text_atomic
-from carto_cli.pipeline import Auto, MapRequest, execute, planned, read_options
+from carto_cli.pipeline import Auto, MapRequest, execute, finished, planned, read_options
 
 __all__ = ["ProfileRun", "read_baseline", "run_profile"]
 
@@ -86,7 +86,8 @@ def run_profile(
             on_total(repeat * min(total, request.max_scans or total))
         for _ in range(repeat):
             timer = StageTimer(cpu_clock=time.process_time_ns)
-            result = execute(plan, timer=timer, on_scan=on_scan)
+            # The map's last steps too (turned square, cleaned): `carto map` pays for them
+            result = finished(execute(plan, timer=timer, on_scan=on_scan), request, timer)
             timer.stop()
             runs.append(build_report(result, timer, result.configured.options, label, calibration))
     report = merge_repeats(runs)
