@@ -45,7 +45,8 @@ COHERENT = 0.5  # structure-tensor coherence above which a cell's structure coun
 MIN_AFTER = 10  # rays through a cell after some time, at least, for what stood there to have gone
 AFTER_RATIO = 3.0  # ... and this many times as many as still hit it after that time (people walking through)
 POROUS = 1.0  # ... and before that time seen through while hit no more than this many times per hit
-BINS = 64  # the recording's time in this many bins, where a departure is looked for
+BINS = 64  # the recording's time in this many bins, where a departure is looked for, ...
+EVIDENCE_BYTES = 64 << 20  # ... fewer when the counts of that many would take more (a campus: a million cells)
 OCCUPIED = 0.5  # a cell is occupied above this probability (map.pgm's balance of evidence)
 FREE = 0.3  # what a removed cell is drawn as: free by the same balance
 
@@ -219,13 +220,13 @@ def flat_points(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 @dataclass(frozen=True)
 class Evidence:
     """What the recording saw of every occupied cell of an image: ``cells`` (n, 2) ix iy; per cell and time bin
-    (``BINS`` bins of ``width`` s from ``t0``) the returns that ended in it (``hits``) and the rays through it
+    (up to ``BINS`` bins of ``width`` s from ``t0``) the returns that ended in it (``hits``) and the rays through it
     near where they ended (``passes``); each cell's first hit time and ``centre`` (sum of x, sum of y, count of its
     returns)."""
 
     cells: np.ndarray
-    hits: np.ndarray  # (n, BINS) uint16
-    passes: np.ndarray  # (n, BINS) uint16
+    hits: np.ndarray  # (n, bins) uint16
+    passes: np.ndarray  # (n, bins) uint16
     first: np.ndarray  # (n,)
     centre: np.ndarray  # (n, 3)
     t0: float
@@ -246,9 +247,10 @@ def gather_evidence(probability: np.ndarray, origin: tuple[float, float], resolu
     n = len(ix)
     cells = np.column_stack([ix, iy]).astype(np.int64)
     times = np.ascontiguousarray(times, np.float64).reshape(-1)
+    bins = int(np.clip(EVIDENCE_BYTES // max(4 * n, 1), 8, BINS))
     t0 = float(times.min()) if len(times) else 0.0
-    width = max((float(times.max()) - t0) / BINS, 1e-3) if len(times) else 1.0
-    evidence = Evidence(cells, np.zeros((n, BINS), np.uint16), np.zeros((n, BINS), np.uint16), np.full(n, np.inf),
+    width = max((float(times.max()) - t0) / bins, 1e-3) if len(times) else 1.0
+    evidence = Evidence(cells, np.zeros((n, bins), np.uint16), np.zeros((n, bins), np.uint16), np.full(n, np.inf),
                         np.zeros((n, 3)), t0, width)
     if n == 0 or len(points) == 0:
         return evidence
@@ -290,24 +292,36 @@ def _beside(cells: np.ndarray, gone: np.ndarray, shape: tuple[int, int]) -> np.n
     return near[cells[:, 1], cells[:, 0]]
 
 
+DEPARTURE_ROWS = 1 << 16  # cells judged at a time: the running sums (int32, a few per bin) for these only
+
+
 def _departures(hits: np.ndarray, passes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per cell (rows of per-bin counts): whether something there left (a bin boundary before which it was hit
     and after which it was seen through ``MIN_AFTER`` times, ``AFTER_RATIO`` times as often as hit, and not
     porous before); the first such boundary with the most hits before it (in bins), those hits and the pass-throughs
     after it."""
-    h_after = np.cumsum(hits[:, ::-1], axis=1, dtype=np.int64)[:, ::-1]  # [:, k]: hits in bins k and later
-    p_after = np.cumsum(passes[:, ::-1], axis=1, dtype=np.int64)[:, ::-1]
+    parts = [_departures_of(hits[a:a + DEPARTURE_ROWS], passes[a:a + DEPARTURE_ROWS])
+             for a in range(0, len(hits), DEPARTURE_ROWS)]
+    if not parts:
+        return np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    gone, k, h, p = (np.concatenate(x) for x in zip(*parts))
+    return gone, k, h, p
+
+
+def _departures_of(hits: np.ndarray, passes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    h_after = np.cumsum(hits[:, ::-1], axis=1, dtype=np.int32)[:, ::-1]  # [:, k]: hits in bins k and later
+    p_after = np.cumsum(passes[:, ::-1], axis=1, dtype=np.int32)[:, ::-1]
     h_before = h_after[:, :1] - h_after
     # Seen through while it was being hit: a chair's leg filling a corner of the cell, not something that left
-    through = np.cumsum(np.where(hits > 0, passes, 0), axis=1, dtype=np.int64)
-    through = np.concatenate([np.zeros((len(hits), 1), np.int64), through], axis=1)[:, :-1]  # [:, k]: bins < k
+    through = np.cumsum(np.where(hits > 0, passes, 0), axis=1, dtype=np.int32)
+    through = np.concatenate([np.zeros((len(hits), 1), np.int32), through], axis=1)[:, :-1]  # [:, k]: bins < k
     left = ((h_before[:, 1:] > 0) & (p_after[:, 1:] >= MIN_AFTER) & (p_after[:, 1:] >= AFTER_RATIO * h_after[:, 1:])
             & (through[:, 1:] <= POROUS * h_before[:, 1:]))
     gone = np.asarray(left.any(axis=1))
     # The boundary with the most hits before it, the first of them: right after what left was last hit
     k = np.argmax(np.where(left, h_before[:, 1:], -1), axis=1) + 1
     rows = np.arange(len(k))
-    return gone, k, h_before[rows, k], p_after[rows, k]
+    return gone, k.astype(np.int64), h_before[rows, k].astype(np.int64), p_after[rows, k].astype(np.int64)
 
 
 def cleaned_probability(probability: np.ndarray, origin: tuple[float, float], resolution: float,
