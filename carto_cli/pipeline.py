@@ -676,7 +676,39 @@ def merge_maps(maps: Sequence[LoadedMap], *, timer: Any = None, jobs: int | None
     result = MapResult(**fields, laser_pose_source=maps[0].metadata.laser_pose_source or "", quality=quality,
                        options=options)
     # As last seen: where a later map is sure of a cell it draws it (nothing is trimmed)
-    return _as_last_seen(with_sessions(result, scans), timer, trim=False)
+    return _with_carried(_as_last_seen(with_sessions(result, scans), timer, trim=False), maps)
+
+
+def _with_carried(result: MapResult, maps: Sequence[LoadedMap]) -> MapResult:
+    """A merged map drawn without what each map's cleaning removed (``LoadedMap.transients``; their submaps still
+    hold it): each cell carried by the move of the map's node that first saw it (the one nearest its first hit
+    in time), from the map's frame into the merged one."""
+    assert result.graph is not None
+    if result.image.shape[0] * result.image.shape[1] > EAGER_CELLS:
+        return result  # as cleaning leaves a map too large to hold whole
+    merged = np.asarray(result.graph.global_poses)
+    parts, first, resolution = [], 0, None
+    for loaded in maps:
+        found, n = loaded.transients, loaded.num_nodes
+        if found is not None and len(found) and n:
+            order = np.argsort(loaded.node_times, kind="stable")
+            at = np.clip(np.searchsorted(loaded.node_times[order], found.spans[:, 0]), 0, n - 1)
+            node = order[at]
+            move = transform.compose(merged[first + node], transform.inverse(loaded.node_global_poses[node]))
+            centres = transform.compose(move, np.column_stack([found.centres(), np.zeros(len(found))]))[:, :2]
+            parts.append((centres, found))
+            resolution = resolution or found.resolution
+        first += n
+    if not parts or resolution is None:
+        return result
+    carried = Transients.of_centres(resolution, np.concatenate([c for c, _ in parts]),
+                                    np.concatenate([f.spans for _, f in parts]),
+                                    np.concatenate([f.hits for _, f in parts]),
+                                    np.concatenate([f.after for _, f in parts]))
+    image = result.image
+    drawn = OccupancyImage(cleaned_probability(image.probability, image.origin, image.resolution, carried),
+                           image.resolution, image.origin)
+    return dataclasses.replace(result, image=drawn, transients=carried)
 
 
 def _saved_scans(loaded: LoadedMap, renumber: dict[int, int], first_node: int) -> list[SessionScans]:

@@ -1,6 +1,7 @@
 """`carto merge` end to end through the CLI: two maps made alone from parts of one recording linked and written as
 `carto map A B` writes its map; a map of another building linked to nothing (exit 3); a missing or corrupt map
 (one line, nothing written); a .pbstream among the maps."""
+import dataclasses
 import json
 import math
 
@@ -119,3 +120,33 @@ def test_a_pbstream_merges_too(merge_parts, tmp_path):
     assert report["sessions"][1]["recording"] == "b.pbstream trajectory 0"
     metres, degrees = _relative_error(out, reference)
     assert metres < 0.1 and degrees < 1.0
+
+
+def test_what_a_maps_cleaning_removed_stays_removed_in_the_merge(merge_parts):
+    """A cell part 1's cleaning drew free (here: where one of its first node's returns ended) is carried into the
+    merged frame by that node's move and drawn free there too, though the part's submaps still hold it."""
+    from carto_cli.mapping.cleaning import FREE, Transients
+    from carto_cli.pipeline import merge_maps
+
+    (a, b), _ = merge_parts
+    first, second = load_map(a / "map.carto"), load_map(b / "map.carto")
+    point = np.asarray(second.node_points[0][0], np.float64)
+    where = transform.apply(second.node_global_poses[0], point[None, :])[0]
+    res = second.submaps[0].grid.resolution
+    centre = (np.floor(where / res) + 0.5) * res
+    removed = Transients.of_centres(res, centre[None, :], np.array([[second.node_times[0], second.node_times[0]]]),
+                                    np.array([5]), np.array([20]))
+    result = merge_maps([first, dataclasses.replace(second, transients=removed)], jobs=1)
+    assert result.transients is not None and len(result.transients) == 1
+    # The part's node 0 is node first.num_nodes of the merged graph: the cell moved with it
+    node = result.graph.global_poses[first.num_nodes]
+    local = transform.apply(transform.inverse(second.node_global_poses[0]), centre[None, :])
+    expected = transform.apply(node, local)[0]
+    assert np.linalg.norm(result.transients.centres()[0] - expected) <= res
+    ix, iy = result.transients.cells_on(result.image.origin, result.image.resolution, result.image.shape)[0]
+    assert result.image.probability[iy, ix] <= FREE
+    # Without it, the merged map draws the wall the submaps hold there
+    plain = merge_maps([first, second], jobs=1)
+    assert plain.transients is None
+    at = np.floor((expected - np.asarray(plain.image.origin)) / plain.image.resolution).astype(int)
+    assert np.nanmax(plain.image.probability[at[1] - 1:at[1] + 2, at[0] - 1:at[0] + 2]) > 0.5
