@@ -153,8 +153,9 @@ class LocalSlam:
         """(pose, correlative score or None, least-squares cost) of ``points`` matched in ``grid`` from
         ``prediction``, transient points left out."""
         timer = self.timer
-        with timer.stage("transient"):
-            points = self._static(grid, points, prediction, "transient_matching")
+        if self.options.transient_points.enabled:  # off by default: no stage of its own in the timing tree
+            with timer.stage("transient"):
+                points = self._static(grid, points, prediction, "transient_matching")
         initial = prediction
         score = None
         if self.options.use_online_correlative_scan_matching:
@@ -245,7 +246,7 @@ class LocalSlam:
             similar = self.motion_filter.is_similar(scan.time, pose)
         if similar:
             return out
-        if matching is not None:
+        if matching is not None and self.options.transient_points.enabled:
             with timer.stage("transient"):
                 # Judged again at the matched pose: a person inserted as a wall is matched against by the
                 # scans that follow, and stays in the map.
