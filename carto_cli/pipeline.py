@@ -36,7 +36,7 @@ from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.mapping import alignment
 from carto_cli.mapping.alignment import Align, Squaring
-from carto_cli.mapping.cleaning import Transients, cleaned_probability, find_transients
+from carto_cli.mapping.cleaning import Transients, cleaned_probability, find_transients, flat_points
 from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
 from carto_cli.mapping.lifelong import SessionPolicy, Trimmed, last_seen
 from carto_cli.mapping.merging import merge_states
@@ -211,6 +211,8 @@ class Continued:
     state: PoseGraphState
     recordings: tuple[str, ...]
     sessions: tuple[SessionScans, ...]
+    # What a saved map's cleaning removed, with its nodes' times and poses as saved (carried into the new map)
+    removed: Removed | None = None
 
     @property
     def next_trajectory(self) -> int:
@@ -228,14 +230,36 @@ class Continued:
             nodes = np.flatnonzero(loaded.node_trajectories == t)
             name = recordings[t] if t < len(recordings) else f"trajectory {t}"
             sessions.append(SessionScans(t, name, loaded.node_times[nodes], loaded.node_local_poses[nodes], nodes))
-        return cls(loaded.to_state(), recordings, tuple(sessions))
+        removed = None if loaded.transients is None or not len(loaded.transients) else Removed(
+            loaded.transients, np.asarray(loaded.node_times), np.asarray(loaded.node_global_poses))
+        return cls(loaded.to_state(), recordings, tuple(sessions), removed)
 
     @classmethod
     def of_result(cls, result: MapResult, plan: Plan, trajectory: int) -> Continued:
         """The map just made by ``plan`` (its trajectory ``trajectory``), to be extended in memory."""
         assert result.graph is not None  # Cartographer's
         earlier = plan.continued.sessions if plan.continued is not None else ()
-        return cls(result.graph.to_state(), plan.recordings, earlier + (_own_scans(result, plan, trajectory),))
+        return cls(result.graph.to_state(), plan.recordings, earlier + (_own_scans(result, plan, trajectory),),
+                   plan.continued.removed if plan.continued is not None else None)
+
+
+@dataclass(frozen=True, eq=False)
+class Removed:
+    """What a saved map's cleaning removed (in its frame), and its nodes' times and global poses as saved: enough
+    to carry each cell wherever the node that first saw it has moved since (:meth:`centres_in`)."""
+
+    transients: Transients
+    node_times: np.ndarray
+    node_poses: np.ndarray
+
+    def centres_in(self, moved: np.ndarray) -> np.ndarray:
+        """(n, 2) the cells' centres carried by ``moved`` (the same nodes' global poses now)."""
+        order = np.argsort(self.node_times, kind="stable")
+        at = np.clip(np.searchsorted(self.node_times[order], self.transients.spans[:, 0]), 0, len(order) - 1)
+        node = order[at]
+        move = transform.compose(moved[node], transform.inverse(self.node_poses[node]))
+        centres = self.transients.centres()
+        return transform.compose(move, np.column_stack([centres, np.zeros(len(centres))]))[:, :2]
 
 
 def _finish(submaps: Sequence[Submap]) -> None:
@@ -541,6 +565,7 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
     result: MapResult | None = None
     continued: Continued | None = None
     returns: dict[int, np.ndarray] = {}  # every session's nodes' returns, by node (cleaning's evidence)
+    removed: Removed | None = None  # what --load-state's map had removed
     first = dataclasses.replace(request, later=(), algorithm=request.system)
     for source in (request.source,) + request.later:
         one = first if result is None else dataclasses.replace(
@@ -551,6 +576,7 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
                 on_plan(plan)
             result = execute(plan, timer=timer, on_scan=on_scan)
             returns.update(enumerate(result.node_returns, start=result.first_node))
+            removed = removed or (plan.continued.removed if plan.continued is not None else None)
             if request.later:
                 trajectory = plan.continued.next_trajectory if plan.continued is not None else 0
                 assert result.graph is not None  # Cartographer's
@@ -559,21 +585,24 @@ def map_sessions(request: MapRequest, *, timer: Any = None, on_scan: Callable[[i
     assert result is not None
     if result.sessions and request.sessions != SessionPolicy.FUSE:
         result = _as_last_seen(result, timer, trim=request.sessions == SessionPolicy.LIFELONG)
-    # Trimming renumbered the nodes: what is left of them is judged by the returns the graph keeps
-    return finished(result, request, timer, {} if result.trimmed else returns)
+    # Trimming renumbered the nodes: what is left of them is judged by the returns the graph keeps, and what the
+    # loaded map removed can no longer be carried by its nodes
+    if result.trimmed:
+        return finished(result, request, timer, {})
+    return finished(result, request, timer, returns, removed)
 
 
 def finished(result: MapResult, request: MapRequest, timer: Any = None,
-             returns: dict[int, np.ndarray] | None = None) -> MapResult:
+             returns: dict[int, np.ndarray] | None = None, removed: Removed | None = None) -> MapResult:
     """The last steps of every map, once its poses are final: turned square to its building (``request.align``),
     then cleaned of what left during the recording (``request.clean``), judged by ``returns`` (by node; None: the
-    result's own nodes')."""
+    result's own nodes'), with what a continued map's cleaning had ``removed`` carried over."""
     result = _aligned(result, request, timer)
     if not request.clean:
         return result
     if returns is None:
         returns = dict(enumerate(result.node_returns, start=result.first_node))
-    return cleaned(result, timer, returns)
+    return cleaned(result, timer, returns, removed)
 
 
 def _aligned(result: MapResult, request: MapRequest, timer: Any) -> MapResult:
@@ -598,18 +627,24 @@ def _aligned(result: MapResult, request: MapRequest, timer: Any) -> MapResult:
     return dataclasses.replace(result, alignment=found, stats=stats)
 
 
-def cleaned(result: MapResult, timer: Any = None, returns: dict[int, np.ndarray] | None = None) -> MapResult:
+def cleaned(result: MapResult, timer: Any = None, returns: dict[int, np.ndarray] | None = None,
+            removed: Removed | None = None) -> MapResult:
     """``result`` with its image cleaned of what stood only a while (``mapping.cleaning``), judged by every
     node's returns at its final pose (``returns``, by node; a node without: its loop-closure points, all a
-    saved map keeps). A map too large to hold whole is left as it is (``transients`` None)."""
+    saved map keeps). What a continued map's cleaning had ``removed`` (its nodes first in the graph) stays removed
+    unless a later node's return hit it again. A map too large to hold whole is left as it is (``transients``
+    None)."""
     image, graph = result.image, result.graph
     if graph is None or graph.num_nodes == 0 or image.shape[0] * image.shape[1] > EAGER_CELLS:
         return result
     returns = returns or {}
     points = [returns.get(i, p) for i, p in enumerate(graph.node_points)]
+    poses = np.asarray(graph.global_poses)
     with (timer or NullTimer()).stage("clean"):
-        found = find_transients(image.probability, image.origin, image.resolution, points,
-                                np.asarray(graph.global_poses), np.asarray(graph.node_times), result.laser_pose)
+        found = find_transients(image.probability, image.origin, image.resolution, points, poses,
+                                np.asarray(graph.node_times), result.laser_pose)
+        if removed is not None:
+            found = _with_removed(found, removed, points, poses)
         if len(found):
             image = OccupancyImage(cleaned_probability(image.probability, image.origin, image.resolution, found),
                                    image.resolution, image.origin)
@@ -679,10 +714,40 @@ def merge_maps(maps: Sequence[LoadedMap], *, timer: Any = None, jobs: int | None
     return _with_carried(_as_last_seen(with_sessions(result, scans), timer, trim=False), maps)
 
 
+def _with_removed(found: Transients, removed: Removed, points: Sequence[np.ndarray], poses: np.ndarray
+                  ) -> Transients:
+    """``found`` and what a continued map had ``removed``, carried to where its nodes (the graph's first) are
+    now, but for the cells a later node's return hit: something stands there again."""
+    n = len(removed.node_times)
+    centres = removed.centres_in(poses[:n])
+    res = found.resolution
+    flat, offsets = flat_points(list(points[n:]))
+    at = poses[n:][np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))]
+    c, s = np.cos(at[:, 2]), np.sin(at[:, 2])
+    ends = np.column_stack([c * flat[:, 0] - s * flat[:, 1] + at[:, 0], s * flat[:, 0] + c * flat[:, 1] + at[:, 1]])
+    keep = ~_rows_in(np.floor(centres / res).astype(np.int64), np.floor(ends / res).astype(np.int64))
+    return Transients.of_centres(res, np.concatenate([found.centres(), centres[keep]]),
+                                 np.concatenate([found.spans, removed.transients.spans[keep]]),
+                                 np.concatenate([found.hits, removed.transients.hits[keep]]),
+                                 np.concatenate([found.after, removed.transients.after[keep]]), found.candidates)
+
+
+def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per row of ``a`` (n, 2 int): whether it is a row of ``b``."""
+    if not len(a) or not len(b):
+        return np.zeros(len(a), bool)
+    return np.isin(_cell_key(a), _cell_key(b))
+
+
+def _cell_key(cells: np.ndarray) -> np.ndarray:
+    """One int64 per cell (ix, iy)."""
+    return cells[:, 0].astype(np.int64) * (1 << 32) + (cells[:, 1].astype(np.int64) & 0xFFFFFFFF)
+
+
 def _with_carried(result: MapResult, maps: Sequence[LoadedMap]) -> MapResult:
     """A merged map drawn without what each map's cleaning removed (``LoadedMap.transients``; their submaps still
-    hold it): each cell carried by the move of the map's node that first saw it (the one nearest its first hit
-    in time), from the map's frame into the merged one."""
+    hold it): each cell carried by the move of the map's node that first saw it (:meth:`Removed.centres_in`), from
+    the map's frame into the merged one."""
     assert result.graph is not None
     if result.image.shape[0] * result.image.shape[1] > EAGER_CELLS:
         return result  # as cleaning leaves a map too large to hold whole
@@ -691,12 +756,8 @@ def _with_carried(result: MapResult, maps: Sequence[LoadedMap]) -> MapResult:
     for loaded in maps:
         found, n = loaded.transients, loaded.num_nodes
         if found is not None and len(found) and n:
-            order = np.argsort(loaded.node_times, kind="stable")
-            at = np.clip(np.searchsorted(loaded.node_times[order], found.spans[:, 0]), 0, n - 1)
-            node = order[at]
-            move = transform.compose(merged[first + node], transform.inverse(loaded.node_global_poses[node]))
-            centres = transform.compose(move, np.column_stack([found.centres(), np.zeros(len(found))]))[:, :2]
-            parts.append((centres, found))
+            removed = Removed(found, np.asarray(loaded.node_times), np.asarray(loaded.node_global_poses))
+            parts.append((removed.centres_in(merged[first:first + n]), found))
             resolution = resolution or found.resolution
         first += n
     if not parts or resolution is None:

@@ -12,6 +12,7 @@ from support import write_carmen_log
 from typer.testing import CliRunner
 
 from carto_cli.cli import app
+from carto_cli.core import transform
 from carto_cli.io.map_file import load_map
 from carto_cli.io.map_image import REMOVED_BGR
 from carto_cli.sim import Lidar, loop_building, loop_trajectory, simulate
@@ -92,3 +93,35 @@ def test_render_draws_the_cleaned_map_unless_asked_to_keep_what_left(tmp_path, c
     assert occupied_kept.sum() >= 10 and occupied_again.sum() <= 0.2 * occupied_kept.sum()
     png = cv2.imread(str(kept / "map.png"))
     assert np.any(np.all(png == np.array(REMOVED_BGR, np.uint8), axis=-1))
+
+
+def test_what_a_continued_map_removed_stays_removed_unless_hit_again(cart_log):
+    """``--load-state``'s map carries what its cleaning removed (pipeline.Removed): each cell moved with the node
+    that first saw it, kept removed unless a later node's return ended in it."""
+    from carto_cli.mapping.alignment import Align
+    from carto_cli.mapping.cleaning import Transients
+    from carto_cli.pipeline import Auto, MapRequest, Removed, cleaned, map_sessions
+
+    log, _ = cart_log
+    raw = map_sessions(MapRequest(log, Auto(), clean=False, align=Align.NONE))
+    graph = raw.graph
+    returns = dict(enumerate(raw.node_returns, start=raw.first_node))
+    n = graph.num_nodes // 4  # as if the first quarter were a saved map, the rest a later session
+    poses, times = np.asarray(graph.global_poses), np.asarray(graph.node_times)
+    res = raw.image.resolution
+    # A cell in the open, halfway along one of the first node's rays (no later return ends there), and a wall cell
+    # the last node's return ended in
+    seen_once = transform.apply(poses[0], raw.node_returns[0][:1] * 0.005)[0]
+    seen_again = transform.apply(poses[-1], raw.node_returns[-1][:1] * 0.01)[0]
+    cells = np.floor(np.array([seen_once, seen_again]) / res)
+    saved = Transients.of_centres(res, (cells + 0.5) * res, np.full((2, 2), times[0]), np.array([5, 5]),
+                                  np.array([20, 20]))
+    # Saved poses a little off where the graph has them now: the cells move with them
+    shift = np.array([0.2, -0.1, 0.0])
+    removed = Removed(saved, times[:n], transform.compose(poses[:n], shift))
+    result = cleaned(raw, None, returns, removed)
+    centres = result.transients.centres()
+    moved = transform.compose(poses[0], transform.compose(transform.inverse(transform.compose(poses[0], shift)),
+                                                          np.array([*((cells[0] + 0.5) * res), 0.0])))[:2]
+    assert np.min(np.hypot(*(centres - moved).T)) <= res  # carried by node 0's move
+    assert np.min(np.hypot(*(centres - (cells[1] + 0.5) * res).T)) > 2 * res  # hit again later: not carried
