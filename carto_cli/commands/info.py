@@ -30,6 +30,8 @@ class ScanStats:
     nan: int = 0
     inf: int = 0
     out_of_limits: int = 0
+    # Where each frame's laser sits on the robot, as `carto map` would place it: x, y (m), yaw (deg) and from what
+    mounts: list[dict] = field(default_factory=list)
 
 
 @dataclass
@@ -208,6 +210,8 @@ def run_info(path: str | Path, read: ReadOptions | None = None, *,
         info = inspect_recording(rec, on_record=on_record)
         info.auto = auto
         info.auto_unavailable = why_not
+        _place_lasers(rec, info, selection.tf_odometry.fixed if selection is not None and selection.tf_odometry
+                      else ())
         if selection is not None:
             info.odometry_source = selection.describe_odometry()
             tf = selection.tf_odometry
@@ -216,6 +220,21 @@ def run_info(path: str | Path, read: ReadOptions | None = None, *,
                 info.tf_transforms = [{"parent": tf.odom_frame, "child": tf.base_frame, "moving": True}] + [
                     {**_transform_dict(t), "moving": False} for t in tf.fixed]
         return info
+
+
+def _place_lasers(recording: Recording, info: RecordingInfo, fixed_tf) -> None:
+    """Every scan topic's lasers placed as `carto map` places its one (``pipeline.resolve_laser_pose``: static TF,
+    else transforms on /tf that never move, else the robot's origin), so that a recording with several lasers
+    shows each one's mount."""
+    from carto_cli.pipeline import resolve_laser_pose
+
+    for report in info.topics:
+        if report.scan is None:
+            continue
+        for frame in report.scan.frames:
+            pose, source = resolve_laser_pose(recording, frame, None, fixed_tf)
+            report.scan.mounts.append({"frame": frame, "x": float(pose[0]), "y": float(pose[1]),
+                                       "yaw_deg": math.degrees(float(pose[2])), "source": source})
 
 
 def _auto(recording: Recording):
@@ -269,6 +288,8 @@ def format_info(info: RecordingInfo) -> str:
                 f"{math.degrees(s.angle_max):.1f}°, ranges {s.range_min:g}-{s.range_max:g} m, "
                 f"frame {', '.join(s.frames)}"
             )
+            lines.extend(f"  {'':<{width}}  mount {m['frame']}: x {m['x']:.3f} m, y {m['y']:.3f} m, yaw "
+                         f"{m['yaw_deg']:.1f}°: {m['source']}" for m in s.mounts)
     lines.append("")
     lines.append(f"odometry   {'yes' if info.has_odometry else 'no'}"
                  + (f" ({info.odometry_source})" if info.odometry_source and info.has_odometry else ""))

@@ -96,3 +96,37 @@ def test_info_says_why_auto_cannot_choose(tmp_path):
     assert info.auto_unavailable == ("several odometry topics, choose one with --odom-topic: /odom (25 msgs), "
                                      "/odometry/filtered (25 msgs)")
     assert f"auto       none: {info.auto_unavailable}" in format_info(info).splitlines()
+
+
+def test_info_shows_every_lasers_mount(tmp_path):
+    """Two lasers on two topics (front and back, each with its static TF): info places each as `carto map` would
+    place it, and says that mapping needs one chosen."""
+    from dataclasses import replace
+
+    from support import synthetic_records
+
+    from carto_cli.core.records import yaw_quaternion
+    from carto_cli.io.recording_writers import write_recording
+
+    records = synthetic_records(n_scans=5)
+    records += [replace(r, topic="/scan_back", frame="laser_back", time=r.time + 0.05) for r in records
+                if isinstance(r, Scan)]
+    records = [replace(r, topic="/scan_front", frame="laser_front") if isinstance(r, Scan) and r.topic == "/scan"
+               else r for r in records]
+    records.sort(key=lambda r: r.time)
+    mounts = [Transform("base_link", "laser_front", (0.3, 0.05, 0.2), yaw_quaternion(0.0)),
+              Transform("base_link", "laser_back", (-0.3, -0.05, 0.2), yaw_quaternion(math.pi))]
+    path = tmp_path / "two_lasers.mcap"
+    write_recording(iter(records), path, "mcap", static_transforms=mounts,
+                    topics={"/scan_front": "sensor_msgs/msg/LaserScan", "/scan_back": "sensor_msgs/msg/LaserScan",
+                            "/odom": "nav_msgs/msg/Odometry", "/imu": "sensor_msgs/msg/Imu"})
+    info = run_info(path)
+    placed = {t.name: t.scan.mounts for t in info.topics if t.scan is not None}
+    (front,), (back,) = placed["/scan_front"], placed["/scan_back"]
+    assert (front["frame"], front["x"], front["y"], front["yaw_deg"]) == ("laser_front", 0.3, 0.05, 0.0)
+    assert back["frame"] == "laser_back" and (back["x"], back["y"]) == (-0.3, -0.05)
+    assert abs(abs(back["yaw_deg"]) - 180.0) < 1e-6
+    assert front["source"] == "static TF base_link -> laser_front"
+    text = format_info(info)
+    assert "mount laser_back: x -0.300 m, y -0.050 m, yaw" in text
+    assert info.auto is None and "several scan topics" in info.auto_unavailable
