@@ -91,6 +91,24 @@ def _known_corners(grid: ProbabilityGrid) -> np.ndarray | None:
     return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
 
 
+def _known_outline(grid: ProbabilityGrid) -> np.ndarray | None:
+    """The corners of every row's first and last known cell: placed at any rotation, their bounding box is that of
+    the known cells (the box's four corners turned would enclose the empty corners of a turned submap too)."""
+    b = grid.known_bounds
+    if b is None:
+        return None
+    known = grid.cells[b[1]:b[3] + 1, b[0]:b[2] + 1] != 0
+    rows = np.flatnonzero(known.any(axis=1))
+    first = np.argmax(known[rows], axis=1)
+    last = known.shape[1] - np.argmax(known[rows, ::-1], axis=1)  # one past the last known cell
+    res = grid.resolution
+    x0 = grid.origin[0] + (b[0] + first) * res
+    x1 = grid.origin[0] + (b[0] + last) * res
+    y0 = grid.origin[1] + (b[1] + rows) * res
+    y1 = y0 + res
+    return np.concatenate([np.column_stack([x, y]) for x in (x0, x1) for y in (y0, y1)])
+
+
 def known_box(grid: ProbabilityGrid, correction: np.ndarray) -> np.ndarray | None:
     """The bounding box (xmin, ymin, xmax, ymax) of ``grid``'s known cells placed at ``correction``; None when it
     knows none."""
@@ -125,10 +143,12 @@ class AssembledImage:
         self._sure = float(sure)
         ranks = list(layers) if layers is not None else [0] * len(grids)
         for grid, corr, rank in zip(grids, corrections, ranks):
-            corners = _known_corners(grid)
-            if corners is not None:
+            outline = _known_outline(grid)
+            if outline is not None:
                 corr = transform.as_pose(corr)
-                self._parts.append((grid, corr, transform.apply(corr, corners), int(rank)))
+                placed = transform.apply(corr, outline)
+                box = np.array([placed.min(axis=0), placed.max(axis=0)])  # what the part covers, turned or not
+                self._parts.append((grid, corr, box, int(rank)))
         self.resolution = float(resolution or (grids[0].resolution if len(grids) else 0.05))
         self._probability: np.ndarray | None = None
         if not self._parts:

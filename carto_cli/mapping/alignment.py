@@ -68,6 +68,7 @@ MAX_MOVES = 4
 MIN_CONTRAST = 0.15
 DEAD_BAND = math.radians(0.5)
 SURE_WALL = 0.25  # occupied evidence (0 to 1) a cell needs to take part: grazed cells only blur the profiles
+MARGIN_CELLS = 10  # unknown cells kept around a turned image's known ones, as an assembled map keeps
 
 
 @dataclass(frozen=True)
@@ -246,7 +247,15 @@ def _resampled(image: OccupancyImage, rotation: float) -> OccupancyImage:
         inside = (ix >= 0) & (iy >= 0) & (ix < w) & (iy < h)
         strip = out[y0:y0 + len(ys)]
         strip[inside] = image.probability[iy[inside], ix[inside]]
-    return OccupancyImage(out, res, (float(lo[0]), float(lo[1])))
+    # The turned rectangle's corners are unknown: cut back to the known cells and the margin an assembled map keeps
+    known = ~np.isnan(out)
+    rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+    if not len(rows):
+        return OccupancyImage(out, res, (float(lo[0]), float(lo[1])))
+    y0, y1 = max(int(rows[0]) - MARGIN_CELLS, 0), min(int(rows[-1]) + MARGIN_CELLS + 1, ny)
+    x0, x1 = max(int(cols[0]) - MARGIN_CELLS, 0), min(int(cols[-1]) + MARGIN_CELLS + 1, nx)
+    return OccupancyImage(np.ascontiguousarray(out[y0:y1, x0:x1]), res,
+                          (float(lo[0] + x0 * res), float(lo[1] + y0 * res)))
 
 
 def turn_graph(graph: PoseGraph, rotation: float) -> None:
