@@ -7,7 +7,7 @@
   (gone before the second time round), and a door opened halfway (``sim.movers.crowd``): the loop building (seeds
   0-2, 5 / 15 / 30 walkers) and the glass office (walls one line thick, glass fronts the laser partly sees through;
   seeds 0-1, 15 / 30 walkers). Each mapped as `carto map` does but uncleaned (``MapRequest(clean=False)``), then
-  cleaned (``pipeline.cleaned``) and scored against the simulator's truth (``evaluation.cleaning.score_cleaning``):
+  cleaned (``pipeline.finished``) and scored against the simulator's truth (``evaluation.cleaning.score_cleaning``):
   of the cells the movers left in today's map, how many cleaning removed; of the walls' cells, how many it kept.
   Beside it the same recording without the movers (same seed, so the same noise): the trajectory's relation error
   (``bench/harness.py`` relations from the truth) and ATE with and without them.
@@ -21,6 +21,7 @@ CPU is measured around it alone.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -39,7 +40,7 @@ from carto_cli.evaluation.cleaning import score_cleaning
 from carto_cli.evaluation.metrics import align_se2, ate, read_relations, relation_error
 from carto_cli.io.trajectory import Trajectory
 from carto_cli.mapping.alignment import Align
-from carto_cli.pipeline import Auto, MapRequest, cleaned, map_sessions
+from carto_cli.pipeline import Auto, MapRequest, finished, map_sessions
 from carto_cli.sim import glass_office, loop_building, loop_trajectory, simulate
 from carto_cli.sim.movers import crowd
 
@@ -69,10 +70,10 @@ def scene(name: str, seed: int, walkers: int, movers: bool = True):
     return world, simulate(world, trajectory, seed=seed, movers=tuple(people)), people
 
 
-def _clean(result):
-    """``result`` cleaned as map_sessions would, and the CPU it took."""
+def _clean(result, request: MapRequest):
+    """``result`` (of ``request``, uncleaned) cleaned as `carto map` cleans, and the CPU it took."""
     cpu = _cpu()
-    out = cleaned(result, None, dict(enumerate(result.node_returns, start=result.first_node)))
+    out = finished(result, dataclasses.replace(request, clean=True))
     return out, _cpu() - cpu
 
 
@@ -91,9 +92,10 @@ def crowds() -> list[dict]:
         truth = sim.ground_truth
         relations, _ = relations_from_groundtruth(Trajectory.from_poses(truth[:, 0], truth[:, 1:]))
         cpu = _cpu()
-        raw = map_sessions(MapRequest(sim.recording(), Auto(), clean=False, align=Align.NONE))
+        request = MapRequest(sim.recording(), Auto(), clean=False, align=Align.NONE)
+        raw = map_sessions(request)
         map_cpu = _cpu() - cpu
-        clean, clean_cpu = _clean(raw)
+        clean, clean_cpu = _clean(raw, request)
         alignment = np.array(align_se2(raw.poses[:, :2], truth[:, 1:3]))
         score = score_cleaning(raw.image, clean.image, world, people, sim.scan_times - sim.start_time, alignment)
         _, bare, _ = scene(name, seed, walkers, movers=False)
@@ -121,10 +123,11 @@ def static(cases: list[Path]) -> list[dict]:
     rows = []
     for case in cases:
         cpu, wall = _cpu(), time.perf_counter()
-        raw = map_sessions(MapRequest(case / "scans.clf.gz", Auto(), clean=False, align=Align.NONE))
+        request = MapRequest(case / "scans.clf.gz", Auto(), clean=False, align=Align.NONE)
+        raw = map_sessions(request)
         map_cpu = _cpu() - cpu
         prob = np.asarray(raw.image.probability)
-        clean, clean_cpu = _clean(raw)
+        clean, clean_cpu = _clean(raw, request)
         found = clean.transients
         removed = np.zeros(prob.shape, bool)
         if found is not None and len(found):

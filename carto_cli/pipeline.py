@@ -27,7 +27,7 @@ from carto_cli.core.memory import peak_rss_mb
 from carto_cli.core.records import Imu, Odometry, Scan, Transform
 from carto_cli.core.timing import NullTimer
 from carto_cli.gmapping import ALGORITHMS, GMAPPING_PIPELINE, Algorithm
-from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage, OccupancyImage
+from carto_cli.grid.occupancy_image import EAGER_CELLS, AssembledImage
 from carto_cli.io.content import ContentCheck
 from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
@@ -36,7 +36,7 @@ from carto_cli.io.tf_tree import laser_pose_from_tf
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.mapping import alignment
 from carto_cli.mapping.alignment import Align, Squaring
-from carto_cli.mapping.cleaning import Transients, cleaned_probability, find_transients, flat_points
+from carto_cli.mapping.cleaning import Transients, cleaned_image, find_transients, flat_points
 from carto_cli.mapping.closure_confirmation import CONFIRM_MAX_ROTATION
 from carto_cli.mapping.lifelong import SessionPolicy, Trimmed, last_seen
 from carto_cli.mapping.merging import merge_states
@@ -646,8 +646,7 @@ def cleaned(result: MapResult, timer: Any = None, returns: dict[int, np.ndarray]
         if removed is not None:
             found = _with_removed(found, removed, points, poses)
         if len(found):
-            image = OccupancyImage(cleaned_probability(image.probability, image.origin, image.resolution, found),
-                                   image.resolution, image.origin)
+            image = cleaned_image(image, found)
     return dataclasses.replace(result, image=image, transients=found)
 
 
@@ -766,10 +765,7 @@ def _with_carried(result: MapResult, maps: Sequence[LoadedMap]) -> MapResult:
                                     np.concatenate([f.spans for _, f in parts]),
                                     np.concatenate([f.hits for _, f in parts]),
                                     np.concatenate([f.after for _, f in parts]))
-    image = result.image
-    drawn = OccupancyImage(cleaned_probability(image.probability, image.origin, image.resolution, carried),
-                           image.resolution, image.origin)
-    return dataclasses.replace(result, image=drawn, transients=carried)
+    return dataclasses.replace(result, image=cleaned_image(result.image, carried), transients=carried)
 
 
 def _saved_scans(loaded: LoadedMap, renumber: dict[int, int], first_node: int) -> list[SessionScans]:

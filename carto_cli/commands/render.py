@@ -15,7 +15,7 @@ from carto_cli.io.loaded_map import LoadedMap
 from carto_cli.io.map_file import load_map
 from carto_cli.io.map_image import render_png, write_map, write_png
 from carto_cli.io.pbstream import save_pbstream
-from carto_cli.mapping.cleaning import cleaned_probability
+from carto_cli.mapping.cleaning import cleaned_image
 
 __all__ = ["RENDER_OUTPUTS", "Rendered", "map_image_of", "run_render"]
 
@@ -66,8 +66,7 @@ def run_render(map_file: Path, outdir: Path, *, resolution: float | None = None,
         raise CartoError("the map has no known cell to render", map_file)
     removed = loaded.transients
     if removed is not None and len(removed) and not keep_transient:
-        image = OccupancyImage(cleaned_probability(image.probability, image.origin, image.resolution, removed),
-                               image.resolution, image.origin)
+        image = cleaned_image(image, removed)
     trajectory = None if loaded.trajectory is None else loaded.trajectory.poses
     if trajectory is None and loaded.num_nodes:
         trajectory = np.asarray(loaded.node_global_poses)

@@ -34,9 +34,11 @@ from numba import njit
 from scipy import ndimage
 
 from carto_cli.core.kernels import register_warm_up
+from carto_cli.grid.occupancy_image import AssembledImage, OccupancyImage
 
 __all__ = ["AFTER_RATIO", "GRAZING", "MARGIN", "MIN_AFTER", "PASS_RADIUS", "POROUS", "Evidence", "Transients",
-           "cleaned_probability", "compact_returns", "find_transients", "flat_points", "gather_evidence"]
+           "cleaned_image", "cleaned_probability", "compact_returns", "find_transients", "flat_points",
+           "gather_evidence"]
 
 PASS_RADIUS = 0.015  # m: a ray passes through what a cell held if it comes this near where its returns ended
 MARGIN = 0.25  # m: a ray crosses a cell only if it ends at least this far beyond it
@@ -322,6 +324,12 @@ def _departures_of(hits: np.ndarray, passes: np.ndarray) -> tuple[np.ndarray, np
     k = np.argmax(np.where(left, h_before[:, 1:], -1), axis=1) + 1
     rows = np.arange(len(k))
     return gone, k.astype(np.int64), h_before[rows, k].astype(np.int64), p_after[rows, k].astype(np.int64)
+
+
+def cleaned_image(image: OccupancyImage | AssembledImage, transients: Transients) -> OccupancyImage:
+    """``image`` (held whole) with the transient cells drawn free."""
+    return OccupancyImage(cleaned_probability(image.probability, image.origin, image.resolution, transients),
+                          image.resolution, image.origin)
 
 
 def cleaned_probability(probability: np.ndarray, origin: tuple[float, float], resolution: float,
