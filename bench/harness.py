@@ -407,7 +407,7 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
     from carto_cli.io.sources.open import open_recording
     from carto_cli.io.trajectory import Trajectory, read_trajectory, write_trajectory
     from carto_cli.options import load_options
-    from carto_cli.pipeline import Auto, MapRequest, execute, planned, read_options
+    from carto_cli.pipeline import Auto, MapRequest, execute, finished, planned, read_options
 
     import_s = time.perf_counter() - t_import
     import carto_cli
@@ -429,11 +429,12 @@ def run_case(case: Case, quick: bool, profile: str | None, overrides: list[str],
 
     # Read as `carto map` reads (io.read_ahead): decoded beside mapping, the survey's look replayed.
     t_survey = time.perf_counter()
-    with recording as rec, planned(MapRequest(rec, spec, algorithm, max_scans=max_scans)) as plan:
+    with recording as rec, planned(request := MapRequest(rec, spec, algorithm, max_scans=max_scans)) as plan:
         info["survey_s"] = time.perf_counter() - t_survey  # with loading the kernels
         selection = plan.selection
         timer = StageTimer()
-        result = execute(plan, timer=timer, on_scan=_progress(case, plan.scan_count))
+        # The map's last steps too (turned square, cleaned), as `carto map` pays for them
+        result = finished(execute(plan, timer=timer, on_scan=_progress(case, plan.scan_count)), request, timer)
         algorithm = result.configured.algorithm
         if result.auto is not None and result.regime is not None:
             info["auto"] = {"regime": result.regime.to_dict(), "describe": result.regime.describe(),
