@@ -20,6 +20,9 @@ class Scan:
     ``angle_increment`` is ``None`` and the angles are whatever the points give.
     Invalid returns are kept as they were recorded (NaN, Inf, out of limits):
     filtering them is local SLAM's job, counting them is ``carto info``'s.
+
+    When each beam was measured is ``time`` plus ``beam_times()``: ``point_times`` when the source gives a time
+    per point (a 3D lidar's per-point field, scans of several lasers merged), else ``i * time_increment``.
     """
 
     time: float
@@ -35,6 +38,18 @@ class Scan:
     scan_time: float = 0.0
     intensities: np.ndarray | None = None  # float32 (n,) or None
     source_type: str = "sensor_msgs/msg/LaserScan"
+    point_times: np.ndarray | None = None  # float64 (n,) seconds after ``time``, or None
+
+    @property
+    def timed(self) -> bool:
+        """Whether the beams were measured over a time (a sweep to de-skew), not all at ``time``."""
+        return self.point_times is not None or bool(self.time_increment)
+
+    def beam_times(self) -> np.ndarray:
+        """float64 (n,) seconds after ``time`` each beam was measured."""
+        if self.point_times is not None:
+            return np.asarray(self.point_times, dtype=np.float64)
+        return np.arange(self.num_beams, dtype=np.float64) * float(self.time_increment)
 
     @property
     def num_beams(self) -> int:

@@ -77,12 +77,13 @@ class PoseExtrapolator:
         dt = time - t0
         return np.array([last[0] + dt * vx, last[1] + dt * vy, wrap_angle_scalar(theta)])
 
-    def body_motion(self, time: float, duration: float = 0.0) -> tuple[float, float, float]:
+    def body_motion(self, time: float, duration: float = 0.0, start: float = 0.0) -> tuple[float, float, float]:
         """(vx, vy, yaw rate) of the tracking frame at ``time``, velocity in its own frame.
 
         The motion ``extrapolate`` assumes: its linear velocity seen from the
         predicted heading at ``time``, and the yaw rate averaged over
-        [time, time + duration] (what de-skewing a sweep of that duration needs).
+        [time + start, time + start + duration] (what de-skewing a sweep of that
+        duration needs; ``start`` < 0 for beams measured before ``time``).
         Zero before any pose.
         """
         if not self._poses:
@@ -96,7 +97,7 @@ class PoseExtrapolator:
         c, s = math.cos(theta), math.sin(theta)
         if duration == 0.0:
             duration = 1e-3
-        w = self._yaw_delta(time, time + duration) / duration
+        w = self._yaw_delta(time + start, time + start + duration) / duration
         return c * vx + s * vy, -s * vx + c * vy, w
 
     # --- internals ------------------------------------------------------------------------

@@ -3,9 +3,10 @@
 One ``LocalSlam`` per trajectory. Scans arrive in the sensor frame together with the
 laser's mount on the robot; everything downstream works in the tracking frame
 (the robot body), which is what the extrapolator, odometry and the trajectory
-files describe. A scan with a ``time_increment`` is de-skewed while cropped: each
-beam placed with the motion the extrapolator predicts over the sweep, all points
-expressed at the scan's own time (Cartographer does the same point by point).
+files describe. A scan whose beams have times (``time_increment``, a per-point
+time, several lasers merged) is de-skewed while cropped: each beam placed with the
+motion the extrapolator predicts over the sweep, all points expressed at the
+scan's own time (Cartographer does the same point by point).
 
 What the stock (Cartographer) weights mean for tuning, measured on simulated and
 bench-dense data: the least-squares matcher's priors (translation_weight 10,
@@ -199,8 +200,11 @@ class LocalSlam:
                 # Straight into the tracking frame; a sweeping scanner's beams are de-skewed with
                 # the motion the extrapolator predicts (Cartographer does the same per point).
                 motion = None
-                if scan.time_increment and self.extrapolator.last_pose_time is not None:
-                    motion = self.extrapolator.body_motion(scan.time, scan.time_increment * max(scan.num_beams - 1, 0))
+                if scan.timed and self.extrapolator.last_pose_time is not None:
+                    times = scan.beam_times()
+                    start = float(times.min()) if len(times) else 0.0
+                    span = float(times.max()) - start if len(times) else 0.0
+                    motion = self.extrapolator.body_motion(scan.time, span, start=start)
                 data = crop_scan(scan, mount=self.laser_pose, motion=motion, min_range=o.min_range,
                                  max_range=o.max_range, missing_data_ray_length=o.missing_data_ray_length)
             if o.num_accumulated_range_data > 1:

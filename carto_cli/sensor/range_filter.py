@@ -119,13 +119,13 @@ def _crop_points(points, ox, oy, min_range, max_range, missing_data_ray_length):
 
 @njit(cache=True, nogil=True)
 def _crop_polar_moving(ranges, angles, min_range, max_range, missing_data_ray_length, mx, my, mth,
-                       time_increment, ux, uy, w):
+                       times, ux, uy, w):
     """``_crop_polar`` with the sensor mounted at (mx, my, mth) on a body moving at (ux, uy, w).
 
-    Beam i is measured ``i * time_increment`` after the reference time; the body has
-    then moved by (ux, uy) · dt and turned by w · dt (its own frame at the
-    reference time, constant velocity as the extrapolator predicts). Returns and
-    misses come out in the body frame at the reference time.
+    Beam i is measured ``times[i]`` after the reference time (before it when negative); the body
+    has then moved by (ux, uy) · dt and turned by w · dt (its own frame at the reference time,
+    constant velocity as the extrapolator predicts). Returns and misses come out in the body
+    frame at the reference time.
     """
     n = ranges.shape[0]
     returns = np.empty((n, 2))
@@ -136,7 +136,7 @@ def _crop_polar_moving(ranges, angles, min_range, max_range, missing_data_ray_le
         r = ranges[i]
         if not (r >= min_range) or r <= 0.0:
             continue
-        dt = i * time_increment
+        dt = times[i]
         turn = w * dt
         ct = np.cos(turn)
         st = np.sin(turn)
@@ -156,13 +156,14 @@ def _crop_polar_moving(ranges, angles, min_range, max_range, missing_data_ray_le
 
 def crop_polar(ranges: ArrayLike, angles: ArrayLike, *, min_range: float = 0.0, max_range: float = 30.0,
                missing_data_ray_length: float = 5.0, mount: Pose | None = None, time_increment: float = 0.0,
-               motion: Pose = (0.0, 0.0, 0.0)) -> RangeData:
+               motion: Pose = (0.0, 0.0, 0.0), times: ArrayLike | None = None) -> RangeData:
     """Range data from beam ranges and bearings.
 
     Without ``mount``, in the sensor frame (origin at 0). With ``mount`` (the
     sensor's pose on the body), in the body frame, origin at the sensor; and
     with a ``motion`` (vx, vy, yaw rate of the body in its own frame) and the
-    scanner's ``time_increment`` per beam, de-skewed to the time of beam 0.
+    beams' times (``times``, seconds after the reference time, else the
+    scanner's ``time_increment`` per beam), de-skewed to the reference time.
     """
     r = np.ascontiguousarray(ranges, dtype=np.float64)
     a = np.ascontiguousarray(angles, dtype=np.float64)
@@ -171,8 +172,14 @@ def crop_polar(ranges: ArrayLike, angles: ArrayLike, *, min_range: float = 0.0, 
         return RangeData(np.zeros(2), returns, misses)
     mx, my, mth = (float(v) for v in mount)
     ux, uy, w = (float(v) for v in motion)
+    if times is None:
+        dt = np.arange(r.shape[0], dtype=np.float64) * float(time_increment)
+    else:
+        dt = np.ascontiguousarray(times, dtype=np.float64)
+        if dt.shape != r.shape:
+            raise ValueError(f"{dt.shape[0]} beam times for {r.shape[0]} beams")
     returns, misses = _crop_polar_moving(r, a, float(min_range), float(max_range), float(missing_data_ray_length),
-                                         mx, my, mth, float(time_increment), ux, uy, w)
+                                         mx, my, mth, dt, ux, uy, w)
     return RangeData(np.array([mx, my]), returns, misses)
 
 
@@ -183,22 +190,20 @@ def crop_scan(scan: Scan, *, mount: Pose | None = None, motion: Pose | None = No
     +inf: a miss beyond ``max_range``), one below its ``range_min`` is dropped. A driver that reports "no
     return" as a value past its maximum would otherwise put phantom walls there, out to ``max_range``.
 
-    With a ``motion``, beams are de-skewed using the scan's ``time_increment``
-    (a scan without one, such as a CARMEN log or a point cloud slice, is taken
-    as instantaneous).
+    With a ``motion``, beams are de-skewed by the times they were measured (``Scan.beam_times``: a per-point time,
+    else the scan's ``time_increment``); a scan with neither, such as a CARMEN log, is taken as instantaneous.
     """
-    ranges = _within_sensor_limits(scan.ranges, float(scan.range_min), float(scan.range_max))
+    ranges = within_sensor_limits(scan.ranges, float(scan.range_min), float(scan.range_max))
     if mount is None:
         if motion is not None:
             raise ValueError("de-skewing (motion) needs the sensor's mount on the body")
         return crop_polar(ranges, scan.angles, **kwargs)
-    if motion is None or not scan.time_increment:
+    if motion is None or not scan.timed:
         return crop_polar(ranges, scan.angles, mount=mount, **kwargs)
-    return crop_polar(ranges, scan.angles, mount=mount, time_increment=scan.time_increment, motion=motion,
-                      **kwargs)
+    return crop_polar(ranges, scan.angles, mount=mount, times=scan.beam_times(), motion=motion, **kwargs)
 
 
-def _within_sensor_limits(ranges: ArrayLike, range_min: float, range_max: float) -> np.ndarray:
+def within_sensor_limits(ranges: ArrayLike, range_min: float, range_max: float) -> np.ndarray:
     """``ranges`` with readings above ``range_max`` set to +inf and those below ``range_min`` to NaN (a copy only
     when one is out of its limits; non-finite or non-positive limits are no limits)."""
     r = np.asarray(ranges)

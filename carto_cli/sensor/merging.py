@@ -1,0 +1,130 @@
+"""Several 2D lasers on one robot as one scan, seen from the tracking frame.
+
+Cartographer takes several range sensors natively: its collator waits until every sensor has sent data, then hands
+local SLAM their points together, each with its own time and placed by its own sensor's mount. ``ScanMerger`` does
+the same ahead of every mapping system, so that nothing downstream needs to know there were several lasers: each
+laser's scan is placed by its mount, and the scans of one window (it closes when every laser has sent one) become
+one :class:`Scan` in the tracking frame. Its bearings and ranges are seen from the tracking frame's origin, and
+every beam keeps the time it was measured (``Scan.point_times``), so local SLAM de-skews the whole window by the
+motion its extrapolator predicts, as it does one laser's sweep.
+
+Rays are then cast from the tracking frame's origin, as Cartographer's 2D inserter casts them from the tracking
+frame's position; a laser a few decimetres off it clears nearly the same cells. Each laser's own limits
+(``range_min``, ``range_max``, REP 117) are applied in its own frame first: a reading past its ``range_max`` stays
+a miss along its own beam.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from carto_cli.core.records import Record, Scan
+from carto_cli.sensor.range_filter import within_sensor_limits
+
+__all__ = ["STALL", "Laser", "ScanMerger", "merge", "merged_records"]
+
+# Scans one laser may send into a window with none from another before the window closes without it: a laser
+# that stopped (a cable, a driver restart) must not stop mapping with it.
+STALL = 3
+# How far along its own beam a laser's miss (no echo) is placed before its bearing from the tracking frame is
+# taken: far enough that a mount's offset turns the bearing by well under a beam (0.3 m at 1 km: 0.02 degrees).
+_MISS_DISTANCE = 1000.0
+
+
+@dataclass(frozen=True)
+class Laser:
+    """One laser of several: its scans' topic and frame, where it sits on the robot (x, y, yaw in the tracking
+    frame) and where that came from, in words."""
+
+    topic: str
+    frame: str
+    mount: tuple[float, float, float]
+    source: str = ""
+
+    def describe(self) -> str:
+        x, y, yaw = self.mount
+        return f"{self.topic} at ({x:.3f}, {y:.3f}, {math.degrees(yaw):.1f} deg) from {self.source or 'the caller'}"
+
+
+def merge(parts: Sequence[Scan], mounts: Sequence[tuple[float, float, float]], frame: str, topic: str) -> Scan:
+    """``parts`` (scans in time order, ``mounts[i]`` placing ``parts[i]``) as one scan in the tracking frame
+    ``frame``, at the newest part's time, every beam with its own time."""
+    if len(parts) != len(mounts) or not parts:
+        raise ValueError(f"{len(parts)} scans but {len(mounts)} mounts")
+    reference = max(p.time for p in parts)
+    ranges, angles, times, intensities = [], [], [], []
+    for part, (mx, my, myaw) in zip(parts, mounts):
+        r = np.asarray(within_sensor_limits(part.ranges, float(part.range_min), float(part.range_max)),
+                       dtype=np.float64)
+        bearing = np.asarray(part.angles, dtype=np.float64) + myaw
+        hit = np.isfinite(r) & (r > 0.0)
+        miss = np.isposinf(r)
+        keep = hit | miss
+        reach = np.where(hit, r, _MISS_DISTANCE)[keep]
+        x = mx + reach * np.cos(bearing[keep])
+        y = my + reach * np.sin(bearing[keep])
+        ranges.append(np.where(hit[keep], np.hypot(x, y), np.inf))
+        angles.append(np.arctan2(y, x))
+        times.append((part.time - reference) + part.beam_times()[keep])
+        if part.intensities is not None:
+            intensities.append(np.asarray(part.intensities, dtype=np.float32)[keep])
+    angle = np.concatenate(angles).astype(np.float32)
+    return Scan(time=reference, ranges=np.concatenate(ranges).astype(np.float32), angles=angle, frame=frame,
+                topic=topic, range_min=0.0, range_max=math.inf,
+                angle_min=float(angle.min()) if angle.shape[0] else 0.0, angle_increment=None,
+                intensities=np.concatenate(intensities) if len(intensities) == len(parts) else None,
+                point_times=np.concatenate(times))
+
+
+class ScanMerger:
+    """Scans of ``lasers`` in, one scan a window out (:func:`merge`): the window closes when every laser has sent a
+    scan into it, or when one has sent :data:`STALL` while another sent none."""
+
+    def __init__(self, lasers: Sequence[Laser], frame: str = "base_link") -> None:
+        if len(lasers) < 2:
+            raise ValueError("merging needs two lasers or more")
+        self.lasers = {laser.topic: laser for laser in lasers}
+        if len(self.lasers) != len(lasers):
+            raise ValueError("every laser needs a topic of its own")
+        self.frame = frame
+        self.topic = "+".join(laser.topic for laser in lasers)
+        self._window: list[Scan] = []
+        self._counts = dict.fromkeys(self.lasers, 0)
+
+    def add(self, scan: Scan) -> Scan | None:
+        """The merged scan ``scan`` closed a window with, else None."""
+        if scan.topic not in self.lasers:
+            raise ValueError(f"a scan on {scan.topic or 'no topic'}, not one of {', '.join(self.lasers)}")
+        self._window.append(scan)
+        self._counts[scan.topic] += 1
+        counts = self._counts.values()
+        if min(counts) >= 1 or max(counts) >= STALL:
+            return self.flush()
+        return None
+
+    def flush(self) -> Scan | None:
+        """The window so far as one scan (None when empty): what is left when the recording ends."""
+        if not self._window:
+            return None
+        parts = sorted(self._window, key=lambda s: s.time)
+        self._window = []
+        self._counts = dict.fromkeys(self.lasers, 0)
+        return merge(parts, [self.lasers[p.topic].mount for p in parts], self.frame, self.topic)
+
+
+def merged_records(records: Iterable[Record], lasers: Sequence[Laser], frame: str = "base_link") -> Iterator[Record]:
+    """``records`` with the scans of ``lasers`` merged (:class:`ScanMerger`), every other record as it came."""
+    merger = ScanMerger(lasers, frame)
+    for record in records:
+        if isinstance(record, Scan) and record.topic in merger.lasers:
+            out = merger.add(record)
+            if out is not None:
+                yield out
+        else:
+            yield record
+    last = merger.flush()
+    if last is not None:
+        yield last
