@@ -219,12 +219,20 @@ MAP_MAX_Z = typer.Option(None, "--max-z", metavar="M", rich_help_panel=PANEL_INP
                               "2.0).")
 RECORDING = typer.Argument(..., metavar="RECORDING",
                            help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz].")
-SCAN_TOPIC = typer.Option(None, "--scan-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
-                          help="Which scan topic, if there are several.")
+# Several: lasers mapped (relocalized) together, their scans merged (io.topics)
+SCAN_TOPICS = typer.Option(None, "--scan-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
+                           help="Which scan topic; repeat for several lasers.")
 ODOM_TOPIC = typer.Option(None, "--odom-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
                           help="Which odometry topic, if there are several.")
 IMU_TOPIC = typer.Option(None, "--imu-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
                          help="Which IMU topic, if there are several.")
+
+
+def _topics(names: list[str] | None) -> str | tuple[str, ...] | None:
+    """``--scan-topic`` as given: none, one, or several (lasers mapped together)."""
+    if not names:
+        return None
+    return names[0] if len(names) == 1 else tuple(names)
 
 
 def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | None,
@@ -413,16 +421,17 @@ def map_(
     ),
     no_clean: bool = typer.Option(False, "--no-clean", rich_help_panel=PANEL_MAPPING,
                                   help="Keep what left during the recording."),
-    scan_topic: str | None = SCAN_TOPIC,
+    scan_topic: list[str] | None = SCAN_TOPICS,
     odom_topic: str | None = ODOM_TOPIC,
     imu_topic: str | None = IMU_TOPIC,
     no_odometry: bool = typer.Option(False, "--no-odometry", rich_help_panel=PANEL_INPUT,
                                      help="Ignore the recording's odometry."),
     odom_frame: str | None = ODOM_FRAME,
     base_frame: str | None = BASE_FRAME,
-    laser_pose: str | None = typer.Option(
+    laser_pose: list[str] | None = typer.Option(
         None, "--laser-pose", metavar="X,Y,YAW", rich_help_panel=PANEL_INPUT,
-        help="The laser's pose on the robot (m, m, rad, or 'deg' suffixed); default: static TF, else identity."
+        help="The laser's pose on the robot (m, m, rad or 'deg'; TOPIC=X,Y,YAW for each of several); default: "
+        "static TF, else identity."
     ),
     min_z: float | None = MAP_MIN_Z,
     max_z: float | None = MAP_MAX_Z,
@@ -455,8 +464,9 @@ def map_(
     recording = recordings[0]
     request = MapRequest(
         recording, _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget)), algorithm,
-        TopicChoice(scan_topic, odom_topic, imu_topic, odom_frame, base_frame),
-        laser_pose=parse.pose(laser_pose, "--laser-pose") if laser_pose else None, use_odometry=not no_odometry,
+        TopicChoice(_topics(scan_topic), odom_topic, imu_topic, odom_frame, base_frame),
+        laser_pose=parse.laser_poses(laser_pose, "--laser-pose") if laser_pose else None,
+        use_odometry=not no_odometry,
         loop_closure=not no_loop_closure, load_state=load_state, jobs=jobs, later=tuple(recordings[1:]),
         sessions=SessionPolicy.LIFELONG if lifelong else SessionPolicy.LAST_SEEN, clean=not no_clean,
         align=Align.named(align))
@@ -609,7 +619,7 @@ def profile_(
                                    help="Time a reference kernel first and compare normalized times."),
     junit: Path | None = typer.Option(None, "--junit", metavar="FILE", rich_help_panel=PANEL_GATES,
                                       help="Write the gates' outcome as JUnit XML."),
-    scan_topic: str | None = SCAN_TOPIC,
+    scan_topic: list[str] | None = SCAN_TOPICS,
     odom_topic: str | None = ODOM_TOPIC,
     odom_frame: str | None = ODOM_FRAME,
     base_frame: str | None = BASE_FRAME,
@@ -628,7 +638,8 @@ def profile_(
     from carto_cli.pipeline import MapRequest, TopicChoice
 
     request = MapRequest(recording, _map_options(profile, _with_z(overrides, min_z, max_z, memory_budget)),
-                         algorithm, TopicChoice(scan_topic, odom_topic, odom_frame=odom_frame, base_frame=base_frame),
+                         algorithm, TopicChoice(_topics(scan_topic), odom_topic, odom_frame=odom_frame,
+                                                base_frame=base_frame),
                          max_scans=max_scans, jobs=jobs)
     with progress(f"profiling {recording.name}", None, state.quiet) as bar:
         run = run_profile(request, output=output, baseline=baseline, calibrate_first=calibrate,
@@ -689,7 +700,7 @@ def relocalize_(
         "makes it a scan index (from 0). Writes a CSV."),
     csv_out: Path | None = typer.Option(None, "--csv", metavar="FILE", rich_help_panel=PANEL_SCANS,
                                         help="Batch results (default: QUERIES.results.csv)."),
-    scan_topic: str | None = SCAN_TOPIC,
+    scan_topic: list[str] | None = SCAN_TOPICS,
     overrides: list[str] | None = typer.Option(
         None, "--set", "-s", metavar="KEY=VALUE",
         help="Override one of the map's options, e.g. relocalization.min_score=0.65 "
@@ -743,7 +754,8 @@ def relocalize_(
     request = RelocalizeRequest(
         map_file, recording, initial_pose=initial_pose, sigma_xy=sigma_xy, sigma_yaw=yaw_sigma, max_jump=max_jump,
         profile=profile, overrides=tuple(overrides or ()), read=z_slice(min_z, max_z),
-        topics=TopicChoice(scan=scan_topic, odometry=odom_topic, odom_frame=odom_frame, base_frame=base_frame),
+        topics=TopicChoice(scan=_topics(scan_topic), odometry=odom_topic, odom_frame=odom_frame,
+                           base_frame=base_frame),
         jobs=jobs)
     if track:
         _track(request, output, force=force, as_json=as_json)

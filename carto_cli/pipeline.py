@@ -13,7 +13,7 @@ import dataclasses
 import functools
 import math
 import time as _time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,8 +32,7 @@ from carto_cli.io.content import ContentCheck
 from carto_cli.io.read_ahead import RecordStream
 from carto_cli.io.recording import ReadOptions, Recording, first_scan_frame
 from carto_cli.io.sources.open import open_recording
-from carto_cli.io.tf_tree import laser_pose_from_tf
-from carto_cli.io.topics import TopicSelection, select_topics, selected_records
+from carto_cli.io.topics import TopicSelection, laser_mount, select_topics, selected_records
 from carto_cli.mapping import alignment
 from carto_cli.mapping.alignment import Align, Squaring
 from carto_cli.mapping.cleaning import Transients, cleaned_image, find_transients, flat_points
@@ -133,7 +132,7 @@ class Auto:
 class TopicChoice:
     """The ``--scan-topic`` family: what the user named; None leaves a choice to ``io.topics.select_topics``."""
 
-    scan: str | None = None
+    scan: str | tuple[str, ...] | None = None  # several: lasers mapped together (merged, io.topics)
     odometry: str | None = None
     imu: str | None = None
     odom_frame: str | None = None
@@ -145,14 +144,15 @@ class MapRequest:
     """One mapping run as asked, before the recording is looked at. ``source``: a recording file, or a recording
     already open (in memory, simulated). ``algorithm`` None: auto's choice for :class:`Auto` options, else
     Cartographer (also when continuing ``load_state``, whose pose graph is Cartographer's). ``laser_pose``: the
-    laser on the robot (x, y, yaw), None: the recording's TF. ``max_scans``: map only the first scans. ``jobs``:
-    threads where the work is independent (None: every core); the map does not depend on it."""
+    laser on the robot (x, y, yaw), or each laser's by topic; None: the recording's TF. ``max_scans``: map only
+    the first scans. ``jobs``: threads where the work is independent (None: every core); the map does not depend
+    on it."""
 
     source: str | Path | Recording
     options: Options | Auto = Auto()
     algorithm: str | None = None
     topics: TopicChoice = TopicChoice()
-    laser_pose: Sequence[float] | None = None
+    laser_pose: Sequence[float] | Mapping[str, Sequence[float]] | None = None
     use_odometry: bool = True
     loop_closure: bool = True
     load_state: Path | None = None
@@ -309,8 +309,10 @@ class Plan:
 
     @property
     def scan_count(self) -> int:
-        """Messages on the scan topic (what a progress bar counts to)."""
-        return next(t.count for t in self.recording.topics() if t.name == self.selection.scan)
+        """Scans mapping will be fed (what a progress bar counts to): the scan topic's messages; with several
+        lasers merged about one scan a window, a scan of the slowest laser."""
+        counts = {t.name: t.count for t in self.recording.topics()}
+        return min(counts.get(topic, 0) for topic in self.selection.scan_topics)
 
 
 def read_options(options: Options | Auto) -> ReadOptions:
@@ -327,7 +329,7 @@ def planned(request: MapRequest, timer: Any = None, *, continued: Continued | No
     with _opened(request) as recording:
         t = request.topics
         selection = select_topics(recording, t.scan, t.odometry, t.imu, odom_frame=t.odom_frame,
-                                  base_frame=t.base_frame)
+                                  base_frame=t.base_frame, laser_poses=_laser_poses(request.laser_pose))
         # --no-odometry: the survey must not count on odometry local SLAM will not get.
         surveyed = selection if request.use_odometry else dataclasses.replace(selection, odometry=None)
         # Started first: with two jobs or more the records are decoded in a child while this process loads its
@@ -348,17 +350,37 @@ def _opened(request: MapRequest) -> Iterator[Recording]:
         yield request.source
 
 
+def _laser_poses(laser_pose: Sequence[float] | Mapping[str, Sequence[float]] | None
+                 ) -> dict[str | None, Sequence[float]] | None:
+    """``MapRequest.laser_pose`` by topic (None: the one laser's, unnamed)."""
+    if laser_pose is None:
+        return None
+    if isinstance(laser_pose, Mapping):
+        return {str(k): v for k, v in laser_pose.items()}
+    return {None: laser_pose}
+
+
 def resolve(request: MapRequest, recording: Recording, selection: TopicSelection, *,
             stream: RecordStream | None = None, timer: Any = None, continued: Continued | None = None) -> Plan:
     """The :class:`Plan` for ``request`` on an opened ``recording`` whose topics are ``selection``: the laser's
     mount, the options and system (for :class:`Auto` the survey's choice; ``request.algorithm`` wins), the saved
-    map to continue. ``stream``: the records mapping will read (the survey looks at their start)."""
+    map to continue. ``stream``: the records mapping will read (the survey looks at their start). Several lasers
+    reach mapping merged in the tracking frame (``selection.lasers``): the laser mapping sees is at its origin."""
     scan_frame = first_scan_frame(recording, selection.scan)
     if scan_frame is None:
         raise CartoError(f"no scans on {selection.scan}", recording.path)
-    explicit = None if request.laser_pose is None else transform.as_pose(request.laser_pose).reshape(3)
-    mount, mount_source = resolve_laser_pose(recording, scan_frame, explicit,
-                                             selection.tf_odometry.fixed if selection.tf_odometry else ())
+    if selection.lasers:
+        if request.system in GMAPPING_PIPELINE:
+            raise CartoError(f"{request.system} maps one laser's scans; {len(selection.lasers)} lasers are merged "
+                             f"({', '.join(selection.scan_topics)}): choose one with --scan-topic, or use "
+                             "--algorithm cartographer")
+        mount, mount_source = np.zeros(3), selection.describe_lasers()
+    else:
+        poses = _laser_poses(request.laser_pose) or {}
+        explicit = next(iter(poses.values()), None)
+        mount, mount_source = resolve_laser_pose(recording, scan_frame, None if explicit is None else
+                                                 transform.as_pose(explicit).reshape(3),
+                                                 selection.tf_odometry.fixed if selection.tf_odometry else ())
     spec = request.options
     if isinstance(spec, Options):
         configured = Configured(spec, algorithm=request.system or Algorithm.CARTOGRAPHER)
@@ -377,7 +399,10 @@ def resolve(request: MapRequest, recording: Recording, selection: TopicSelection
 
 
 def survey_mount(recording: Recording, selection: TopicSelection, laser_pose: Any = None) -> np.ndarray | None:
-    """The laser's mount as mapping will resolve it (None without scans)."""
+    """The laser's mount as mapping will resolve it (None without scans): several lasers' scans come merged in the
+    tracking frame, at its origin."""
+    if selection.lasers:
+        return np.zeros(3)
     scan_frame = first_scan_frame(recording, selection.scan)
     if scan_frame is None:
         return None
@@ -445,19 +470,8 @@ def build(recording: Recording, options: Options, *, laser_pose: Sequence[float]
 def resolve_laser_pose(recording: Recording, scan_frame: str | None, explicit,
                        fixed_tf: Sequence[Transform] = ()) -> tuple[np.ndarray, str]:
     """--laser-pose wins; else static TF; else transforms of /tf that never moved (``fixed_tf``: a mount broadcast
-    on /tf); else the laser is at the tracking frame."""
-    if explicit is not None:
-        return transform.as_pose(explicit), "--laser-pose"
-    if scan_frame:
-        found = laser_pose_from_tf(recording.static_transforms(), scan_frame)
-        if found is not None:
-            pose, root = found
-            return np.asarray(pose, dtype=np.float64), f"static TF {root} -> {scan_frame}"
-        found = laser_pose_from_tf(list(recording.static_transforms()) + list(fixed_tf), scan_frame)
-        if found is not None:
-            pose, root = found
-            return np.asarray(pose, dtype=np.float64), f"TF {root} -> {scan_frame} (fixed transforms on /tf)"
-    return np.zeros(3), "identity (no static TF for the laser)"
+    on /tf); else the laser is at the tracking frame (``io.topics.laser_mount``)."""
+    return laser_mount(recording, scan_frame, explicit, fixed_tf)
 
 
 def _timed(records: Iterator, timer, stage: str = "read recording") -> Iterator:
@@ -820,7 +834,7 @@ def _feed(plan: Plan, configured: Configured, slam: MappingSystem, content: Cont
     """The recording's records to ``slam`` in time order: the scans (up to ``max_scans``), the odometry unless
     turned off, the IMU where the system uses it; what mapping cannot use is dropped by ``content``."""
     request, selection = plan.request, plan.selection
-    topics = [selection.scan]
+    topics = list(selection.scan_topics)
     if request.use_odometry and selection.odometry:
         topics.append(selection.odometry)
     if (selection.imu and configured.options.trajectory_builder_2d.use_imu_data

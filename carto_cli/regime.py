@@ -70,6 +70,8 @@ class Regime:
     # How far odometry can be trusted (key scans with odometry): its median translation error per metre
     # travelled against the scans matched on their own map (gmapping.odometry_check; None: not measured)
     odometry_error: float | None = None
+    # Several lasers' scans merged into one a window (io.topics): their topics; () for one laser
+    lasers: tuple[str, ...] = ()
 
     @property
     def sparse(self) -> bool:
@@ -89,6 +91,8 @@ class Regime:
         inputs = ("odometry" if self.odometry else "no odometry") + (", IMU" if self.imu else "")
         if self.odometry_error is not None:
             inputs += f" (off the scans by {100 * self.odometry_error:.1f} % of the travel)"
+        if self.lasers:
+            sensor = f"{len(self.lasers)} lasers merged ({', '.join(self.lasers)}), {sensor}"
         return f"{self.kind}: {rate}{moves}; {sensor}; {inputs}"
 
     def to_dict(self) -> dict:
@@ -98,6 +102,7 @@ class Regime:
             "imu": self.imu, "motion_source": self.motion_source, "step_median_m": self.step_median,
             "step_p90_m": self.step_p90, "turn_median_rad": self.turn_median, "turn_p90_rad": self.turn_p90,
             "scan_rate_hz": self.scan_rate, "odometry_error_m_per_m": self.odometry_error,
+            "lasers": list(self.lasers),
         }
 
 
@@ -172,7 +177,7 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
     mapping resolves it (``pipeline.resolve_laser_pose``; None: at the robot's origin); ``timer``: where the
     check's kernels are warmed up (compiled on a fresh install: the ``jit warm-up`` stage); ``stream``: the
     recording's records as mapping will read them (what the survey reads is then not decoded twice)."""
-    topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
+    topics = list(selection.scan_topics) + ([selection.odometry] if selection.odometry else [])
     scans: list[Scan] = []
     odometry: list[Odometry] = []
     # What mapping will not use (io.content) must not shape the settings either; mapping reports it.
@@ -228,8 +233,21 @@ def survey(recording: Recording, selection: TopicSelection, *, max_scans: int = 
         odometry=bool(selection.odometry), imu=bool(selection.imu), motion_source=source,
         step_median=float(np.median(step)), step_p90=float(np.percentile(step, 90)),
         turn_median=float(np.median(turn)), turn_p90=float(np.percentile(turn, 90)), scan_rate=scan_rate,
-        odometry_error=odometry_error,
+        odometry_error=odometry_error, lasers=tuple(x.topic for x in selection.lasers),
     )
+
+
+def _system(regime: Regime, reasons: list[str]) -> str:
+    """The mapping system for ``regime``, the reason appended to ``reasons``."""
+    if len(regime.lasers) > 1:
+        reasons.append(f"{len(regime.lasers)} lasers merged into one scan a window: Cartographer (GMapping maps one "
+                       "laser's scans)")
+        return Algorithm.CARTOGRAPHER
+    if regime.sparse and regime.odometry:
+        reasons.append("key scans with odometry: GMapping's particle filter (measured better than Cartographer on "
+                       "such recordings)")
+        return Algorithm.GMAPPING
+    return Algorithm.CARTOGRAPHER
 
 
 def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None = None,
@@ -247,12 +265,7 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
     reasons: list[str] = []
     chose = algorithm is None
     if algorithm is None:
-        if regime.sparse and regime.odometry:
-            algorithm = Algorithm.GMAPPING
-            reasons.append("key scans with odometry: GMapping's particle filter (measured better than Cartographer "
-                           "on such recordings)")
-        else:
-            algorithm = Algorithm.CARTOGRAPHER
+        algorithm = _system(regime, reasons)
     rt = "trajectory_builder_2d.real_time_correlative_scan_matcher"
     if regime.sparse and algorithm in GMAPPING_PIPELINE:
         # The sparse profile still sets the submaps map.carto is written with; its matcher settings do nothing.

@@ -35,7 +35,6 @@ from carto_cli.relocalization import (
     RelocalizationResult,
     Relocalizer,
     context_at,
-    iter_scans,
     parse_pose,
     read_queries,
     relocalize_many,
@@ -90,11 +89,15 @@ def _reads_scans(loaded: LoadedMap) -> bool:
     return loaded.laser_pose is None
 
 
-def _from_scans(loaded: LoadedMap, rec, scan_topic: str, profile) -> tuple[np.ndarray, AutoRelocalization | None]:
+def _from_scans(loaded: LoadedMap, rec, selection: TopicSelection,
+                profile) -> tuple[np.ndarray, AutoRelocalization | None]:
     """(the laser mount from the recording's static TF, the settings chosen from its first scans when no profile
-    was given: ``loaded.options`` are replaced by them)."""
-    scans = [scan for _, scan in itertools.islice(iter_scans(rec, scan_topic), AUTO_SCANS)]
-    mount = resolve_laser_pose(rec, scans[0].frame if scans else None, None)[0]
+    was given: ``loaded.options`` are replaced by them). Several lasers' scans come merged in the tracking frame,
+    their mount its origin."""
+    records = selected_records(rec, selection, list(selection.scan_topics))
+    scans = [r for r in itertools.islice(records, AUTO_SCANS) if isinstance(r, Scan)]
+    mount = np.zeros(3) if selection.lasers else resolve_laser_pose(rec, scans[0].frame if scans else None,
+                                                                      None)[0]
     auto = None
     if profile in (None, "auto"):
         auto = choose_for_scans(loaded.options, scans)
@@ -229,9 +232,11 @@ def prepare(request: RelocalizeRequest, on_warning: Callable[[str], None] | None
         _tell(rec.warnings, warnings, on_warning)
         selection = select_topics(rec, topics.scan, topics.odometry, odom_frame=topics.odom_frame,
                                   base_frame=topics.base_frame)
-        mount = None
+        # Several lasers' scans are merged in the tracking frame (io.topics): the laser relocalization sees is at
+        # its origin, whatever mount the map was made with
+        mount = np.zeros(3) if selection.lasers else None
         if relocalizer is None:
-            mount, auto = _from_scans(loaded, rec, selection.scan, profile)
+            mount, auto = _from_scans(loaded, rec, selection, profile)
             relocalizer = _relocalizer(loaded, overrides, warnings, on_warning, jobs)
         yield Prepared(relocalizer, rec, selection, mount, auto, warnings)
 
@@ -299,27 +304,26 @@ def run_relocalize(scans: RelocalizeScans, *, on_warning: Callable[[str], None] 
     if csv_out is not None and csv_out.exists() and not force:
         raise CartoError("exists; --force replaces it, or give another --csv", csv_out)
 
-    scan_topic, max_jump = request.topics.scan, request.max_jump
+    max_jump = request.max_jump
     with prepare(request, on_warning) as p:
         relocalizer, rec, selection, mount = p.relocalizer, p.recording, p.selection, p.mount
         run = RelocalizeRun(warnings=p.warnings, auto=p.auto)
         if scans.queries is not None:
             qs = read_queries(scans.queries)
             with progress("relocalizing", len(qs), quiet, unit="queries") as bar:
-                run.results, run.summary = relocalize_many(relocalizer, rec, qs, scan_topic=scan_topic,
-                                                           corridor=scans.corridor, on_query=bar.advance,
-                                                           laser_pose=mount, max_jump=max_jump, jobs=request.jobs,
-                                                           selection=selection)
+                run.results, run.summary = relocalize_many(relocalizer, rec, qs, corridor=scans.corridor,
+                                                           on_query=bar.advance, laser_pose=mount, max_jump=max_jump,
+                                                           jobs=request.jobs, selection=selection)
             assert csv_out is not None
             run.csv = write_results_csv(csv_out, run.results)
             return run
         context = None
         if relocalizer.ro.context_scans > 0:
             run.scan_index, run.scan, context = context_at(rec, time=scans.at, index=scans.scan_index,
-                                                           scan_topic=scan_topic, context_seconds=CONTEXT_SECONDS,
+                                                           context_seconds=CONTEXT_SECONDS,
                                                            selection=selection)
         else:
-            run.scan_index, run.scan = scan_at(rec, time=scans.at, index=scans.scan_index, scan_topic=scan_topic)
+            run.scan_index, run.scan = scan_at(rec, time=scans.at, index=scans.scan_index, selection=selection)
     # Parsed only now, as the command always has: a bad --initial-pose is reported after the map and the scan.
     initial_pose = request.initial_pose
     prior = (None if scans.global_search
@@ -386,9 +390,10 @@ def run_track(
     with prepare(request, on_warning) as p:
         selection = p.selection
         if on_total is not None:
-            on_total(sum(t.count for t in p.recording.topics() if t.name == selection.scan))
+            counts = {t.name: t.count for t in p.recording.topics()}
+            on_total(min(counts.get(topic, 0) for topic in selection.scan_topics))
         tracker = Tracker(p.relocalizer, laser_pose=p.mount, max_jump=request.max_jump)
-        topics = [selection.scan] + ([selection.odometry] if selection.odometry else [])
+        topics = list(selection.scan_topics) + ([selection.odometry] if selection.odometry else [])
         scans = list(tracker.track(selected_records(p.recording, selection, topics), initial_pose=prior,
                                    sigma_xy=request.sigma_xy, sigma_yaw=request.sigma_yaw, on_scan=on_scan))
     if not scans:

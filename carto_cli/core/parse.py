@@ -47,6 +47,26 @@ def megabytes(text: str, what: str) -> float:
     return float(m.group(1)) * _SIZE_MB[m.group(2)]
 
 
+def laser_poses(texts: list[str], what: str
+                ) -> tuple[float, float, float] | dict[str, tuple[float, float, float]]:
+    """``--laser-pose`` as given: one 'x,y,yaw' (the one laser), or 'TOPIC=x,y,yaw' for each of several lasers."""
+    named = [t for t in texts if "=" in t]
+    if not named:
+        if len(texts) > 1:
+            raise CartoError(f"{what}: several poses need their lasers' topics, as TOPIC=x,y,yaw")
+        return pose(texts[0], what)
+    if len(named) != len(texts):
+        raise CartoError(f"{what}: give every laser's pose as TOPIC=x,y,yaw, or one pose without a topic")
+    out: dict[str, tuple[float, float, float]] = {}
+    for text in named:
+        topic, _, value = text.partition("=")
+        topic = topic.strip()
+        if not topic or topic in out:
+            raise CartoError(f"{what}: {'a topic is missing' if not topic else f'{topic} given twice'} in {text!r}")
+        out[topic] = pose(value, f"{what} {topic}")
+    return out
+
+
 def pose(text: str, what: str) -> tuple[float, float, float]:
     """'x,y,yaw' (commas and/or spaces; yaw in radians, or degrees with a 'deg' suffix) -> (x, y, yaw).
 

@@ -26,6 +26,7 @@ import math
 import os
 import platform
 import time
+from collections.abc import Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -237,7 +238,7 @@ def _tree_text(timing: dict) -> str:
 
 def profile_relocalization(loaded_map, recording, *, every: int = 10, max_queries: int = 200,
                            perturb_xy: float = 0.5, perturb_yaw: float = math.radians(5.0), seed: int = 0,
-                           scan_topic: str | None = None) -> dict:
+                           scan_topic: str | Sequence[str] | None = None) -> dict:
     """Relocalize every ``every``-th scan of ``recording`` in ``loaded_map`` and time the buckets.
 
     Priors are the map's own trajectory at the scan's time, perturbed uniformly by up to

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from carto_cli.core import transform
 from carto_cli.core.errors import CartoError
 from carto_cli.core.records import Scan
+from carto_cli.io.topics import select_topics, selected_records
 from carto_cli.relocalization import (
     Latency,
     Query,
@@ -24,9 +25,7 @@ from carto_cli.relocalization import (
     Relocalizer,
     ScanContext,
     contexts_for,
-    iter_scans,
     scans_for_queries,
-    select_scan_topic,
 )
 from carto_cli.relocalization.queries import CONTEXT_SECONDS
 
@@ -114,9 +113,13 @@ def scans_with_context(recording, indices: Sequence[int], scan_topic: str | None
     return [(*found[k], contexts.get(k, ScanContext())) for k in range(len(indices))]
 
 
-def every_nth_scan(recording, every: int, scan_topic: str | None = None) -> Iterator[tuple[int, Scan]]:
-    """(index, scan) of scans 0, every, 2 every, ... as the recording is read."""
-    for i, scan in iter_scans(recording, select_scan_topic(recording, scan_topic)):
+def every_nth_scan(recording, every: int, scan_topic: str | Sequence[str] | None = None
+                   ) -> Iterator[tuple[int, Scan]]:
+    """(index, scan) of scans 0, every, 2 every, ... as the recording is read (several lasers' merged, as mapping
+    reads them)."""
+    selection = select_topics(recording, scan_topic)
+    scans = (r for r in selected_records(recording, selection, list(selection.scan_topics)) if isinstance(r, Scan))
+    for i, scan in enumerate(scans):
         if i % every == 0:
             yield i, scan
 

@@ -30,6 +30,7 @@ from carto_cli.core.records import Record
 from carto_cli.core.timing import NullTimer
 from carto_cli.io.recording import Recording
 from carto_cli.io.topics import TopicSelection, selected_records
+from carto_cli.sensor.merging import merged_topic
 
 if TYPE_CHECKING:
     from multiprocessing.connection import Connection
@@ -124,6 +125,9 @@ class RecordStream:
         wanted = set(topics)
         if not wanted <= set(self.topics):  # a pass of this stream would silently lack them
             raise ValueError(f"topics {sorted(wanted - set(self.topics))} are not read by this stream")
+        lasers = self.selection.lasers
+        if lasers and all(x.topic in wanted for x in lasers):
+            wanted.add(merged_topic(lasers))  # the lasers' scans come merged (io.topics.selected_records)
         return wanted
 
     def close(self) -> None:

@@ -31,7 +31,7 @@ def relocalize_many(relocalizer: Relocalizer, recording, queries: Sequence[Query
         scans, contexts = contexts_for(recording, queries, scan_topic, max_time_offset,
                                        context_seconds=CONTEXT_SECONDS, selection=selection)
     else:
-        scans, contexts = scans_for_queries(recording, queries, scan_topic, max_time_offset), {}
+        scans, contexts = scans_for_queries(recording, queries, scan_topic, max_time_offset, selection=selection), {}
 
     def run(k: int) -> QueryResult:
         q = queries[k]

@@ -155,12 +155,14 @@ def iter_scans(recording, topic: str) -> Iterator[tuple[int, Scan]]:
 
 
 def scans_for_queries(recording, queries: Sequence[Query], scan_topic: str | None = None,
-                      max_time_offset: float = 1.0) -> dict[int, tuple[int, Scan]]:
-    """{query position: (scan index, Scan)} in one pass over the recording's scans.
+                      max_time_offset: float = 1.0, *, selection: TopicSelection | None = None
+                      ) -> dict[int, tuple[int, Scan]]:
+    """{query position: (scan index, Scan)} in one pass over the recording's scans (``selection``'s when given:
+    several lasers' merged, as mapping read them).
 
     A timed query gets the scan nearest its time (the earlier one on a tie), an error beyond ``max_time_offset``.
     """
-    return _scan_pass(recording, queries, scan_topic, max_time_offset, 0.0, None)[0]
+    return _scan_pass(recording, queries, scan_topic, max_time_offset, 0.0, selection)[0]
 
 
 def contexts_for(recording, queries: Sequence[Query], scan_topic: str | None = None, max_time_offset: float = 1.0,
@@ -211,10 +213,11 @@ class _Gatherer:
 def _scan_pass(recording, queries: Sequence[Query], scan_topic: str | None, max_time_offset: float,
                context_seconds: float, selection: TopicSelection | None
                ) -> tuple[dict[int, tuple[int, Scan]], dict[int, ScanContext]]:
-    if context_seconds > 0:
+    if context_seconds > 0 or selection is not None:
         selection = selection or select_topics(recording, scan_topic)
-        topic = selection.scan
-        wanted = [topic] + ([selection.odometry] if selection.odometry else [])
+        topic = "+".join(selection.scan_topics)
+        wanted = list(selection.scan_topics) + ([selection.odometry] if selection.odometry and context_seconds > 0
+                                                else [])
         stream: Iterator[Record] = selected_records(recording, selection, wanted)
     else:
         topic = select_scan_topic(recording, scan_topic)
@@ -279,9 +282,10 @@ def _scan_pass(recording, queries: Sequence[Query], scan_topic: str | None, max_
 
 
 def scan_at(recording, *, time: float | None = None, index: int | None = None, scan_topic: str | None = None,
-            max_time_offset: float = 1.0) -> tuple[int, Scan]:
+            max_time_offset: float = 1.0, selection: TopicSelection | None = None) -> tuple[int, Scan]:
     """(index, scan) of the scan nearest ``time`` or at ``index`` (default: the first scan)."""
-    return scans_for_queries(recording, [_query_at(time, index)], scan_topic, max_time_offset)[0]
+    return scans_for_queries(recording, [_query_at(time, index)], scan_topic, max_time_offset,
+                             selection=selection)[0]
 
 
 def context_at(recording, *, time: float | None = None, index: int | None = None, scan_topic: str | None = None,

@@ -100,7 +100,7 @@ def test_info_says_why_auto_cannot_choose(tmp_path):
 
 def test_info_shows_every_lasers_mount(tmp_path):
     """Two lasers on two topics (front and back, each with its static TF): info places each as `carto map` would
-    place it, and says that mapping needs one chosen."""
+    place it, and says that mapping merges both."""
     from dataclasses import replace
 
     from support import synthetic_records
@@ -129,4 +129,5 @@ def test_info_shows_every_lasers_mount(tmp_path):
     assert front["source"] == "static TF base_link -> laser_front"
     text = format_info(info)
     assert "mount laser_back: x -0.300 m, y -0.050 m, yaw" in text
-    assert info.auto is None and "several scan topics" in info.auto_unavailable
+    assert info.auto is not None and "2 lasers merged (/scan_back, /scan_front)" in info.auto["detected"]
+    assert info.auto["regime"]["lasers"] == ["/scan_back", "/scan_front"]

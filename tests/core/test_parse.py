@@ -29,3 +29,21 @@ def test_megabytes_reads_sizes_people_type():
 def test_megabytes_errors_name_the_option(bad):
     with pytest.raises(CartoError, match="--memory-budget"):
         parse.megabytes(bad, "--memory-budget")
+
+
+def test_laser_poses_one_unnamed_or_each_by_topic():
+    assert parse.laser_poses(["1,2,90deg"], "--laser-pose") == pytest.approx((1.0, 2.0, math.pi / 2))
+    poses = parse.laser_poses(["/front=0.3,0,0", "back=-0.3, 0, 180deg"], "--laser-pose")
+    assert set(poses) == {"/front", "back"} and poses["back"] == pytest.approx((-0.3, 0.0, math.pi))
+
+
+@pytest.mark.parametrize("bad, message", [
+    (["1,2,3", "4,5,6"], "several poses need their lasers' topics"),
+    (["/a=1,2,3", "4,5,6"], "give every laser's pose as TOPIC=x,y,yaw"),
+    (["=1,2,3"], "a topic is missing"),
+    (["/a=1,2,3", "/a=1,2,3"], "/a given twice"),
+    (["/a=1,2"], "--laser-pose /a: expected x,y,yaw"),
+])
+def test_laser_poses_errors_say_what_to_give(bad, message):
+    with pytest.raises(CartoError, match=message):
+        parse.laser_poses(bad, "--laser-pose")
