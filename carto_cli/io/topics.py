@@ -212,6 +212,11 @@ def _placed(recording: Recording, scans: Sequence[str], poses: Mapping,
         mount, source, root = _mount(recording, frame, poses.get(topic), fixed_tf)
         roots.append(root)
         lasers.append(Laser(topic, frame, (float(mount[0]), float(mount[1]), float(mount[2])), source))
+    unplaced = [x.topic for x in lasers if x.source == IDENTITY_MOUNT]
+    if unplaced:
+        # Merged at a wrong mount, two lasers draw two offset maps over each other: never guessed
+        raise TopicError(f"no mount known for {', '.join(unplaced)} (no static TF or fixed /tf for its frame): give "
+                         "each one's --laser-pose as TOPIC=x,y,yaw", recording.path)
     known = sorted({r for r in roots if r is not None})
     if len(known) > 1:
         raise TopicError(f"the lasers' TF trees have different roots ({', '.join(known)}): their mounts are not in "

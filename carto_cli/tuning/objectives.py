@@ -226,11 +226,11 @@ def check_space(objective: str, names: Sequence[str], algorithm: str = "cartogra
 
 def _scans(recording, limit: int | None = None):
     from carto_cli.core.records import Scan
-    from carto_cli.io.topics import select_topics
+    from carto_cli.io.topics import select_topics, selected_records
 
-    topic = select_topics(recording).scan
+    selection = select_topics(recording)  # several lasers' scans merged, as mapping reads them
     n = 0
-    for rec in recording.records([topic]):
+    for rec in selected_records(recording, selection, list(selection.scan_topics)):
         if isinstance(rec, Scan):
             if limit is not None and n >= limit:
                 return

@@ -124,6 +124,9 @@ def test_lasers_named_by_the_user_and_their_poses():
         select_topics(_two_lasers(), ["/front", "/back"], laser_poses={"/side": (0.0, 0.0, 0.0)})
     with pytest.raises(TopicError, match="give each one's --laser-pose as TOPIC=x,y,yaw"):
         select_topics(_two_lasers(), ["/front", "/back"], laser_poses={None: (0.0, 0.0, 0.0)})
+    # A laser named without a mount is not guessed at the robot's origin
+    with pytest.raises(TopicError, match="no mount known for /back"):
+        select_topics(_two_lasers(static=False), ["/front", "/back"], laser_poses={"/front": (0.3, 0.0, 0.0)})
 
 
 def test_merged_scans_reach_whoever_reads_the_selection():
