@@ -240,6 +240,9 @@ def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | Non
         out.append(f"trajectory_builder_2d.min_z={min_z!r}")
     if max_z is not None:
         out.append(f"trajectory_builder_2d.max_z={max_z!r}")
+    if min_z is not None or max_z is not None:
+        # A slice given in z is the sensor frame's, as it always was; the floor-relative band is cloud_band's.
+        out.append("trajectory_builder_2d.cloud_band=sensor")
     return out
 
 
