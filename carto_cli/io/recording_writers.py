@@ -5,7 +5,7 @@ PointCloud2 (float32 x, y, z=0); 3D clouds (``Cloud``, a simulated 3D lidar's) P
 per-point time field as drivers write it; odometry nav_msgs/Odometry; IMU sensor_msgs/Imu;
 static transforms one tf2_msgs/TFMessage on /tf_static. A message's bag/log
 time is its record's time, so readers that order by bag time and readers that
-use header stamps agree.
+use header stamps agree (a 3D cloud, stamped at its sweep's start, is logged at its end).
 """
 from __future__ import annotations
 
@@ -211,7 +211,7 @@ def _write(records, path, fmt, static_transforms, topics, on_record) -> int:
             n += 1
         for rec in itertools.chain(() if first is None else (first,), it):
             topic, msgtype, msg = build.message(rec, channels)
-            sink.write(channels.get(topic, msgtype), _ns(rec.time), msg)
+            sink.write(channels.get(topic, msgtype), _ns(_log_time(rec)), msg)
             n += 1
             if on_record is not None:
                 on_record()
@@ -220,6 +220,15 @@ def _write(records, path, fmt, static_transforms, topics, on_record) -> int:
         sink.abort()
         raise
     return n
+
+
+def _log_time(rec: Record | Cloud) -> float:
+    """When a record is logged: its time, but a cloud's once its last point is measured, when a driver can
+    publish it (its stamp is often the sweep's start); so a reader in log order has the odometry and IMU of the
+    whole sweep before the sweep, as from a real recording."""
+    if isinstance(rec, Cloud) and rec.point_times is not None and len(rec.point_times):
+        return rec.time + max(float(np.max(rec.point_times)), 0.0)
+    return rec.time
 
 
 def _ns(t: float) -> int:

@@ -87,7 +87,7 @@ class PoseExtrapolator:
         Zero before any pose.
         """
         if not self._poses:
-            return 0.0, 0.0, 0.0
+            return self._first_motion(time, duration, start)
         t0, last = self._poses[-1]
         theta = last[2] + self._yaw_delta(t0, time)
         if len(self._odometry) >= 2:
@@ -99,6 +99,21 @@ class PoseExtrapolator:
             duration = 1e-3
         w = self._yaw_delta(time + start, time + start + duration) / duration
         return c * vx + s * vy, -s * vx + c * vy, w
+
+    def _first_motion(self, time: float, duration: float, start: float) -> tuple[float, float, float]:
+        """Before any pose: odometry's own velocity (the body's, seen from its newest sample) and the yaw rate, so
+        that the first sweep is de-skewed too; zero without odometry. The first sweep anchors the map: left
+        smeared, it would shift every later wall by half its motion."""
+        if len(self._odometry) < 2:
+            return 0.0, 0.0, 0.0
+        (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
+        dt = t_new - t_old
+        dx, dy = p_new[0] - p_old[0], p_new[1] - p_old[1]
+        c, s = math.cos(p_new[2]), math.sin(p_new[2])
+        if duration == 0.0:
+            duration = 1e-3
+        w = self._yaw_delta(time + start, time + start + duration) / duration
+        return (c * dx + s * dy) / dt, (-s * dx + c * dy) / dt, w
 
     # --- internals ------------------------------------------------------------------------
 

@@ -200,7 +200,7 @@ class LocalSlam:
                 # Straight into the tracking frame; a sweeping scanner's beams are de-skewed with
                 # the motion the extrapolator predicts (Cartographer does the same per point).
                 motion = None
-                if scan.timed and self.extrapolator.last_pose_time is not None:
+                if scan.timed:
                     times = scan.beam_times()
                     start = float(times.min()) if len(times) else 0.0
                     span = float(times.max()) - start if len(times) else 0.0

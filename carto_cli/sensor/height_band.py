@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-__all__ = ["HeightBand", "auto_band", "given_band", "sensor_band"]
+__all__ = ["HeightBand", "auto_band", "bearing_step", "given_band", "nearest_per_bearing", "sensor_band"]
 
 BIN = 0.02  # m: height histogram bins; a floor seen by a level lidar fits in one or two of them
 PLANE_SHARE = 0.01  # a horizontal plane holds at least this share of a sweep's points in one bin
@@ -37,6 +37,9 @@ CEILING_CLEARANCE = 0.3  # m: between the band and the ceiling (lamps, ducts)
 # Door lintels stand about 2 m above the floor: a band above them closes every door of the map.
 LINTEL = 1.9  # m above the floor
 MIN_WIDTH = 0.2  # m: a band thinner than this keeps too few rings' points on the walls
+# Bounds on the bearing step read from a cloud: finer than any spinning lidar's columns, coarser than a sparse one's.
+MIN_STEP, MAX_STEP = math.radians(0.05), math.radians(1.0)
+SURFACE = 0.1  # m: returns of one bearing this near its nearest are off the same surface
 
 
 @dataclass(frozen=True)
@@ -53,6 +56,9 @@ class HeightBand:
     floor: float | None = None
     ceiling: float | None = None
     clutter: float | None = None
+    # Radians: keep the nearest point of each bearing this wide, as a 2D lidar there would have returned it (None:
+    # every point, Cartographer's way with a sliced cloud).
+    bearing_step: float | None = None
 
     def keep(self, z: np.ndarray) -> np.ndarray:
         """Which of the heights ``z`` (sensor frame) the 2D scan keeps."""
@@ -159,13 +165,47 @@ def auto_band(x: np.ndarray, y: np.ndarray, z: np.ndarray, fallback: HeightBand)
         # there would have seen.
         sensor = -floor
         low, high = sensor - MIN_WIDTH / 2, sensor + MIN_WIDTH / 2
-    return HeightBand(low=floor + low, high=floor + high, how="auto", floor=floor, ceiling=ceiling, clutter=clutter)
+    return HeightBand(low=floor + low, high=floor + high, how="auto", floor=floor, ceiling=ceiling, clutter=clutter,
+                      bearing_step=bearing_step(x, y))
 
 
-def given_band(z: np.ndarray, above_floor: tuple[float, float], fallback: HeightBand) -> HeightBand:
+def given_band(x: np.ndarray, y: np.ndarray, z: np.ndarray, above_floor: tuple[float, float],
+               fallback: HeightBand) -> HeightBand:
     """The user's band (m above the floor) placed on the floor this cloud shows; ``fallback`` without a floor."""
     floor, ceiling = floor_and_ceiling(z)
     if floor is None:
         return HeightBand(fallback.low, fallback.high, "no floor")
     return HeightBand(low=floor + above_floor[0], high=floor + above_floor[1], how="given", floor=floor,
-                      ceiling=ceiling)
+                      ceiling=ceiling, bearing_step=bearing_step(x, y))
+
+
+def bearing_step(x: np.ndarray, y: np.ndarray) -> float:
+    """The angle between a spinning lidar's columns: the rings of one column share a bearing, so the typical gap
+    between distinct bearings of the sorted points is the step (clipped to ``MIN_STEP``..``MAX_STEP``)."""
+    angles = np.sort(np.arctan2(y, x))
+    gaps = np.diff(angles)
+    gaps = gaps[gaps > MIN_STEP / 10]
+    if gaps.shape[0] == 0:
+        return MIN_STEP
+    return float(np.clip(np.median(gaps), MIN_STEP, MAX_STEP))
+
+
+def nearest_per_bearing(angles: np.ndarray, ranges: np.ndarray, step: float) -> np.ndarray:
+    """Indices of one point per bearing bin ``step`` wide, in the order of ``angles``: of the bin's points within
+    ``SURFACE`` of its nearest, the one of median range.
+
+    A 2D lidar at the band's height returns the first thing along each bearing. The band's points behind it
+    (higher or lower on a farther wall) would draw free rays through it; and the several rings' returns off that
+    first surface, inserted all, would thicken it by their noise (their nearest alone would pull it towards the
+    sensor by as much): their median is the surface's range."""
+    bins = np.floor((angles + math.pi) / step).astype(np.int64)
+    order = np.lexsort((ranges, bins))
+    b, r = bins[order], ranges[order]
+    starts = np.flatnonzero(np.concatenate([[True], b[1:] != b[:-1]]))
+    counts = np.diff(np.concatenate([starts, [b.shape[0]]]))
+    nearest = np.repeat(r[starts], counts)
+    on_surface = np.flatnonzero(r <= nearest + SURFACE)  # sorted: each bin's surface points are its first ones
+    sb = b[on_surface]
+    first = np.flatnonzero(np.concatenate([[True], sb[1:] != sb[:-1]]))
+    many = np.diff(np.concatenate([first, [sb.shape[0]]]))
+    return np.sort(order[on_surface[first + (many - 1) // 2]])

@@ -196,12 +196,16 @@ class Simulation3D:
                             time_field=self.time_field)
 
     def records(self) -> Iterator[Cloud | Odometry | Imu]:
-        """Clouds, odometry and IMU in time order (odometry and IMU first at equal times)."""
+        """Clouds, odometry and IMU in the order a recording logs them: each cloud after the odometry and IMU
+        until its last point."""
         base = self.base
         others = [r for r in base.records([ODOM_TOPIC, IMU_TOPIC]) if isinstance(r, (Odometry, Imu))]
         i = 0
         for cloud in self.clouds():
-            while i < len(others) and others[i].time <= cloud.time:
+            # After the odometry and IMU of its whole sweep: a driver publishes a sweep once it has turned.
+            end = cloud.time + (float(cloud.point_times.max()) if cloud.point_times is not None and
+                                len(cloud.point_times) else 0.0)
+            while i < len(others) and others[i].time <= end:
                 yield others[i]
                 i += 1
             yield cloud

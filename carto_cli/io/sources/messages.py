@@ -15,7 +15,7 @@ from carto_cli.core.errors import CartoError, TopicError
 from carto_cli.core.parse import height_band
 from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, beam_angles, quaternion_yaw
 from carto_cli.io.recording import ReadOptions, kind_of, normalise_type
-from carto_cli.sensor.height_band import HeightBand, auto_band, given_band, sensor_band
+from carto_cli.sensor.height_band import HeightBand, auto_band, given_band, nearest_per_bearing, sensor_band
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 MULTI_ECHO = "sensor_msgs/msg/MultiEchoLaserScan"
@@ -208,6 +208,8 @@ def cloud_scan(msg: Any, topic: str, band: HeightBand, columns: dict[str, np.nda
     x, y = x[keep], y[keep]
     angles = np.arctan2(y, x)
     order = np.argsort(angles, kind="stable")
+    if band.bearing_step is not None:
+        order = order[nearest_per_bearing(angles[order], np.hypot(x[order], y[order]), band.bearing_step)]
     angles = angles[order].astype(np.float32)
     ranges = np.hypot(x[order], y[order]).astype(np.float32)
     stamp = stamp_seconds(msg.header.stamp)
@@ -274,7 +276,7 @@ class Decoder:
             raise CartoError(f"trajectory_builder_2d.cloud_band: {e}") from None
         if given is None:
             return auto_band(x[finite], y[finite], z[finite], sensor)
-        return given_band(z[finite], given, sensor)
+        return given_band(x[finite], y[finite], z[finite], given, sensor)
 
 
 # --- odometry, imu, tf ------------------------------------------------------
