@@ -14,7 +14,9 @@ Both recordings are mapped by `carto map` with its defaults and ``--align none``
 the first pose), and their occupancy images (map.pgm, map_server's trinary classes) are compared cell by cell over
 the cells either map knows: the share whose class (occupied, free, unknown) differs, as the maps' origins place them
 and at the best shift of up to two cells (each frame is its SLAM's estimate of the first pose). The same figures
-for the 2D lidar against itself with other noise (seed + 1) are the measure's floor. Printed as JSON.
+for the 2D lidar against itself with other noise (seed + 1) are the measure's floor. ``beyond_a_cell``: the differing
+cells (at the best shift) more than a cell from any occupied cell of either map: a wall where the other has none, or
+free space the other does not have, not a wall's line drawn in the neighbouring cell. Printed as JSON.
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2
 import numpy as np
 import yaml
+from scipy import ndimage
 
 from carto_cli.io.map_server import occupancy_from_pixels
 from carto_cli.io.recording_writers import write_recording
@@ -95,8 +98,13 @@ def compare(a: Path, b: Path, search: int = SEARCH) -> dict:
             if d / max(k, 1) < best[0]:
                 best = (d / max(k, 1), dx, dy)
     occupied = (ga == 1) | (gb == 1)
+    pb = np.full_like(pa, -1)
+    pb[pad + best[2]:pad + best[2] + gb.shape[0], pad + best[1]:pad + best[1] + gb.shape[1]] = gb
+    near_wall = ndimage.binary_dilation((pa == 1) | (pb == 1), structure=np.ones((3, 3), bool))
+    far = ((pa >= 0) | (pb >= 0)) & (pa != pb) & ~near_wall
     return {"cells_known": known, "cells_differ": bad, "differ_fraction": round(bad / max(known, 1), 5),
             "differ_fraction_best_shift": round(best[0], 5), "best_shift_cells": [best[1], best[2]],
+            "beyond_a_cell_fraction": round(int(far.sum()) / max(known, 1), 5),
             "occupied_either": int(occupied.sum()), "occupied_differ": int((occupied & (ga != gb)).sum()),
             "known_first_only": int(((ga >= 0) & (gb < 0)).sum()), "known_second_only": int(((gb >= 0) & (ga < 0)).sum())}
 
@@ -153,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             "sweeps": int(len(sim3d.sweep_times)), "simulate_and_write_s": round(simulated_s, 1),
             "band": band.describe(), "maps": runs, "3d_vs_2d": compare(root / "map3d", root / "map2d"),
             "2d_vs_2d_other_seed": compare(root / "map2d_other", root / "map2d"),
+
         }
     print(json.dumps(result, indent=2))
     return 0

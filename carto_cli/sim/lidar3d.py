@@ -56,30 +56,34 @@ class Building:
 
 
 def furnish(world: World, *, count: int = 12, max_height: float = 0.55, seed: int = 0,
-            clearance: float = 0.7) -> Building:
+            clearance: float = 0.35) -> Building:
     """``world`` with ``count`` boxes (tables, crates, low shelves) up to ``max_height`` tall, placed by ``seed``
-    in free space: clear of the route (the robot drives past them, never through) and of the walls' faces by a
-    little (a box pushed against a wall is part of the wall's line in any map)."""
+    where the robot sees them: each in sight of a point of the route (no wall between), clear of the route by
+    ``clearance`` (the robot drives past them, never through) and of the walls by a little (a box pushed against a
+    wall is part of the wall's line in any map)."""
+    if world.route is None or len(world.route) < 2:
+        raise ValueError("furnish needs a world with a route")
     rng = np.random.default_rng(seed)
-    xmin, ymin, xmax, ymax = world.bounds
-    route = world.route if world.route is not None else np.zeros((0, 2))
-    # Points along the route, every 0.2 m, to keep the boxes off it.
-    path = [route[:1]] if len(route) else []
-    for a, b in zip(route[:-1], route[1:]):
-        n = max(int(np.hypot(*(b - a)) / 0.2), 1)
-        path.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
-    along = np.concatenate(path) if path else np.zeros((0, 2))
+    route = np.vstack([world.route, world.route[:1]]) if world.closed else world.route
+    # Points along the route every 0.2 m: where the robot passes, and where boxes are seen from.
+    along = np.concatenate([a + (b - a) * (np.arange(max(int(np.hypot(*(b - a)) / 0.2), 1))
+                                           / max(int(np.hypot(*(b - a)) / 0.2), 1))[:, None]
+                            for a, b in zip(route[:-1], route[1:])])
     boxes: list[list[float]] = []
-    for _ in range(200 * count):
+    for _ in range(500 * count):
         if len(boxes) == count:
             break
-        w, d = rng.uniform(0.4, 1.4, 2)
-        cx, cy = rng.uniform(xmin + 0.5, xmax - 0.5), rng.uniform(ymin + 0.5, ymax - 0.5)
+        w, d = rng.uniform(0.4, 1.2), rng.uniform(0.3, 0.7)
+        seen_from = along[rng.integers(len(along))]
+        bearing = rng.uniform(-math.pi, math.pi)
+        reach = rng.uniform(clearance + max(w, d) / 2, 4.0)
+        cx, cy = seen_from + reach * np.array([math.cos(bearing), math.sin(bearing)])
         corners = box(cx, cy, w, d)[:, :2]
-        probe = np.vstack([corners, [[cx, cy]]])
-        if world.distance_to_walls(probe).min() < 0.15:
+        if world.distance_to_walls(np.vstack([corners, [[cx, cy]]])).min() < 0.15:
             continue
-        if len(along) and np.abs(along - [cx, cy]).max(axis=1).min() < max(w, d) / 2 + clearance:
+        if cast(np.array([*seen_from, bearing]), np.zeros(1), world.segments)[0] < reach:
+            continue  # behind a wall from where it would be seen
+        if (np.abs(along - [cx, cy]) <= [w / 2 + clearance, d / 2 + clearance]).all(axis=1).any():
             continue
         if any(abs(cx - b[0]) < (w + b[2]) / 2 + 0.2 and abs(cy - b[1]) < (d + b[3]) / 2 + 0.2 for b in boxes):
             continue
