@@ -206,17 +206,17 @@ def _say_compiling(sentence: str) -> None:
 
 
 # One default everywhere: the options' trajectory_builder_2d.min_z / max_z (io.recording.ReadOptions keeps them)
-MIN_Z = typer.Option(-0.8, "--min-z", metavar="M", rich_help_panel=PANEL_INPUT,
-                     help="PointCloud2: lowest z of the 2D slice (m).")
-MAX_Z = typer.Option(2.0, "--max-z", metavar="M", rich_help_panel=PANEL_INPUT,
-                     help="PointCloud2: highest z of the 2D slice (m).")
-# Commands that map take the slice as options (trajectory_builder_2d.min_z / max_z): unset keeps the profile's
+MIN_Z = typer.Option(None, "--min-z", metavar="M", rich_help_panel=PANEL_INPUT,
+                     help="PointCloud2: lowest z of the 2D slice in the sensor frame (m; default -0.8 with --max-z; "
+                          "neither: a band above the floor, chosen from the clouds).")
+MAX_Z = typer.Option(None, "--max-z", metavar="M", rich_help_panel=PANEL_INPUT,
+                     help="PointCloud2: highest z of the 2D slice in the sensor frame (m; default 2.0 with --min-z).")
+# Commands that map take the slice as options (trajectory_builder_2d.min_z / max_z, and cloud_band=sensor when either
+# is given): unset keeps the profile's
 MAP_MIN_Z = typer.Option(None, "--min-z", metavar="M", rich_help_panel=PANEL_INPUT,
-                         help="PointCloud2: lowest z of the 2D slice (m; default: trajectory_builder_2d.min_z, "
-                              "-0.8).")
+                         help="PointCloud2: lowest z, sensor frame (m; default: a band above the floor).")
 MAP_MAX_Z = typer.Option(None, "--max-z", metavar="M", rich_help_panel=PANEL_INPUT,
-                         help="PointCloud2: highest z of the 2D slice (m; default: trajectory_builder_2d.max_z, "
-                              "2.0).")
+                         help="PointCloud2: highest z, sensor frame (m; default: see --min-z).")
 RECORDING = typer.Argument(..., metavar="RECORDING",
                            help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz].")
 SCAN_TOPIC = typer.Option(None, "--scan-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
@@ -251,8 +251,8 @@ def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | Non
 def info(
     recording: Path = RECORDING,
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
-    min_z: float = MIN_Z,
-    max_z: float = MAX_Z,
+    min_z: float | None = MIN_Z,
+    max_z: float | None = MAX_Z,
 ):
     """Describe a recording: topics, rates, scan geometry, static TF, warnings."""
     from carto_cli.commands.common import z_slice
@@ -288,8 +288,8 @@ def convert(
     imu_topic: str | None = typer.Option(None, "--imu-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
                                          help="Only this IMU topic."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace OUT if it exists."),
-    min_z: float = MIN_Z,
-    max_z: float = MAX_Z,
+    min_z: float | None = MIN_Z,
+    max_z: float | None = MAX_Z,
 ):
     """Convert between ROS1 bags, ROS2 bags (sqlite3 / mcap storage) and MCAP (ROS1 <-> ROS2: every topic, lossless)."""
     from carto_cli.commands.common import z_slice
@@ -719,8 +719,8 @@ def relocalize_(
         "an answer no prior's window confirmed."),
     odom_frame: str | None = ODOM_FRAME,
     base_frame: str | None = BASE_FRAME,
-    min_z: float = MIN_Z,
-    max_z: float = MAX_Z,
+    min_z: float | None = MIN_Z,
+    max_z: float | None = MAX_Z,
     jobs: int | None = typer.Option(None, "--jobs", "-j", metavar="N", callback=_at_least_one,
                                     rich_help_panel=PANEL_PERFORMANCE,
                                     help="--queries: queries relocalized at once; one query or --track: threads "

@@ -79,13 +79,16 @@ class HeightBand:
             parts.append(f"ceiling {self.ceiling - self.floor:.2f} m")
         if self.clutter is not None:
             parts.append(f"clutter up to {self.clutter:.2f} m")
+        if self.bearing_step is not None:
+            parts.append(f"one return per {math.degrees(self.bearing_step):.2f}° of bearing")
         return ", ".join(parts)
 
     def to_dict(self) -> dict:
         floor = self.floor
         return {"how": self.how, "low": self.low, "high": self.high, "floor": floor, "ceiling": self.ceiling,
                 "clutter": self.clutter,
-                "above_floor": None if floor is None else [self.low - floor, self.high - floor]}
+                "above_floor": None if floor is None else [self.low - floor, self.high - floor],
+                "bearing_step_deg": None if self.bearing_step is None else math.degrees(self.bearing_step)}
 
 
 def sensor_band(min_z: float, max_z: float, how: str = "sensor") -> HeightBand:
