@@ -745,7 +745,8 @@ def relocalize_(
 
     request = RelocalizeRequest(
         map_file, recording, initial_pose=initial_pose, sigma_xy=sigma_xy, sigma_yaw=yaw_sigma, max_jump=max_jump,
-        profile=profile, overrides=tuple(overrides or ()), read=z_slice(min_z, max_z),
+        profile=profile, overrides=tuple(overrides or ()),
+        read=None if min_z is None and max_z is None else z_slice(min_z, max_z),
         topics=TopicChoice(scan=scan_topic, odometry=odom_topic, odom_frame=odom_frame, base_frame=base_frame),
         jobs=jobs)
     if track:

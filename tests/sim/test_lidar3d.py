@@ -129,18 +129,42 @@ def _box_cells(outdir, building, start):
     return int(on_box.sum()), len(world)
 
 
-def test_a_small_map_leaves_the_furniture_out_and_a_low_band_draws_it(recording, tmp_path):
+@pytest.fixture(scope="module")
+def mapped(recording, tmp_path_factory):
+    outdir = tmp_path_factory.mktemp("map")
+    return api.map_recording(recording[2], align="none", outdir=outdir, force=True), outdir
+
+
+def test_a_small_map_leaves_the_furniture_out_and_a_low_band_draws_it(recording, mapped, tmp_path):
     building, sim, path = recording
     start = sim.ground_truth[0, 1:]
     assert abs(start[2]) < 1e-9  # the map frame is the world's moved to the start
-    auto = api.map_recording(path, align="none", outdir=tmp_path / "auto")
+    auto, outdir = mapped
     assert auto.quality != "failed"
     # Every scan where it was: the trajectory in the map frame against the truth moved to the start (14 s round a
     # bare room, no loop closed yet: a few centimetres of drift).
     truth = sim.ground_truth[:, 1:3] - start[:2]
     assert np.abs(auto.poses[:, :2] - truth[: len(auto.poses)]).max() < 0.1
-    on_box, total = _box_cells(tmp_path / "auto", building, start)
+    on_box, total = _box_cells(outdir, building, start)
     assert total > 300 and on_box == 0
     api.map_recording(path, align="none", outdir=tmp_path / "low", overrides=["trajectory_builder_2d.cloud_band=0.1..0.4"])
     on_box_low, _ = _box_cells(tmp_path / "low", building, start)
     assert on_box_low > 20
+
+
+def test_tracking_in_the_map_reads_the_clouds_as_mapping_did(recording, mapped, tmp_path):
+    """`carto relocalize --track` slices the clouds in the map's band: every scan of the recording found where the
+    map put it."""
+    from carto_cli.commands.relocalize import RelocalizeRequest, run_track
+
+    _, sim, path = recording
+    made, outdir = mapped
+    request = RelocalizeRequest(outdir / "map.carto", path, initial_pose="0,0,0")
+    tracked = []
+    run = run_track(request, tmp_path / "track", on_scan=tracked.append)
+    assert run.summary.verdicts.get("ok", 0) >= 0.9 * run.summary.scans
+    ok = np.array([s.pose for s in tracked if s.verdict == "ok"])
+    times = np.array([s.time for s in tracked if s.verdict == "ok"])
+    at = made.poses[np.searchsorted(sim.base.scan_times, times)]
+    assert np.abs(ok[:, :2] - at[:, :2]).max() < 0.08  # a cell and a half: matched to the map, not to the scans
+    assert np.median(np.hypot(*(ok[:, :2] - at[:, :2]).T)) < 0.03
