@@ -327,22 +327,10 @@ class _Builder:
     def point_cloud(self, s: Scan, topic: str):
         r = s.ranges.astype(np.float64)
         a = s.angles.astype(np.float64)
-        xyz = np.zeros((s.num_beams, 3), dtype="<f4")
-        xyz[:, 0] = r * np.cos(a)
-        xyz[:, 1] = r * np.sin(a)
-        field = self.T["sensor_msgs/msg/PointField"]
-        fields = [field(name=name, offset=4 * i, datatype=7, count=1) for i, name in enumerate("xyz")]  # 7 = FLOAT32
-        return self.T[POINT_CLOUD2](
-            header=self.header(s.time, s.frame, topic),
-            height=1,
-            width=s.num_beams,
-            fields=fields,
-            is_bigendian=False,
-            point_step=12,
-            row_step=12 * s.num_beams,
-            data=np.frombuffer(xyz.tobytes(), dtype=np.uint8),
-            is_dense=bool(np.isfinite(xyz).all()),
-        )
+        xyz = np.column_stack([r * np.cos(a), r * np.sin(a), np.zeros(s.num_beams)]).astype(np.float32)
+        # A flattened 3D sweep keeps its points' times (Velodyne's 'time' field: float32 s after the stamp), so
+        # that the converted recording is de-skewed as the original was.
+        return self.cloud(Cloud(s.time, xyz, s.frame, topic, s.point_times, "time"), topic)
 
     def cloud(self, c: Cloud, topic: str):
         n = int(c.points.shape[0])

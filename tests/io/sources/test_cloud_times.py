@@ -155,3 +155,17 @@ def test_sensor_band_keeps_every_point_of_the_slice(tmp_path):
     with open_recording(out, ReadOptions(min_z=-0.8, max_z=2.0, cloud_band="sensor")) as rec:
         scan = next(iter(rec.records(["/points"])))
     assert scan.num_beams == 3000  # floor and wall alike, as Cartographer slices
+
+
+def test_a_flattened_sweep_converted_keeps_its_point_times(tmp_path):
+    out, _ = _written(tmp_path, "mcap", "c.mcap", "t")
+    with open_recording(out) as rec:
+        scan = next(iter(rec.records(["/points"])))
+    again = tmp_path / "again.bag"
+    write_recording([scan], again, "ros1")
+    with open_recording(again) as rec:
+        back = next(iter(rec.records(["/points"])))
+        assert rec.cloud_bands["/points"].how == "no floor"  # flat now: every point kept
+    assert back.num_beams == scan.num_beams
+    assert np.allclose(back.ranges, scan.ranges, atol=1e-5)
+    assert np.allclose(back.point_times, scan.point_times, atol=1e-7)
