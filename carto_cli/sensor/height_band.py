@@ -201,6 +201,8 @@ def nearest_per_bearing(angles: np.ndarray, ranges: np.ndarray, step: float) -> 
     (higher or lower on a farther wall) would draw free rays through it; and the several rings' returns off that
     first surface, inserted all, would thicken it by their noise (their nearest alone would pull it towards the
     sensor by as much): their median is the surface's range."""
+    if angles.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
     bins = np.floor((angles + math.pi) / step).astype(np.int64)
     order = np.lexsort((ranges, bins))
     b, r = bins[order], ranges[order]

@@ -15,7 +15,14 @@ from carto_cli.core.errors import CartoError, TopicError
 from carto_cli.core.parse import height_band
 from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, beam_angles, quaternion_yaw
 from carto_cli.io.recording import ReadOptions, kind_of, normalise_type
-from carto_cli.sensor.height_band import HeightBand, auto_band, given_band, nearest_per_bearing, sensor_band
+from carto_cli.sensor.height_band import (
+    MIN_POINTS,
+    HeightBand,
+    auto_band,
+    given_band,
+    nearest_per_bearing,
+    sensor_band,
+)
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 MULTI_ECHO = "sensor_msgs/msg/MultiEchoLaserScan"
@@ -258,8 +265,11 @@ class Decoder:
         band = self._chosen.get(topic)
         if band is None:
             band = self._choose(columns)
-            self._chosen[topic] = band
             self.bands[topic] = band
+            # A cloud too sparse to tell anything (a driver's first, half-filled message) is read in the fallback
+            # slice and the choice is left to the next one.
+            if int(np.isfinite(columns["z"]).sum()) >= MIN_POINTS or band.how in ("sensor", "given"):
+                self._chosen[topic] = band
         return cloud_scan(msg, topic, band, columns)
 
     def _choose(self, columns: dict[str, np.ndarray]) -> HeightBand:

@@ -169,3 +169,18 @@ def test_a_flattened_sweep_converted_keeps_its_point_times(tmp_path):
     assert back.num_beams == scan.num_beams
     assert np.allclose(back.ranges, scan.ranges, atol=1e-5)
     assert np.allclose(back.point_times, scan.point_times, atol=1e-7)
+
+
+def test_a_sparse_first_cloud_leaves_the_choice_to_the_next():
+    decoder = M.Decoder(ReadOptions())
+    decoder.cloud(cloud(ring(8)), "/points")
+    assert decoder.bands["/points"].how == "no floor"
+    rng = np.random.default_rng(1)
+    a = rng.uniform(-math.pi, math.pi, 2000)
+    floor = np.column_stack([3 * np.cos(a[:1000]), 3 * np.sin(a[:1000]), np.full(1000, -0.5)])
+    wall = np.column_stack([4 * np.cos(a[1000:]), 4 * np.sin(a[1000:]), rng.uniform(-0.4, 1.5, 1000)])
+    decoder.cloud(cloud(np.vstack([floor, wall])), "/points")
+    band = decoder.bands["/points"]
+    assert band.how == "auto" and band.floor == pytest.approx(-0.5, abs=0.01)
+    decoder.cloud(cloud(ring(8)), "/points")
+    assert decoder.bands["/points"] is band  # chosen once, kept
