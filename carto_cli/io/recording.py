@@ -15,6 +15,9 @@ SCAN_TYPES = (
     "sensor_msgs/msg/LaserScan",
     "sensor_msgs/msg/MultiEchoLaserScan",
     "sensor_msgs/msg/PointCloud2",
+    # Livox's own cloud (a list of points with a time each), read when the recording carries its definition.
+    "livox_ros_driver/msg/CustomMsg",
+    "livox_ros_driver2/msg/CustomMsg",
 )
 ODOMETRY_TYPES = ("nav_msgs/msg/Odometry",)
 IMU_TYPES = ("sensor_msgs/msg/Imu",)

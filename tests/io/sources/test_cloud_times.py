@@ -184,3 +184,47 @@ def test_a_sparse_first_cloud_leaves_the_choice_to_the_next():
     assert band.how == "auto" and band.floor == pytest.approx(-0.5, abs=0.01)
     decoder.cloud(cloud(ring(8)), "/points")
     assert decoder.bands["/points"] is band  # chosen once, kept
+
+
+LIVOX_POINT = "uint32 offset_time\nfloat32 x\nfloat32 y\nfloat32 z\nuint8 reflectivity\nuint8 tag\nuint8 line\n"
+LIVOX_MSG = ("std_msgs/Header header\nuint64 timebase\nuint32 point_num\nuint8 lidar_id\nuint8[3] rsvd\n"
+             "livox_ros_driver/CustomPoint[] points\n")
+
+
+def test_livox_custom_msg_read_from_the_bags_own_definition(tmp_path):
+    """A ROS1 bag of livox_ros_driver/CustomMsg: rosbags reads it by the definition the bag carries, and its points
+    become a scan in the band above the floor, timed by offset_time after timebase."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import get_types_from_msg
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    ts.register({**get_types_from_msg(LIVOX_POINT, "livox_ros_driver/msg/CustomPoint"),
+                 **get_types_from_msg(LIVOX_MSG, "livox_ros_driver/msg/CustomMsg")})
+    L = ts.types
+    rng = np.random.default_rng(2)
+    a = rng.uniform(-math.pi, math.pi, 2000)
+    floor = np.column_stack([3 * np.cos(a[:1000]), 3 * np.sin(a[:1000]), np.full(1000, -0.6)])
+    wall = np.column_stack([4 * np.cos(a[1000:]), 4 * np.sin(a[1000:]), rng.uniform(-0.5, 1.5, 1000)])
+    xyz = np.vstack([floor, wall])
+    offsets = np.round((a + math.pi) / (2 * math.pi) * 0.1e9).astype(np.int64)
+    stamp_ns = 20_000_000_000
+    timebase = stamp_ns + 5_000_000  # 5 ms after the header's stamp
+    points = [L["livox_ros_driver/msg/CustomPoint"](offset_time=int(o), x=float(p[0]), y=float(p[1]), z=float(p[2]),
+                                                    reflectivity=10, tag=0, line=0) for p, o in zip(xyz, offsets)]
+    header = L["std_msgs/msg/Header"](seq=0, stamp=L["builtin_interfaces/msg/Time"](sec=20, nanosec=0),
+                                      frame_id="livox_frame")
+    msg = L["livox_ros_driver/msg/CustomMsg"](header=header, timebase=timebase, point_num=len(points), lidar_id=0,
+                                              rsvd=np.zeros(3, np.uint8), points=points)
+    path = tmp_path / "livox.bag"
+    with Writer(path) as writer:
+        conn = writer.add_connection("/livox/lidar", "livox_ros_driver/msg/CustomMsg", typestore=ts)
+        writer.write(conn, stamp_ns, ts.serialize_ros1(msg, "livox_ros_driver/msg/CustomMsg"))
+    with open_recording(path) as rec:
+        assert [t.kind for t in rec.topics()] == ["scan"]
+        scan = next(iter(rec.records(["/livox/lidar"])))
+        band = rec.cloud_bands["/livox/lidar"]
+    assert scan.time == 20.0 and scan.frame == "livox_frame"
+    assert band.how == "auto" and band.floor == pytest.approx(-0.6, abs=0.01)
+    assert np.allclose(np.hypot(*scan.points().T), 4.0, atol=1e-4)
+    expected = 0.005 + (scan.angles.astype(np.float64) + math.pi) / (2 * math.pi) * 0.1
+    assert np.allclose(scan.point_times, expected, atol=2e-5)
