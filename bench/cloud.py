@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """A 3D lidar flattened to 2D (issue 47): its map beside an ideal 2D lidar's.
 
-    python bench/cloud.py [--laps N] [--seed S] [--furniture K] [--format mcap|ros1|ros2-sqlite3] [--keep DIR]
+    python bench/cloud.py [--laps N] [--seed S] [--furniture K] [--format mcap|ros1|ros2-sqlite3] [--instant]
+                          [--keep DIR]
 
 The loop building (``sim.loop_building``) with a 2.6 m ceiling and ``K`` boxes of furniture up to 0.55 m tall in
 its corridor (``sim.lidar3d.furnish``), driven round by the default loop. A 16-ring lidar (VLP-16-like: -15 to +15
@@ -16,11 +17,13 @@ the cells either map knows: the share whose class (occupied, free, unknown) diff
 and at the best shift of up to two cells (each frame is its SLAM's estimate of the first pose). The same figures
 for the 2D lidar against itself with other noise (seed + 1) are the measure's floor. ``beyond_a_cell``: the differing
 cells (at the best shift) more than a cell from any occupied cell of either map: a wall where the other has none, or
-free space the other does not have, not a wall's line drawn in the neighbouring cell. Printed as JSON.
+free space the other does not have, not a wall's line drawn in the neighbouring cell. ``--instant``: every column
+of a sweep fired at its stamp, so the figure is the flattening's alone, without de-skewing. Printed as JSON.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import subprocess
 import sys
@@ -127,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--furniture", type=int, default=14)
     ap.add_argument("--format", default="mcap")
+    ap.add_argument("--instant", action="store_true",
+                    help="every column of a sweep at its stamp (no motion within the sweep, nothing to de-skew)")
     ap.add_argument("--keep", type=Path, help="write the recordings and maps here (default: a temporary directory)")
     args = ap.parse_args(argv)
 
@@ -138,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         root = args.keep or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
-        sim3d = simulate_3d(building, trajectory, lidar=LIDAR_3D, height=HEIGHT, seed=args.seed)
+        lidar = dataclasses.replace(LIDAR_3D, instantaneous=args.instant)
+        sim3d = simulate_3d(building, trajectory, lidar=lidar, height=HEIGHT, seed=args.seed)
         rec3d = sim3d.write(root / f"lidar3d{suffix}", args.format, overwrite=True)
         sim2d = simulate(world, trajectory, scan_rate=LIDAR_3D.rate, lidar=LIDAR_2D, seed=args.seed)
         rec2d = root / f"lidar2d{suffix}"
@@ -156,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
         runs = {"3d": carto_map(rec3d, root / "map3d"), "2d": carto_map(rec2d, root / "map2d"),
                 "2d_other_seed": carto_map(rec2d_other, root / "map2d_other")}
         result = {
-            "world": world.name, "laps": args.laps, "seed": args.seed, "furniture": len(building.furniture),
+            "world": world.name, "laps": args.laps, "seed": args.seed, "instant": args.instant,
+            "furniture": len(building.furniture),
             "furniture_max_height": round(building.furniture_height, 3), "lidar_height": HEIGHT,
             "sweeps": int(len(sim3d.sweep_times)), "simulate_and_write_s": round(simulated_s, 1),
             "band": band.describe(), "maps": runs, "3d_vs_2d": compare(root / "map3d", root / "map2d"),

@@ -103,12 +103,16 @@ class Lidar3D:
     min_range: float = 0.3
     noise: float = 0.01
     dropout: float = 0.0
+    # Every column at the stamp (an idealised flash lidar): what the flattening gives without any de-skewing.
+    instantaneous: bool = False
 
     def azimuths(self) -> np.ndarray:
         return -math.pi + 2 * math.pi * np.arange(self.columns) / self.columns
 
     def column_offsets(self) -> np.ndarray:
         """Seconds after the sweep's stamp each column fires: the turn spread over the period."""
+        if self.instantaneous:
+            return np.zeros(self.columns)
         return np.arange(self.columns) / (self.columns * self.rate)
 
 
