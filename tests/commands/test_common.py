@@ -23,14 +23,11 @@ def test_z_slice_given_is_the_sensor_frame_and_none_is_the_band_above_the_floor(
     assert z_slice(None, None).cloud_band == "auto"
 
 
-def test_map_flags_slice_in_the_sensor_frame():
-    from carto_cli.cli import _with_z
+def test_cloud_band_option_reaches_the_readers():
     from carto_cli.options import load_options
     from carto_cli.pipeline import read_options
 
-    read = read_options(load_options("default", _with_z(None, -0.3, None)))
-    assert (read.min_z, read.max_z, read.cloud_band) == (-0.3, 2.0, "sensor")
-    assert read_options(load_options("default", _with_z(None, None, None))).cloud_band == "auto"
+    assert read_options(load_options("default")).cloud_band == "auto"
     given = read_options(load_options("default", ["trajectory_builder_2d.cloud_band=0.2..1.1"]))
     assert given.cloud_band == "0.2..1.1"
     with pytest.raises(CartoError, match="cloud_band"):
