@@ -206,17 +206,17 @@ def _say_compiling(sentence: str) -> None:
 
 
 # One default everywhere: the options' trajectory_builder_2d.min_z / max_z (io.recording.ReadOptions keeps them)
-MIN_Z = typer.Option(-0.8, "--min-z", metavar="M", rich_help_panel=PANEL_INPUT,
-                     help="PointCloud2: lowest z of the 2D slice (m).")
-MAX_Z = typer.Option(2.0, "--max-z", metavar="M", rich_help_panel=PANEL_INPUT,
-                     help="PointCloud2: highest z of the 2D slice (m).")
-# Commands that map take the slice as options (trajectory_builder_2d.min_z / max_z): unset keeps the profile's
+MIN_Z = typer.Option(None, "--min-z", metavar="M", rich_help_panel=PANEL_INPUT,
+                     help="PointCloud2: lowest z of the 2D slice in the sensor frame (m; default -0.8 with --max-z; "
+                          "neither: a band above the floor, chosen from the clouds).")
+MAX_Z = typer.Option(None, "--max-z", metavar="M", rich_help_panel=PANEL_INPUT,
+                     help="PointCloud2: highest z of the 2D slice in the sensor frame (m; default 2.0 with --min-z).")
+# Commands that map take the slice as options (trajectory_builder_2d.min_z / max_z, and cloud_band=sensor when either
+# is given): unset keeps the profile's
 MAP_MIN_Z = typer.Option(None, "--min-z", metavar="M", rich_help_panel=PANEL_INPUT,
-                         help="PointCloud2: lowest z of the 2D slice (m; default: trajectory_builder_2d.min_z, "
-                              "-0.8).")
+                         help="PointCloud2: lowest z, sensor frame (m; default: a band above the floor).")
 MAP_MAX_Z = typer.Option(None, "--max-z", metavar="M", rich_help_panel=PANEL_INPUT,
-                         help="PointCloud2: highest z of the 2D slice (m; default: trajectory_builder_2d.max_z, "
-                              "2.0).")
+                         help="PointCloud2: highest z, sensor frame (m; default: see --min-z).")
 RECORDING = typer.Argument(..., metavar="RECORDING",
                            help="ROS1 .bag, ROS2 bag directory, .mcap or CARMEN .clf/.log[.gz].")
 # Several: lasers mapped (relocalized) together, their scans merged (io.topics)
@@ -248,6 +248,9 @@ def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | Non
         out.append(f"trajectory_builder_2d.min_z={min_z!r}")
     if max_z is not None:
         out.append(f"trajectory_builder_2d.max_z={max_z!r}")
+    if min_z is not None or max_z is not None:
+        # A slice given in z is the sensor frame's, as it always was; the floor-relative band is cloud_band's.
+        out.append("trajectory_builder_2d.cloud_band=sensor")
     return out
 
 
@@ -256,8 +259,8 @@ def _with_z(overrides: list[str] | None, min_z: float | None, max_z: float | Non
 def info(
     recording: Path = RECORDING,
     as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
-    min_z: float = MIN_Z,
-    max_z: float = MAX_Z,
+    min_z: float | None = MIN_Z,
+    max_z: float | None = MAX_Z,
 ):
     """Describe a recording: topics, rates, scan geometry, static TF, warnings."""
     from carto_cli.commands.common import z_slice
@@ -293,8 +296,8 @@ def convert(
     imu_topic: str | None = typer.Option(None, "--imu-topic", metavar="TOPIC", rich_help_panel=PANEL_INPUT,
                                          help="Only this IMU topic."),
     force: bool = typer.Option(False, "--force", "-f", help="Replace OUT if it exists."),
-    min_z: float = MIN_Z,
-    max_z: float = MAX_Z,
+    min_z: float | None = MIN_Z,
+    max_z: float | None = MAX_Z,
 ):
     """Convert between ROS1 bags, ROS2 bags (sqlite3 / mcap storage) and MCAP (ROS1 <-> ROS2: every topic, lossless)."""
     from carto_cli.commands.common import z_slice
@@ -727,8 +730,8 @@ def relocalize_(
         "an answer no prior's window confirmed."),
     odom_frame: str | None = ODOM_FRAME,
     base_frame: str | None = BASE_FRAME,
-    min_z: float = MIN_Z,
-    max_z: float = MAX_Z,
+    min_z: float | None = MIN_Z,
+    max_z: float | None = MAX_Z,
     jobs: int | None = typer.Option(None, "--jobs", "-j", metavar="N", callback=_at_least_one,
                                     rich_help_panel=PANEL_PERFORMANCE,
                                     help="--queries: queries relocalized at once; one query or --track: threads "
@@ -753,7 +756,8 @@ def relocalize_(
 
     request = RelocalizeRequest(
         map_file, recording, initial_pose=initial_pose, sigma_xy=sigma_xy, sigma_yaw=yaw_sigma, max_jump=max_jump,
-        profile=profile, overrides=tuple(overrides or ()), read=z_slice(min_z, max_z),
+        profile=profile, overrides=tuple(overrides or ()),
+        read=None if min_z is None and max_z is None else z_slice(min_z, max_z),
         topics=TopicChoice(scan=_topics(scan_topic), odometry=odom_topic, odom_frame=odom_frame,
                            base_frame=base_frame),
         jobs=jobs)

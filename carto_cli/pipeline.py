@@ -318,7 +318,7 @@ class Plan:
 def read_options(options: Options | Auto) -> ReadOptions:
     """How to read a recording for these options (the 3D point-cloud slice)."""
     tb = (options.base if isinstance(options, Auto) else options).trajectory_builder_2d
-    return ReadOptions(min_z=tb.min_z, max_z=tb.max_z)
+    return ReadOptions(min_z=tb.min_z, max_z=tb.max_z, cloud_band=tb.cloud_band)
 
 
 @contextmanager

@@ -13,11 +13,16 @@ __all__ = ["COMPILE_NOTE_MIN_S", "check_algorithm", "compiling_note", "record_ga
 COMPILE_NOTE_MIN_S = 1.0  # below this, compiling kernels is not worth a mention
 
 
-def z_slice(min_z: float, max_z: float) -> ReadOptions:
-    """How to read point clouds when slicing them to 2D between ``min_z`` and ``max_z`` (m)."""
-    if min_z > max_z:
-        raise CartoError(f"--min-z ({min_z}) is above --max-z ({max_z})")
-    return ReadOptions(min_z=min_z, max_z=max_z)
+def z_slice(min_z: float | None, max_z: float | None) -> ReadOptions:
+    """How to read point clouds: sliced to 2D between ``min_z`` and ``max_z`` (m, sensor frame) when either is
+    given, else in the band ``auto`` chooses above the floor."""
+    if min_z is None and max_z is None:
+        return ReadOptions()
+    low = ReadOptions.min_z if min_z is None else min_z
+    high = ReadOptions.max_z if max_z is None else max_z
+    if low > high:
+        raise CartoError(f"--min-z ({low}) is above --max-z ({high})")
+    return ReadOptions(min_z=low, max_z=high, cloud_band="sensor")
 
 
 def check_algorithm(algorithm: str) -> str:

@@ -32,6 +32,9 @@ class ScanStats:
     out_of_limits: int = 0
     # Where each frame's laser sits on the robot, as `carto map` would place it: x, y (m), yaw (deg) and from what
     mounts: list[dict] = field(default_factory=list)
+    # A point cloud topic: the height band its clouds are sliced in (``sensor.height_band.HeightBand.to_dict``), with
+    # ``described``, the line `carto info` prints
+    band: dict | None = None
 
 
 @dataclass
@@ -68,7 +71,19 @@ class RecordingInfo:
     tf_transforms: list[dict] | None = None  # dynamic TF: the odometry edge and the /tf transforms that never moved
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return _finite(asdict(self))
+
+
+def _finite(value):
+    """``value`` with every infinite float as None: JSON has no infinity, and a point cloud's scans have no range
+    limits (``range_max`` inf)."""
+    if isinstance(value, float) and math.isinf(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
 
 
 class _TopicAccumulator:
@@ -212,6 +227,10 @@ def run_info(path: str | Path, read: ReadOptions | None = None, *,
         info.auto_unavailable = why_not
         _place_lasers(rec, info, selection.tf_odometry.fixed if selection is not None and selection.tf_odometry
                       else ())
+        for report in info.topics:
+            band = rec.cloud_bands.get(report.name)
+            if band is not None and report.scan is not None:
+                report.scan.band = {**band.to_dict(), "described": band.describe()}
         if selection is not None:
             info.odometry_source = selection.describe_odometry()
             tf = selection.tf_odometry
@@ -290,6 +309,8 @@ def format_info(info: RecordingInfo) -> str:
             )
             lines.extend(f"  {'':<{width}}  mount {m['frame']}: x {m['x']:.3f} m, y {m['y']:.3f} m, yaw "
                          f"{m['yaw_deg']:.1f}°: {m['source']}" for m in s.mounts)
+            if s.band is not None:
+                lines.append(f"  {'':<{width}}  cloud band {s.band['described']}")
     lines.append("")
     lines.append(f"odometry   {'yes' if info.has_odometry else 'no'}"
                  + (f" ({info.odometry_source})" if info.odometry_source and info.has_odometry else ""))

@@ -28,7 +28,7 @@ from carto_cli.io.sources.open import open_recording
 from carto_cli.io.topics import TopicSelection, select_topics, selected_records
 from carto_cli.io.trajectory import Trajectory, write_trajectory
 from carto_cli.options import Options, apply_overrides, load_options
-from carto_cli.pipeline import TopicChoice, resolve_laser_pose
+from carto_cli.pipeline import TopicChoice, read_options, resolve_laser_pose
 from carto_cli.relocalization import (
     BatchSummary,
     QueryResult,
@@ -139,7 +139,8 @@ class RelocalizeRequest:
     ``initial_pose``: 'x,y,yaw' text or a pose (None: a global search); text is parsed only when it is used, so
     that a bad one is reported after the map and the scan, as the command always has. ``sigma_yaw`` is in radians.
     ``max_jump`` (m): an answer farther than this from its prior is 'lost'. ``overrides`` are ``--set`` items over
-    the map's own options. ``read``: how point clouds are sliced (io.recording.ReadOptions). ``topics``: the scan
+    the map's own options. ``read``: how point clouds are sliced (io.recording.ReadOptions; None: as the map's options
+    slice them). ``topics``: the scan
     topic, and the odometry (``odometry``, or TF: ``odom_frame`` / ``base_frame``; default the recording's) that
     moves a track's predictions and the scans that check an answer no window around its prior confirmed (``imu``
     is not read). ``jobs``: threads for a batch, or for one query's whole-map search (None: every core); the
@@ -228,7 +229,10 @@ def prepare(request: RelocalizeRequest, on_warning: Callable[[str], None] | None
     auto = apply_map_auto(loaded, profile)
     warnings: list[str] = []
     relocalizer = None if _reads_scans(loaded) else _relocalizer(loaded, overrides, warnings, on_warning, jobs)
-    with open_recording(request.recording, request.read) as rec:
+    # Clouds sliced as the map's were (its cloud_band, min_z, max_z, with the overrides), unless a slice was given.
+    read = request.read if request.read is not None else read_options(
+        apply_overrides(loaded.options, overrides) if overrides else loaded.options)
+    with open_recording(request.recording, read) as rec:
         _tell(rec.warnings, warnings, on_warning)
         selection = select_topics(rec, topics.scan, topics.odometry, odom_frame=topics.odom_frame,
                                   base_frame=topics.base_frame)

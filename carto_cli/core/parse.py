@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 from carto_cli.core.errors import CartoError
 
-__all__ = ["NUMBER", "angle", "megabytes", "number", "pose"]
+__all__ = ["NUMBER", "angle", "height_band", "megabytes", "number", "pose"]
 
 NUMBER = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
 _ANGLE = re.compile(rf"^({NUMBER})(deg)?$")
@@ -78,3 +78,20 @@ def pose(text: str, what: str) -> tuple[float, float, float]:
     if len(parts) != 3:
         raise fail(f"expected x,y,yaw, got {text!r}")
     return (number(parts[0], "x", fail), number(parts[1], "y", fail), angle(parts[2], "yaw", fail))
+
+
+def height_band(text: str) -> tuple[float, float] | None:
+    """A point cloud's band (trajectory_builder_2d.cloud_band): 'auto' -> None, 'LOW..HIGH' (m above the floor) ->
+    (LOW, HIGH); anything else a ValueError saying what is expected. ('sensor' is the caller's to handle.)"""
+    text = text.strip().lower()
+    if text == "auto":
+        return None
+    lo, sep, hi = text.partition("..")
+    try:
+        low, high = float(lo), float(hi)
+    except ValueError:
+        low = high = math.nan
+    if not sep or not (math.isfinite(low) and math.isfinite(high)) or low >= high:
+        raise ValueError(f"{text!r} is neither 'auto', 'sensor' nor a band LOW..HIGH in metres above the floor "
+                         "with LOW below HIGH")
+    return low, high

@@ -143,6 +143,21 @@ class Transform:
 Record = Scan | Odometry | Imu | Transform
 
 
+@dataclass(frozen=True, eq=False)
+class Cloud:
+    """A 3D lidar's sweep in the sensor frame, as a writer makes it a PointCloud2 (readers slice clouds into Scans,
+    so this is no ``Record``). ``point_times`` (seconds after ``time``) go into the field ``time_field``, in the
+    convention of the driver that names it so: 't' uint32 ns (Ouster), 'offset_time' uint32 ns (Livox), 'time'
+    float32 s (Velodyne)."""
+
+    time: float
+    points: np.ndarray  # float32 (n, 3) x y z
+    frame: str
+    topic: str = ""
+    point_times: np.ndarray | None = None  # float64 (n,) seconds after ``time``
+    time_field: str = "t"
+
+
 def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 

@@ -15,6 +15,9 @@ SCAN_TYPES = (
     "sensor_msgs/msg/LaserScan",
     "sensor_msgs/msg/MultiEchoLaserScan",
     "sensor_msgs/msg/PointCloud2",
+    # Livox's own cloud (a list of points with a time each), read when the recording carries its definition.
+    "livox_ros_driver/msg/CustomMsg",
+    "livox_ros_driver2/msg/CustomMsg",
 )
 ODOMETRY_TYPES = ("nav_msgs/msg/Odometry",)
 IMU_TYPES = ("sensor_msgs/msg/Imu",)
@@ -61,13 +64,17 @@ class TopicInfo:
 
 @dataclass(frozen=True)
 class ReadOptions:
-    """How raw messages become records. PointCloud2 points outside [min_z, max_z] are dropped.
+    """How raw messages become records: which points of a PointCloud2 make its 2D scan.
 
-    The defaults are trajectory_builder_2d.min_z / max_z's (Cartographer's), so `info`, `convert` and `map`
-    slice a cloud alike unless told otherwise (a test keeps them equal)."""
+    ``cloud_band`` (trajectory_builder_2d.cloud_band): 'auto' finds the floor and chooses a band above it from the
+    first cloud's heights (``sensor.height_band``), the sensor slice [min_z, max_z] when it sees no floor;
+    'LOW..HIGH' is a band in metres above the floor; 'sensor' keeps the points within [min_z, max_z] of the sensor
+    frame, as Cartographer does. The defaults are trajectory_builder_2d's, so `info`, `convert` and `map` slice a
+    cloud alike unless told otherwise (a test keeps them equal)."""
 
     min_z: float = -0.8
     max_z: float = 2.0
+    cloud_band: str = "auto"
 
 
 def head(recording: Recording, topics: Iterable[str], n: int) -> list[Record]:
@@ -103,6 +110,8 @@ class Recording(ABC):
         # What the reader had to work around to read the file at all (a damaged bag read without its index);
         # every command that reads the recording shows them.
         self.warnings: list[str] = []
+        # The height band each cloud topic's first cloud chose (``io.sources.messages.Decoder``), for `carto info`.
+        self.cloud_bands: dict = {}
 
     @abstractmethod
     def topics(self) -> list[TopicInfo]:

@@ -1,10 +1,11 @@
 """Write records as ROS1 bags, ROS2 bags (sqlite3 or mcap storage) or standalone MCAP: `carto convert`.
 
 Scans with evenly spaced beams become sensor_msgs/LaserScan, other scans
-PointCloud2 (float32 x, y, z=0); odometry nav_msgs/Odometry; IMU sensor_msgs/Imu;
+PointCloud2 (float32 x, y, z=0); 3D clouds (``Cloud``, a simulated 3D lidar's) PointCloud2 with x, y, z and a
+per-point time field as drivers write it; odometry nav_msgs/Odometry; IMU sensor_msgs/Imu;
 static transforms one tf2_msgs/TFMessage on /tf_static. A message's bag/log
 time is its record's time, so readers that order by bag time and readers that
-use header stamps agree.
+use header stamps agree (a 3D cloud, stamped at its sweep's start, is logged at its end).
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from carto_cli.core.errors import CartoError
-from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, yaw_quaternion
+from carto_cli.core.records import Cloud, Imu, Odometry, Record, Scan, Transform, yaw_quaternion
 from carto_cli.io.recording import normalise_type
 from carto_cli.io.sources.messages import seconds_to_ns
 
@@ -35,6 +36,8 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 TF_STATIC = "/tf_static"
 
 DEFAULT_TOPICS = {Scan: "/scan", Odometry: "/odom", Imu: "/imu"}
+# Per-point time fields drivers write as uint32 nanoseconds (Ouster's t, Livox's offset_time); others float32 s.
+_INTEGER_TIME_FIELDS = ("t", "offset_time")
 
 # What a topic of a source type is written as.
 _OUTPUT_TYPE = {
@@ -66,7 +69,7 @@ def format_for_output(path: Path, explicit: str | None = None) -> str:
 
 
 def write_recording(
-    records: Iterable[Record],
+    records: Iterable[Record | Cloud],
     out: Path,
     fmt: str,
     *,
@@ -208,7 +211,7 @@ def _write(records, path, fmt, static_transforms, topics, on_record) -> int:
             n += 1
         for rec in itertools.chain(() if first is None else (first,), it):
             topic, msgtype, msg = build.message(rec, channels)
-            sink.write(channels.get(topic, msgtype), _ns(rec.time), msg)
+            sink.write(channels.get(topic, msgtype), _ns(_log_time(rec)), msg)
             n += 1
             if on_record is not None:
                 on_record()
@@ -217,6 +220,15 @@ def _write(records, path, fmt, static_transforms, topics, on_record) -> int:
         sink.abort()
         raise
     return n
+
+
+def _log_time(rec: Record | Cloud) -> float:
+    """When a record is logged: its time, but a cloud's once its last point is measured, when a driver can
+    publish it (its stamp is often the sweep's start); so a reader in log order has the odometry and IMU of the
+    whole sweep before the sweep, as from a real recording."""
+    if isinstance(rec, Cloud) and rec.point_times is not None and len(rec.point_times):
+        return rec.time + max(float(np.max(rec.point_times)), 0.0)
+    return rec.time
 
 
 def _ns(t: float) -> int:
@@ -273,7 +285,10 @@ class _Builder:
             return self.T["std_msgs/msg/Header"](seq=seq & 0xFFFFFFFF, stamp=stamp, frame_id=frame)
         return self.T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
 
-    def message(self, rec: Record, channels: _Channels):
+    def message(self, rec: Record | Cloud, channels: _Channels):
+        if isinstance(rec, Cloud):
+            topic = rec.topic or DEFAULT_TOPICS[Scan]
+            return topic, POINT_CLOUD2, self.cloud(rec, topic)
         if isinstance(rec, Scan):
             topic = rec.topic or DEFAULT_TOPICS[Scan]
             declared = channels.type_of(topic)
@@ -312,21 +327,46 @@ class _Builder:
     def point_cloud(self, s: Scan, topic: str):
         r = s.ranges.astype(np.float64)
         a = s.angles.astype(np.float64)
-        xyz = np.zeros((s.num_beams, 3), dtype="<f4")
-        xyz[:, 0] = r * np.cos(a)
-        xyz[:, 1] = r * np.sin(a)
+        xyz = np.column_stack([r * np.cos(a), r * np.sin(a), np.zeros(s.num_beams)]).astype(np.float32)
+        # A flattened 3D sweep keeps its points' times (Velodyne's 'time' field: float32 s after the stamp), so
+        # that the converted recording is de-skewed as the original was.
+        return self.cloud(Cloud(s.time, xyz, s.frame, topic, s.point_times, "time"), topic)
+
+    def cloud(self, c: Cloud, topic: str):
+        n = int(c.points.shape[0])
+        formats, names = ["<f4", "<f4", "<f4"], ["x", "y", "z"]
+        datatypes = [7, 7, 7]  # FLOAT32
+        if c.point_times is not None:
+            float_time = c.time_field not in _INTEGER_TIME_FIELDS
+            formats.append("<f4" if float_time else "<u4")
+            names.append(c.time_field)
+            datatypes.append(7 if float_time else 6)  # FLOAT32 s, or UINT32 ns
+        dtype = np.dtype({"names": names, "formats": formats})
+        rows = np.zeros(n, dtype=dtype)
+        for k, name in enumerate("xyz"):
+            rows[name] = c.points[:, k]
+        if c.point_times is not None:
+            times = np.asarray(c.point_times, dtype=np.float64)
+            if c.time_field in _INTEGER_TIME_FIELDS:
+                if n and float(times.min()) < 0.0:
+                    raise CartoError(f"a cloud on {topic} has points before its stamp, which {c.time_field} "
+                                     "(unsigned nanoseconds) cannot hold")
+                rows[c.time_field] = np.round(times * 1e9).astype(np.uint32)
+            else:
+                rows[c.time_field] = times
         field = self.T["sensor_msgs/msg/PointField"]
-        fields = [field(name=name, offset=4 * i, datatype=7, count=1) for i, name in enumerate("xyz")]  # 7 = FLOAT32
+        offsets = [4 * k for k in range(len(names))]  # every column is 4 bytes, packed
+        fields = [field(name=name, offset=o, datatype=d, count=1) for name, o, d in zip(names, offsets, datatypes)]
         return self.T[POINT_CLOUD2](
-            header=self.header(s.time, s.frame, topic),
+            header=self.header(c.time, c.frame, topic),
             height=1,
-            width=s.num_beams,
+            width=n,
             fields=fields,
             is_bigendian=False,
-            point_step=12,
-            row_step=12 * s.num_beams,
-            data=np.frombuffer(xyz.tobytes(), dtype=np.uint8),
-            is_dense=bool(np.isfinite(xyz).all()),
+            point_step=dtype.itemsize,
+            row_step=dtype.itemsize * n,
+            data=np.frombuffer(rows.tobytes(), dtype=np.uint8),
+            is_dense=bool(np.isfinite(c.points).all()),
         )
 
     def _point(self, x, y, z):

@@ -86,8 +86,13 @@ class PoseExtrapolator:
         duration needs; ``start`` < 0 for beams measured before ``time``).
         Zero before any pose.
         """
+        window = self._odometry_window(time + start, time + start + duration)
+        if window is not None:
+            vx, vy, w_odometry = window
+            w = w_odometry if not self._imu else self._yaw_delta(time + start, time + start + duration) / duration
+            return vx, vy, w
         if not self._poses:
-            return 0.0, 0.0, 0.0
+            return self._first_motion(time, duration, start)
         t0, last = self._poses[-1]
         theta = last[2] + self._yaw_delta(t0, time)
         if len(self._odometry) >= 2:
@@ -99,6 +104,51 @@ class PoseExtrapolator:
             duration = 1e-3
         w = self._yaw_delta(time + start, time + start + duration) / duration
         return c * vx + s * vy, -s * vx + c * vy, w
+
+    def _odometry_window(self, t0: float, t1: float) -> tuple[float, float, float] | None:
+        """(vx, vy, yaw rate) of the body over [t0, t1], velocity in its own frame at t0, from odometry interpolated
+        at both ends; None unless odometry covers t0 and at least half the window (a sweep is logged when it
+        ends, after its odometry: then a sweep is de-skewed by its own motion, not by the motion before it)."""
+        odometry = self._odometry
+        if len(odometry) < 2 or t1 <= t0 or odometry[0][0] > t0:
+            return None
+        wanted = t1 - t0
+        t1 = min(t1, odometry[-1][0])
+        if t1 - t0 < 0.5 * wanted:
+            return None
+        a, b = self._odometry_at(t0), self._odometry_at(t1)
+        dt = t1 - t0
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        c, s = math.cos(a[2]), math.sin(a[2])
+        return (c * dx + s * dy) / dt, (-s * dx + c * dy) / dt, wrap_angle_scalar(b[2] - a[2]) / dt
+
+    def _odometry_at(self, t: float) -> tuple[float, float, float]:
+        """Odometry's pose at ``t`` (within the queue), linear between its samples. (A plain loop: the queue holds
+        only the samples since the last pose.)"""
+        previous = self._odometry[0]
+        for sample in self._odometry:
+            if sample[0] >= t:
+                (ta, pa), (tb, pb) = previous, sample
+                u = 0.0 if tb == ta else (t - ta) / (tb - ta)
+                return (pa[0] + u * (pb[0] - pa[0]), pa[1] + u * (pb[1] - pa[1]),
+                        pa[2] + u * wrap_angle_scalar(pb[2] - pa[2]))
+            previous = sample
+        return previous[1]
+
+    def _first_motion(self, time: float, duration: float, start: float) -> tuple[float, float, float]:
+        """Before any pose: odometry's own velocity (the body's, seen from its newest sample) and the yaw rate, so
+        that the first sweep is de-skewed too; zero without odometry. The first sweep anchors the map: left
+        smeared, it would shift every later wall by half its motion."""
+        if len(self._odometry) < 2:
+            return 0.0, 0.0, 0.0
+        (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
+        dt = t_new - t_old
+        dx, dy = p_new[0] - p_old[0], p_new[1] - p_old[1]
+        c, s = math.cos(p_new[2]), math.sin(p_new[2])
+        if duration == 0.0:
+            duration = 1e-3
+        w = self._yaw_delta(time + start, time + start + duration) / duration
+        return (c * dx + s * dy) / dt, (-s * dx + c * dy) / dt, w
 
     # --- internals ------------------------------------------------------------------------
 

@@ -89,6 +89,12 @@ def warm_up() -> None:
     least_squares.match(grid, points, np.zeros(3))
 
 
+def _reaches_back(scan: Scan) -> bool:
+    """Whether some of ``scan``'s beams were measured before its own time (several lasers' window, a sweep stamped
+    at its end): the motion between the last matched pose and this one covers them."""
+    return scan.point_times is not None and len(scan.point_times) > 0 and float(np.min(scan.point_times)) < 0.0
+
+
 class LocalSlam:
     def __init__(self, options: TrajectoryBuilder2D, laser_pose: ArrayLike = (0.0, 0.0, 0.0),
                  timer: StageTimer | NullTimer | None = None) -> None:
@@ -173,8 +179,9 @@ class LocalSlam:
     def _matched_again(self, scan: Scan, grid: ProbabilityGrid, pose: np.ndarray, prediction: np.ndarray,
                        data: RangeData, points: np.ndarray, cost: float
                        ) -> tuple[np.ndarray, float, RangeData, np.ndarray]:
-        """A scan whose beams span a window (several lasers merged, a 3D lidar's points) de-skewed again by the
-        motion its first match found since the last scan, and refined by least squares from that match.
+        """A scan whose beams reach back before its time (several lasers merged, a sweep stamped at its end)
+        de-skewed again by the motion its first match found since the last scan, and refined by least squares
+        from that match.
         Odometry's motion over a tenth of a second is off by its scale and its heading noise; de-skewed by it,
         two lasers' windows mapped 0.3 degrees turned and their step headings twice as noisy as with the true
         motion (bench/multi_lidar.py). The motion the matches themselves give has neither."""
@@ -214,9 +221,9 @@ class LocalSlam:
         self.extrapolator.add_imu(imu)
 
     def _predicted_motion(self, scan: Scan) -> tuple[float, float, float] | None:
-        """The motion the extrapolator predicts over the time ``scan``'s beams span; None for a scan taken at
-        once, or before the first pose."""
-        if not scan.timed or self.extrapolator.last_pose_time is None:
+        """The motion the extrapolator predicts over the time ``scan``'s beams span (before the first pose, the
+        odometry's, else none); None for a scan taken at once."""
+        if not scan.timed:
             return None
         times = scan.beam_times()
         if not len(times):
@@ -292,7 +299,7 @@ class LocalSlam:
             with timer.stage("match"):
                 pose, score, ls_cost = self._match(matching.grid, points, prediction)
             self.stats.matched += 1
-            if motion is not None and scan.point_times is not None and o.num_accumulated_range_data == 1:
+            if motion is not None and _reaches_back(scan) and o.num_accumulated_range_data == 1:
                 pose, ls_cost, data, points = self._matched_again(scan, matching.grid, pose, prediction, data,
                                                                   points, ls_cost)
 

@@ -20,6 +20,7 @@ from typing import Any
 import yaml
 
 from carto_cli.core.errors import CartoError
+from carto_cli.core.parse import height_band
 from carto_cli.options import profiles
 from carto_cli.options.schema import Options, bounds_text, hints, is_section, suggestion
 
@@ -165,7 +166,13 @@ def _coerce(value: Any, tp: Any, f: dataclasses.Field, key: str, layer: Layer) -
         value = float(value)
         if not math.isfinite(value):
             raise layer.fail(key, f"expected a finite number, got {_show(value)}")
-    else:  # pragma: no cover - only int/float/bool leaves are declared
+    elif tp is str:
+        # A word or a small expression (trajectory_builder_2d.cloud_band); its meaning is checked by
+        # validate_options, where the options that go with it are known.
+        if not isinstance(value, str):
+            raise layer.fail(key, f"expected text, got {_show(value)}")
+        value = value.strip()
+    else:  # pragma: no cover - only int/float/bool/str leaves are declared
         raise TypeError(f"unsupported option type {tp!r} for {key}")
     md = f.metadata
     shown = f"{value:g}" if isinstance(value, float) else str(value)
@@ -226,6 +233,11 @@ def validate_options(options: Options, where: str | Path | None = None) -> Optio
     if tb.min_z > tb.max_z:
         raise CartoError(f"trajectory_builder_2d.min_z ({tb.min_z:g} m) must not exceed "
                          f"trajectory_builder_2d.max_z ({tb.max_z:g} m)", where)
+    if tb.cloud_band.strip().lower() != "sensor":
+        try:
+            height_band(tb.cloud_band)
+        except ValueError as e:
+            raise CartoError(f"trajectory_builder_2d.cloud_band: {e}", where) from None
     return options
 
 

@@ -191,6 +191,9 @@ class TrajectoryBuilder2D:
     max_range: float = _opt(30.0, "returns farther than this become misses", unit="m", gt=0)
     min_z: float = _opt(-0.8, "points below this height are dropped (point clouds only)", unit="m")
     max_z: float = _opt(2.0, "points above this height are dropped (point clouds only)", unit="m")
+    cloud_band: str = _opt("auto", "point clouds: 'auto' (a band above the floor's clutter and below the ceiling, "
+                           "from the first cloud's heights; min_z..max_z without a floor in sight), 'LOW..HIGH' "
+                           "(m above the floor) or 'sensor' (min_z..max_z in the sensor frame)")
     missing_data_ray_length: float = _opt(5.0, "length of the free ray inserted for a return beyond max_range",
                                           unit="m", gt=0)
     num_accumulated_range_data: int = _opt(1, "scans accumulated into one before matching", ge=1)

@@ -77,3 +77,23 @@ def test_body_motion_is_the_velocity_extrapolate_uses_seen_from_the_robot():
     c, s = math.cos(p0[2]), math.sin(p0[2])
     assert (p1[0] - p0[0]) / 0.1 == pytest.approx(c * vx - s * vy)
     assert (p1[1] - p0[1]) / 0.1 == pytest.approx(s * vx + c * vy)
+
+
+def test_a_sweep_whose_odometry_is_in_moves_by_its_own_window():
+    """A cloud logged once its sweep has turned: odometry through the sweep is known, and the sweep moves as odometry
+    says over the sweep itself (here: standing until t = 1, then 1 m/s forward turning at 0.5 rad/s), not at the
+    average velocity since the last pose."""
+    e = PoseExtrapolator()
+    e.add_pose(0.9, (0.0, 0.0, 0.0))
+    for k in range(12):
+        t = 0.9 + 0.02 * k
+        u = max(t - 1.0, 0.0)
+        p = tf.compose((3.0, -1.0, 0.7), (math.sin(0.5 * u) / 0.5, (1 - math.cos(0.5 * u)) / 0.5, 0.5 * u))
+        e.add_odometry(Odometry(time=t, x=p[0], y=p[1], yaw=p[2]))
+    vx, vy, w = e.body_motion(1.0, 0.1)
+    assert w == pytest.approx(0.5, rel=1e-6)
+    assert math.hypot(vx, vy) == pytest.approx(math.sin(0.025) / 0.025, rel=1e-6)  # the chord over the arc's time
+    assert vy == pytest.approx(math.hypot(vx, vy) * math.sin(0.025), rel=1e-6)  # the chord's bearing: half the turn
+    # A window odometry does not reach yet falls back on the velocity it had.
+    late = e.body_motion(1.5, 0.1)
+    assert late[2] != pytest.approx(0.5)

@@ -84,7 +84,7 @@ def test_one_solver_section_with_each_owners_default_and_wording():
 def test_walk_yields_every_leaf_with_its_type():
     leaves = list(walk(Options))
     assert [leaf.name for leaf in leaves] == option_names()
-    assert all(leaf.type in (int, float, bool) for leaf in leaves)
+    assert all(leaf.type in (int, float, bool, str) for leaf in leaves)
     by_name = {leaf.name: leaf for leaf in leaves}
     assert by_name["trajectory_builder_2d.use_imu_data"].type is bool
     assert by_name["trajectory_builder_2d.max_range"].field.metadata["unit"] == "m"

@@ -132,14 +132,14 @@ class McapRecording(Recording):
     def _iter_records(self, topics: list[str]) -> Iterator[Record]:
         if not topics:
             return
-        options = self.options
+        decoder = messages.Decoder(self.options, self.cloud_bands)
         with self._translate_errors(), self._open() as reader:
             decode = _Decoders()
             for schema, channel, message in _in_log_time_order(reader, topics):
                 msgtype = schema.name if schema is not None else ""
                 if not messages.is_readable(channel.topic, msgtype):
                     continue  # another channel of a mixed-type topic: not worth decoding
-                yield from messages.to_records(decode(schema, channel, message), msgtype, channel.topic, options)
+                yield from decoder.to_records(decode(schema, channel, message), msgtype, channel.topic)
 
 
 class _CutFile:

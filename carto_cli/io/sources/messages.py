@@ -7,20 +7,37 @@ mcap_ros1's genpy classes (tuples and bytes, ``secs/nsecs`` stamps).
 from __future__ import annotations
 
 import math
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
 
-from carto_cli.core.errors import TopicError
+from carto_cli.core.errors import CartoError, TopicError
+from carto_cli.core.parse import height_band
 from carto_cli.core.records import Imu, Odometry, Record, Scan, Transform, beam_angles, quaternion_yaw
 from carto_cli.io.recording import ReadOptions, kind_of, normalise_type
+from carto_cli.sensor.height_band import (
+    MIN_POINTS,
+    HeightBand,
+    auto_band,
+    given_band,
+    nearest_per_bearing,
+    sensor_band,
+)
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 MULTI_ECHO = "sensor_msgs/msg/MultiEchoLaserScan"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
+LIVOX_TYPES = ("livox_ros_driver/msg/CustomMsg", "livox_ros_driver2/msg/CustomMsg")
 
 # sensor_msgs/PointField datatypes carto accepts for x, y and z.
 _FLOAT_FIELDS = {7: "f4", 8: "f8"}  # FLOAT32, FLOAT64
+# Every sensor_msgs/PointField datatype, INT8 (1) to FLOAT64 (8).
+_POINT_FIELDS = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+# A cloud's per-point time, by the names drivers give it (Ouster, Velodyne, Livox, Hesai / Robosense).
+TIME_FIELDS = ("t", "time", "offset_time", "timestamp")
+_MAX_SWEEP = 10.0  # s: no lidar takes longer over one cloud, so a wider float time field counts nanoseconds
+_ABSOLUTE = 86400.0  # s: a per-point time further than a day from the stamp is a time of day, not an offset
 _NS_PER_S = 1_000_000_000
 
 
@@ -121,29 +138,41 @@ def _uniform_scan(msg: Any, topic: str, ranges: np.ndarray, intensities: np.ndar
 
 def cloud_xyz(msg: Any, topic: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """float64 x, y, z of every point of a PointCloud2, whatever its layout."""
+    columns = cloud_columns(msg, topic, ("x", "y", "z"))
+    return columns["x"], columns["y"], columns["z"]
+
+
+def cloud_columns(msg: Any, topic: str, names: tuple[str, ...],
+                  optional: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """float64 columns of a PointCloud2's fields: every one of ``names`` (x, y and z must be float), and those of
+    ``optional`` that the cloud has (of any PointField datatype)."""
     fields = {str(f.name): f for f in msg.fields}
-    missing = [n for n in ("x", "y", "z") if n not in fields]
+    missing = [n for n in names if n not in fields]
     if missing:
         raise TopicError(f"PointCloud2 on {topic} has no {'/'.join(missing)} field(s); carto needs x, y and z")
+    wanted = list(names) + [n for n in optional if n in fields and n not in names]
     order = ">" if msg.is_bigendian else "<"
     formats, offsets = [], []
-    for name in ("x", "y", "z"):
+    for name in wanted:
         f = fields[name]
-        code = _FLOAT_FIELDS.get(int(f.datatype))
+        table = _FLOAT_FIELDS if name in ("x", "y", "z") else _POINT_FIELDS
+        code = table.get(int(f.datatype))
         if code is None:
-            raise TopicError(
-                f"PointCloud2 on {topic}: field {name} has datatype {int(f.datatype)}; "
-                "carto reads FLOAT32 (7) and FLOAT64 (8) coordinates")
+            if name in ("x", "y", "z"):
+                raise TopicError(
+                    f"PointCloud2 on {topic}: field {name} has datatype {int(f.datatype)}; "
+                    "carto reads FLOAT32 (7) and FLOAT64 (8) coordinates")
+            raise TopicError(f"PointCloud2 on {topic}: field {name} has datatype {int(f.datatype)}, "
+                             "which is no sensor_msgs/PointField type (1 to 8)")
         formats.append(order + code)
         offsets.append(int(f.offset))
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
-    # itemsize covers only x, y, z: the explicit strides below step over any padding,
+    # itemsize covers only the fields read: the explicit strides below step over any padding,
     # and a last point whose trailing padding was not sent still reads.
     itemsize = max(o + np.dtype(c).itemsize for o, c in zip(offsets, formats))
-    empty = np.empty(0, dtype=np.float64)
     if height * width == 0:
-        return empty, empty, empty
+        return {n: np.empty(0, dtype=np.float64) for n in wanted}
     if itemsize > point_step or point_step * width > row_step:
         raise TopicError(
             f"PointCloud2 on {topic} is malformed: fields end at byte {itemsize}, "
@@ -154,24 +183,70 @@ def cloud_xyz(msg: Any, topic: str = "") -> tuple[np.ndarray, np.ndarray, np.nda
         raise TopicError(
             f"PointCloud2 on {topic} is malformed: {data.shape[0]} data bytes for "
             f"{height}x{width} points of {point_step} bytes")
-    dtype = np.dtype({"names": ["x", "y", "z"], "formats": formats, "offsets": offsets, "itemsize": itemsize})
+    dtype = np.dtype({"names": wanted, "formats": formats, "offsets": offsets, "itemsize": itemsize})
     points = np.ndarray(shape=(height, width), dtype=dtype, buffer=data, strides=(row_step, point_step))
     points = points.reshape(-1)
-    return (points["x"].astype(np.float64), points["y"].astype(np.float64), points["z"].astype(np.float64))
+    return {n: points[n].astype(np.float64) for n in wanted}
 
 
-def scan_from_pointcloud2(msg: Any, topic: str = "", options: ReadOptions | None = None) -> Scan:
-    """The horizontal slice min_z <= z <= max_z of a cloud, as a scan sorted by bearing."""
-    options = options or ReadOptions()
-    x, y, z = cloud_xyz(msg, topic)
-    keep = np.isfinite(x) & np.isfinite(y) & (z >= options.min_z) & (z <= options.max_z)
+def point_times(values: np.ndarray, integer: bool, stamp: float) -> np.ndarray:
+    """Seconds after the header stamp of a cloud's per-point time field.
+
+    Drivers differ: Ouster's ``t`` is uint32 ns since the scan's start, Livox's ``offset_time`` uint32 ns after
+    the stamp, Velodyne's ``time`` float32 s relative to the stamp (negative where the stamp is the sweep's end),
+    Hesai's and Robosense's ``timestamp`` float64 absolute s, the old Ouster OS1's ``t`` float ns. So: integers are
+    nanoseconds; floats are seconds unless they span more than any sweep lasts, then nanoseconds; times further
+    from zero than a day are absolute."""
+    t = values * 1e-9 if integer else values
+    if not integer and t.shape[0] and float(np.ptp(t)) > _MAX_SWEEP:
+        t = t * 1e-9
+    if t.shape[0] and abs(float(np.median(t))) > _ABSOLUTE:
+        t = t - stamp
+    return t
+
+
+def livox_columns(msg: Any) -> dict[str, np.ndarray]:
+    """float64 x, y, z and ``offset_time`` (integer nanoseconds after the header's stamp) of a Livox CustomMsg.
+
+    Its points arrive as objects (the decoder's per-point work is done already); ``map`` with ``attrgetter`` walks
+    them in C. A point's ``offset_time`` counts from ``timebase`` (its first point's time), which the driver also
+    stamps the header with; any difference between the two is added."""
+    points = msg.points
+    n = len(points)
+
+    def column(name: str) -> np.ndarray:
+        return np.fromiter(map(attrgetter(name), points), dtype=np.float64, count=n)
+
+    base = int(msg.timebase) - stamp_ns(msg.header.stamp)
+    return {"x": column("x"), "y": column("y"), "z": column("z"), "offset_time": column("offset_time") + base}
+
+
+def cloud_scan(msg: Any, topic: str, band: HeightBand, columns: dict[str, np.ndarray] | None = None, *,
+               integer_times: bool | None = None) -> Scan:
+    """The points of a cloud that ``band`` keeps, as a scan sorted by bearing, with per-point times when the cloud
+    has a time field (``integer_times``: whether it counts nanoseconds; None: as its PointField says)."""
+    if columns is None:
+        columns = cloud_columns(msg, topic, ("x", "y", "z"), TIME_FIELDS)
+    x, y, z = columns["x"], columns["y"], columns["z"]
+    keep = np.isfinite(x) & np.isfinite(y) & np.isfinite(z) & band.keep(z)
+    # Ouster and others publish organised clouds with (0, 0, 0) where a beam had no return.
+    keep &= (x != 0.0) | (y != 0.0) | (z != 0.0)
     x, y = x[keep], y[keep]
     angles = np.arctan2(y, x)
     order = np.argsort(angles, kind="stable")
+    if band.bearing_step is not None:
+        order = order[nearest_per_bearing(angles[order], np.hypot(x[order], y[order]), band.bearing_step)]
     angles = angles[order].astype(np.float32)
     ranges = np.hypot(x[order], y[order]).astype(np.float32)
+    stamp = stamp_seconds(msg.header.stamp)
+    times = None
+    field = next((n for n in TIME_FIELDS if n in columns), None)
+    if field is not None:
+        if integer_times is None:
+            integer_times = next(int(f.datatype) for f in msg.fields if str(f.name) == field) not in (7, 8)
+        times = point_times(columns[field][keep][order], integer_times, stamp)
     return Scan(
-        time=stamp_seconds(msg.header.stamp),
+        time=stamp,
         ranges=ranges,
         angles=angles,
         frame=str(msg.header.frame_id),
@@ -179,7 +254,64 @@ def scan_from_pointcloud2(msg: Any, topic: str = "", options: ReadOptions | None
         angle_min=float(angles[0]) if angles.shape[0] else 0.0,
         angle_increment=None,
         source_type=POINT_CLOUD2,
+        point_times=times,
     )
+
+
+def scan_from_pointcloud2(msg: Any, topic: str = "", options: ReadOptions | None = None) -> Scan:
+    """The horizontal slice min_z <= z <= max_z (sensor frame) of a cloud, as a scan sorted by bearing: how a cloud
+    reads without the floor-relative band of a ``Decoder``."""
+    options = options or ReadOptions()
+    return cloud_scan(msg, topic, sensor_band(options.min_z, options.max_z))
+
+
+class Decoder:
+    """Messages -> records for one pass over a recording: a cloud topic's band is chosen from its first cloud and
+    kept for the rest of the pass (a band that moved from sweep to sweep would move the walls with it), and told
+    to ``bands`` (the recording's, which `carto info` reports)."""
+
+    def __init__(self, options: ReadOptions | None = None, bands: dict[str, HeightBand] | None = None):
+        self.options = options or ReadOptions()
+        self.bands: dict[str, HeightBand] = {} if bands is None else bands
+        self._chosen: dict[str, HeightBand] = {}
+
+    def to_records(self, msg: Any, msgtype: str, topic: str = "") -> list[Record]:
+        t = normalise_type(msgtype)
+        if t == POINT_CLOUD2:
+            return [self.cloud(msg, topic)]
+        if t in LIVOX_TYPES:
+            return [self.cloud(msg, topic, livox_columns(msg))]
+        return to_records(msg, msgtype, topic, self.options)
+
+    def cloud(self, msg: Any, topic: str, columns: dict[str, np.ndarray] | None = None) -> Scan:
+        livox = columns is not None
+        if columns is None:
+            columns = cloud_columns(msg, topic, ("x", "y", "z"), TIME_FIELDS)
+        band = self._chosen.get(topic)
+        if band is None:
+            band = self._choose(columns)
+            self.bands[topic] = band
+            # A cloud too sparse to tell anything (a driver's first, half-filled message) is read in the fallback
+            # slice and the choice is left to the next one.
+            if int(np.isfinite(columns["z"]).sum()) >= MIN_POINTS or band.how in ("sensor", "given"):
+                self._chosen[topic] = band
+        return cloud_scan(msg, topic, band, columns, integer_times=True if livox else None)
+
+    def _choose(self, columns: dict[str, np.ndarray]) -> HeightBand:
+        options = self.options
+        sensor = sensor_band(options.min_z, options.max_z)
+        mode = options.cloud_band.strip().lower()
+        if mode == "sensor":
+            return sensor
+        x, y, z = columns["x"], columns["y"], columns["z"]
+        finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z) & ((x != 0.0) | (y != 0.0) | (z != 0.0))
+        try:
+            given = height_band(mode)
+        except ValueError as e:
+            raise CartoError(f"trajectory_builder_2d.cloud_band: {e}") from None
+        if given is None:
+            return auto_band(x[finite], y[finite], z[finite], sensor)
+        return given_band(x[finite], y[finite], z[finite], given, sensor)
 
 
 # --- odometry, imu, tf ------------------------------------------------------
@@ -273,6 +405,10 @@ def to_record(msg: Any, msgtype: str, topic: str = "", options: ReadOptions | No
         return scan_from_multiecho(msg, topic)
     if t == POINT_CLOUD2:
         return scan_from_pointcloud2(msg, topic, options)
+    if t in LIVOX_TYPES:
+        options = options or ReadOptions()
+        return cloud_scan(msg, topic, sensor_band(options.min_z, options.max_z), livox_columns(msg),
+                          integer_times=True)
     if t == "nav_msgs/msg/Odometry":
         return odometry_from_msg(msg, topic)
     if t == "sensor_msgs/msg/Imu":

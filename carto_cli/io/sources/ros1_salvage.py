@@ -296,17 +296,17 @@ class SalvagedBag(Recording):
         return self._iter_records(conns)
 
     def _iter_records(self, conns: list[int]) -> Iterator[Record]:
+        decoder = messages.Decoder(self.options, self.cloud_bands)
         for _, conn, raw in self._raw(conns):
-            yield from self._records(raw, conn)
+            yield from self._records(raw, conn, decoder)
 
-    def _records(self, raw: bytes, conn: int) -> list[Record]:
+    def _records(self, raw: bytes, conn: int, decoder: messages.Decoder) -> list[Record]:
         """One message's records. Its conversion fails inside the same translation as its decoding: a damaged
         connection header can define the type with a field renamed (a flipped byte: `intensities` ->
         `i0tensities`), which decodes and then lacks the field."""
         c = self._connections[conn]
         with translate_errors(self.path, "ROS1 bag"):
-            return messages.to_records(self._typestore.deserialize_ros1(raw, c.msgtype), c.msgtype, c.topic,
-                                       self.options)
+            return decoder.to_records(self._typestore.deserialize_ros1(raw, c.msgtype), c.msgtype, c.topic)
 
     @property
     def connections(self) -> dict[int, Connection]:

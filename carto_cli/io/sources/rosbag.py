@@ -171,12 +171,11 @@ class RosbagRecording(Recording):
     def _iter_records(self, conns) -> Iterator[Record]:
         if not conns:
             return
-        reader, options = self._reader, self.options
+        reader, decoder = self._reader, messages.Decoder(self.options, self.cloud_bands)
         assert reader is not None  # set by __init__, cleared only by close()
         with self._translate_errors():
             for conn, _, raw in reader.messages(connections=conns):
-                yield from messages.to_records(reader.deserialize(raw, conn.msgtype), conn.msgtype, conn.topic,
-                                               options)
+                yield from decoder.to_records(reader.deserialize(raw, conn.msgtype), conn.msgtype, conn.topic)
 
     def close(self) -> None:
         reader, self._reader = self._reader, None
