@@ -310,9 +310,9 @@ class Plan:
     @property
     def scan_count(self) -> int:
         """Scans mapping will be fed (what a progress bar counts to): the scan topic's messages; with several
-        lasers merged about one scan a window, a scan of the slowest laser."""
+        lasers merged, about as many as the fastest laser's (a window holds one scan of each at most)."""
         counts = {t.name: t.count for t in self.recording.topics()}
-        return min(counts.get(topic, 0) for topic in self.selection.scan_topics)
+        return max(counts.get(topic, 0) for topic in self.selection.scan_topics)
 
 
 def read_options(options: Options | Auto) -> ReadOptions:

@@ -395,7 +395,7 @@ def run_track(
         selection = p.selection
         if on_total is not None:
             counts = {t.name: t.count for t in p.recording.topics()}
-            on_total(min(counts.get(topic, 0) for topic in selection.scan_topics))
+            on_total(max(counts.get(topic, 0) for topic in selection.scan_topics))
         tracker = Tracker(p.relocalizer, laser_pose=p.mount, max_jump=request.max_jump)
         topics = list(selection.scan_topics) + ([selection.odometry] if selection.odometry else [])
         scans = list(tracker.track(selected_records(p.recording, selection, topics), initial_pose=prior,

@@ -89,12 +89,6 @@ def warm_up() -> None:
     least_squares.match(grid, points, np.zeros(3))
 
 
-def _reaches_back(scan: Scan) -> bool:
-    """Whether some of ``scan``'s beams were measured before its own time (several lasers' window, a sweep stamped
-    at its end): the motion between the last matched pose and this one covers them."""
-    return scan.point_times is not None and len(scan.point_times) > 0 and float(np.min(scan.point_times)) < 0.0
-
-
 class LocalSlam:
     def __init__(self, options: TrajectoryBuilder2D, laser_pose: ArrayLike = (0.0, 0.0, 0.0),
                  timer: StageTimer | NullTimer | None = None) -> None:
@@ -126,7 +120,6 @@ class LocalSlam:
         self._accumulated_poses: list[np.ndarray] = []
         self._has_odometry = False
         self._last_pose: np.ndarray | None = None
-        self._last_time: float | None = None
 
     def _search_window(self, prediction: np.ndarray) -> dict:
         """The real-time correlative search around ``prediction``: Cartographer's fixed window and weights, or
@@ -175,29 +168,6 @@ class LocalSlam:
             ls = self.ceres.match(grid, points, initial, target_translation=prediction[:2])
             self.stats.ls_iterations += ls.iterations
         return ls.pose, score, ls.cost
-
-    def _matched_again(self, scan: Scan, grid: ProbabilityGrid, pose: np.ndarray, prediction: np.ndarray,
-                       data: RangeData, points: np.ndarray, cost: float
-                       ) -> tuple[np.ndarray, float, RangeData, np.ndarray]:
-        """A scan whose beams reach back before its time (several lasers merged, a sweep stamped at its end)
-        de-skewed again by the motion its first match found since the last scan, and refined by least squares
-        from that match.
-        Odometry's motion over a tenth of a second is off by its scale and its heading noise; de-skewed by it,
-        two lasers' windows mapped 0.3 degrees turned and their step headings twice as noisy as with the true
-        motion (bench/multi_lidar.py). The motion the matches themselves give has neither."""
-        motion = self._matched_motion(scan.time, pose)
-        if motion is None:
-            return pose, cost, data, points
-        with self.timer.stage("preprocess"):
-            with self.timer.stage("crop"):
-                again = self._cropped(scan, motion)
-            again, again_points = self._filtered(again)
-        if again_points.shape[0] == 0:
-            return pose, cost, data, points
-        with self.timer.stage("match"), self.timer.stage("least squares"):
-            ls = self.ceres.match(grid, again_points, pose, target_translation=prediction[:2])
-            self.stats.ls_iterations += ls.iterations
-        return ls.pose, ls.cost, again, again_points
 
     def _static(self, grid: ProbabilityGrid, points: np.ndarray, pose: np.ndarray, counter: str) -> np.ndarray:
         """``points`` without those :func:`transient_mask` finds at ``pose`` (all of them when too many look
@@ -250,17 +220,6 @@ class LocalSlam:
                                            min_num_points=f.min_num_points, max_range=f.max_range)
         return data, points
 
-    def _matched_motion(self, time: float, pose: np.ndarray) -> tuple[float, float, float] | None:
-        """The body's motion (vx, vy, yaw rate in its own frame) from the last matched pose to ``pose`` at
-        ``time``, its velocity seen from halfway along (where a turn's chord points); None without one."""
-        if self._last_pose is None or self._last_time is None or time <= self._last_time:
-            return None
-        dt = time - self._last_time
-        step = transform.relative(self._last_pose, pose)
-        half = 0.5 * float(step[2])
-        c, s = np.cos(half), np.sin(half)
-        return ((c * step[0] + s * step[1]) / dt, (-s * step[0] + c * step[1]) / dt, float(step[2]) / dt)
-
     def add_scan(self, scan: Scan) -> LocalSlamResult | None:
         """Process one scan; None while accumulating or when nothing usable was left after filtering."""
         o = self.options
@@ -299,14 +258,9 @@ class LocalSlam:
             with timer.stage("match"):
                 pose, score, ls_cost = self._match(matching.grid, points, prediction)
             self.stats.matched += 1
-            if motion is not None and _reaches_back(scan) and o.num_accumulated_range_data == 1:
-                pose, ls_cost, data, points = self._matched_again(scan, matching.grid, pose, prediction, data,
-                                                                  points, ls_cost)
-
         with timer.stage("extrapolate"):
             self.extrapolator.add_pose(scan.time, pose)
         self._last_pose = pose
-        self._last_time = scan.time
 
         out = LocalSlamResult(scan.time, pose.copy(), points, score, ls_cost)
         with timer.stage("motion filter"):

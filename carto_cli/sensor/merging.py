@@ -6,8 +6,7 @@ the same ahead of every mapping system, so that nothing downstream needs to know
 laser's scan is placed by its mount, and the scans of one window (one scan of each laser at most) become one
 :class:`Scan` in the tracking frame. Its bearings and ranges are seen from the tracking frame's origin, and
 every beam keeps the time it was measured (``Scan.point_times``), so local SLAM de-skews the whole window by the
-motion its extrapolator predicts, as it does one laser's sweep, and then again by the motion its match found
-(``LocalSlam._matched_again``).
+motion its extrapolator gives over it (odometry's, interpolated at both ends), as it does one laser's sweep.
 
 Rays are then cast from the tracking frame's origin, as Cartographer's 2D inserter casts them from the tracking
 frame's position; a laser a few decimetres off it clears nearly the same cells. Each laser's own limits
@@ -52,12 +51,14 @@ def merged_topic(lasers: Sequence[Laser]) -> str:
     return "+".join(laser.topic for laser in lasers)
 
 
-def merge(parts: Sequence[Scan], mounts: Sequence[tuple[float, float, float]], frame: str, topic: str) -> Scan:
+def merge(parts: Sequence[Scan], mounts: Sequence[tuple[float, float, float]], frame: str, topic: str,
+          reference: float | None = None) -> Scan:
     """``parts`` (scans in time order, ``mounts[i]`` placing ``parts[i]``) as one scan in the tracking frame
-    ``frame``, at the newest part's time, every beam with its own time."""
+    ``frame``, at time ``reference`` (default: the newest part's), every beam with its own time."""
     if len(parts) != len(mounts) or not parts:
         raise ValueError(f"{len(parts)} scans but {len(mounts)} mounts")
-    reference = max(p.time for p in parts)
+    if reference is None:
+        reference = max(p.time for p in parts)
     ranges, angles, times, intensities = [], [], [], []
     for part, (mx, my, myaw) in zip(parts, mounts):
         r = np.asarray(within_sensor_limits(part.ranges, float(part.range_min), float(part.range_max)),
@@ -84,10 +85,17 @@ def merge(parts: Sequence[Scan], mounts: Sequence[tuple[float, float, float]], f
 
 class ScanMerger:
     """Scans of ``lasers`` in, one scan a window out (:func:`merge`). A window never holds two scans of one laser:
-    it closes when every laser has sent one, or before a laser would send its second (the others' scans may be
-    late, or a laser may have stopped). Windows then come at the fastest laser's rate and every scan is used
+    it closes at the first scan after it holds one of every laser, or at a laser's second (the others' scans may
+    be late, or a laser may have stopped). Windows then come at the fastest laser's rate and every scan is used
     once: closing only once every laser had sent one (at the slowest laser's rate) left two lasers at 10 and 7 Hz
-    10-25 % behind one 360 degree lidar at 10 Hz, and this at par (bench/multi_lidar.py)."""
+    10-25 % behind one 360 degree lidar at 10 Hz, and this at par (bench/multi_lidar.py). Scans stamped alike go
+    into one window whatever order they came in, so that no two windows share a stamp (mapping would drop the
+    second as a duplicate).
+
+    A window is stamped with its scan of the first laser of ``lasers`` (the most frequent: ``io.topics`` puts it
+    first), else with its newest scan: windows then come evenly spaced, as that laser's scans. Stamped with their
+    newest scan, two lasers at 10 and 7 Hz gave windows 14 to 100 ms apart, and without odometry the velocity
+    local SLAM reads off its last two poses 14 ms apart threw every map off by metres (bench/multi_lidar.py)."""
 
     def __init__(self, lasers: Sequence[Laser], frame: str = "base_link") -> None:
         if len(lasers) < 2:
@@ -96,6 +104,7 @@ class ScanMerger:
         if len(self.lasers) != len(lasers):
             raise ValueError("every laser needs a topic of its own")
         self.frame = frame
+        self.clock = lasers[0].topic
         self.topic = merged_topic(lasers)
         self._window: dict[str, Scan] = {}
 
@@ -103,24 +112,35 @@ class ScanMerger:
         """The merged scan of the window ``scan`` closed, else None."""
         if scan.topic not in self.lasers:
             raise ValueError(f"a scan on {scan.topic or 'no topic'}, not one of {', '.join(self.lasers)}")
-        out = self.flush() if scan.topic in self._window else None
+        out = None
+        if scan.topic in self._window or len(self._window) == len(self.lasers):
+            # The parts stamped as this scan start the next window with it (unless one is its own laser's)
+            older = {k: p for k, p in self._window.items() if p.time < scan.time}
+            alike = {k: p for k, p in self._window.items() if p.time >= scan.time}
+            if not older or scan.topic in alike:
+                older, alike = self._window, {}
+            out = self._merged(older)
+            self._window = alike
         self._window[scan.topic] = scan
-        if len(self._window) == len(self.lasers):
-            assert out is None  # a full window had closed at its last scan
-            out = self.flush()
         return out
 
     def flush(self) -> Scan | None:
         """The window so far as one scan (None when empty): what is left when the recording ends."""
-        if not self._window:
-            return None
-        parts = sorted(self._window.values(), key=lambda s: s.time)
+        out = self._merged(self._window) if self._window else None
         self._window = {}
-        return merge(parts, [self.lasers[p.topic].mount for p in parts], self.frame, self.topic)
+        return out
+
+    def _merged(self, window: dict[str, Scan]) -> Scan:
+        parts = sorted(window.values(), key=lambda s: s.time)
+        clock = window.get(self.clock)
+        return merge(parts, [self.lasers[p.topic].mount for p in parts], self.frame, self.topic,
+                     None if clock is None else clock.time)
 
 
 def merged_records(records: Iterable[Record], lasers: Sequence[Laser], frame: str = "base_link") -> Iterator[Record]:
-    """``records`` with the scans of ``lasers`` merged (:class:`ScanMerger`), every other record as it came."""
+    """``records`` with the scans of ``lasers`` merged (:class:`ScanMerger`), every other record as it came. A
+    window goes out at the scan after it, so the records that came between (odometry over the whole window, which
+    its de-skew needs) go before it: a merged scan may follow records up to a scan period newer than its stamp."""
     merger = ScanMerger(lasers, frame)
     for record in records:
         if isinstance(record, Scan) and record.topic in merger.lasers:
