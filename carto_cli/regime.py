@@ -49,6 +49,8 @@ MOTION_NOISE_MARGIN = 1.5
 # Odometry is never trusted more than a fifth of GMapping's defaults (a climb must still be able to leave it) nor
 # distrusted beyond twice them (the proposal's lattice is sized for a match, not for a search)
 MOTION_NOISE_SCALE = (0.2, 2.0)
+# Seconds of local SLAM's poses its velocity is read from when several lasers' windows are merged (unevenly spaced)
+MERGED_POSE_QUEUE = 0.2
 NO_RETURN_SHARE = 0.002  # a single range value this common at the top of the range is a "no return" marker
 
 
@@ -294,6 +296,14 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
     else:
         profile = "office"
         reasons.append("dense scans without odometry: the correlative matcher on, a weak constant-velocity prior")
+    if len(regime.lasers) > 1:
+        # Merged windows come 14 to 100 ms apart (two lasers at 10 and 7 Hz): a velocity read off the last two poses
+        # 14 ms apart threw maps without odometry off by metres; over 0.2 s they map as one 360 degree lidar does
+        # (bench/multi_lidar.py). With odometry the velocity is odometry's, and this changes nothing.
+        settings.append("trajectory_builder_2d.pose_extrapolator.constant_velocity.pose_queue_duration="
+                        f"{MERGED_POSE_QUEUE:g}")
+        reasons.append(f"several lasers' windows come unevenly: velocity from the poses of the last "
+                       f"{MERGED_POSE_QUEUE:g} s")
     if regime.no_return is not None and regime.no_return <= base_max_range + 0.05:
         settings.append(f"trajectory_builder_2d.max_range={max(regime.no_return - 0.1, 0.1):.3f}")
         reasons.append(f"'no return' is reported as {regime.no_return:.4g} m: readings there become misses")

@@ -126,3 +126,14 @@ def test_configure_layers_the_users_overrides_over_the_auto_choice(world):
     assert got.options == load_options("wheeled", got.auto.settings + ["trajectory_builder_2d.max_range=12.5"])
     named = load_options("office")
     assert resolve(MapRequest(rec, named), rec, sel).configured == Configured(named)
+
+
+def test_several_lasers_map_with_cartographer_and_a_velocity_over_uneven_windows():
+    key_scans = dict(scans=10, beams=180, fov=math.pi, range_max=30.0, no_return=None, odometry=True, imu=False,
+                     motion_source="odometry", step_median=1.0, step_p90=1.2, turn_median=0.2, turn_p90=0.5,
+                     scan_rate=1.0)
+    assert choose(Regime(**key_scans)).algorithm == "gmapping"  # one laser's key scans: the particle filter
+    merged = choose(Regime(**key_scans, lasers=("/front", "/back")))
+    assert merged.algorithm == "cartographer" and merged.chose_algorithm
+    assert "trajectory_builder_2d.pose_extrapolator.constant_velocity.pose_queue_duration=0.2" in merged.settings
+    assert "2 lasers merged (/front, /back)" in Regime(**key_scans, lasers=("/front", "/back")).describe()

@@ -162,9 +162,6 @@ def select_topics(
                                tf_odometry=tf)
     if len(scans) == 1:
         return selection
-    # The most frequent laser first: its scans stamp the merged windows (sensor.merging.ScanMerger)
-    counts = {t.name: t.count for t in topics}
-    scans = sorted(scans, key=lambda name: -counts.get(name, 0))
     lasers, frame = _placed(recording, scans, poses, tf.fixed if tf is not None else ())
     return TopicSelection(scan=scans[0], odometry=selection.odometry, imu=imu, tf_odometry=tf, lasers=lasers,
                           frame=frame)

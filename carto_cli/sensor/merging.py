@@ -90,12 +90,9 @@ class ScanMerger:
     once: closing only once every laser had sent one (at the slowest laser's rate) left two lasers at 10 and 7 Hz
     10-25 % behind one 360 degree lidar at 10 Hz, and this at par (bench/multi_lidar.py). Scans stamped alike go
     into one window whatever order they came in, so that no two windows share a stamp (mapping would drop the
-    second as a duplicate).
-
-    A window is stamped with its scan of the first laser of ``lasers`` (the most frequent: ``io.topics`` puts it
-    first), else with its newest scan: windows then come evenly spaced, as that laser's scans. Stamped with their
-    newest scan, two lasers at 10 and 7 Hz gave windows 14 to 100 ms apart, and without odometry the velocity
-    local SLAM reads off its last two poses 14 ms apart threw every map off by metres (bench/multi_lidar.py)."""
+    second as a duplicate). A window is stamped with its newest scan: two lasers at 10 and 7 Hz give windows 14 to
+    100 ms apart, which is why auto reads local SLAM's velocity off its poses over 0.2 s when lasers are merged
+    (``regime.choose``)."""
 
     def __init__(self, lasers: Sequence[Laser], frame: str = "base_link") -> None:
         if len(lasers) < 2:
@@ -104,7 +101,6 @@ class ScanMerger:
         if len(self.lasers) != len(lasers):
             raise ValueError("every laser needs a topic of its own")
         self.frame = frame
-        self.clock = lasers[0].topic
         self.topic = merged_topic(lasers)
         self._window: dict[str, Scan] = {}
 
@@ -132,9 +128,7 @@ class ScanMerger:
 
     def _merged(self, window: dict[str, Scan]) -> Scan:
         parts = sorted(window.values(), key=lambda s: s.time)
-        clock = window.get(self.clock)
-        return merge(parts, [self.lasers[p.topic].mount for p in parts], self.frame, self.topic,
-                     None if clock is None else clock.time)
+        return merge(parts, [self.lasers[p.topic].mount for p in parts], self.frame, self.topic)
 
 
 def merged_records(records: Iterable[Record], lasers: Sequence[Laser], frame: str = "base_link") -> Iterator[Record]:

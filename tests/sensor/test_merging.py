@@ -76,9 +76,9 @@ def test_a_window_holds_one_scan_of_each_laser_at_most():
     out = [merger.add(_scan(FRONT, 0.0, [1.0, 1.0])), merger.add(_scan(BACK, 0.05, [2.0, 2.0]))]
     assert out == [None, None]  # full, it goes out at the next scan
     pair = merger.add(_scan(FRONT, 0.1, [1.0, 1.0]))
-    # stamped with the first laser's scan (the most frequent: windows come evenly spaced), the other's beams after
-    assert pair is not None and pair.num_beams == 4 and pair.time == 0.0
-    assert pair.beam_times() == pytest.approx([0.0, 0.0, 0.05, 0.05])
+    # stamped with its newest scan, the older one's beams before
+    assert pair is not None and pair.num_beams == 4 and pair.time == 0.05
+    assert pair.beam_times() == pytest.approx([-0.05, -0.05, 0.0, 0.0])
     # The front laser twice before the back one: its first scan goes out alone, the second waits for the back
     alone = merger.add(_scan(FRONT, 0.2, [1.0, 1.0]))
     assert alone is not None and alone.time == 0.1 and alone.num_beams == 2
@@ -110,7 +110,7 @@ def test_other_records_pass_through_in_order():
     out = list(merged_records(records, [FRONT, BACK]))
     # A window goes out at the scan after it, after what came between: odometry then covers the whole window
     assert [type(r).__name__ for r in out] == ["Odometry", "Scan", "Scan"]
-    assert [r.time for r in out] == [0.07, 0.0, 0.2]
+    assert [r.time for r in out] == [0.07, 0.1, 0.2]
     assert out[1].topic == "/front+/back" and out[1].frame == "base_link"
 
 
