@@ -5,7 +5,7 @@ it the same robot with one 360 degree lidar at its centre at 10 Hz (and at 7 Hz,
 relation error of each trajectory against the truth, its verdict, and the CPU it took.
 
     python bench/multi_lidar.py [--seeds 0 1 2] [--worlds loop 'glass office'] [--variants ...] [--laps 2]
-                                [--json FILE]
+                                [--no-odometry] [--json FILE]
 
 Relations are those of ``bench/harness.py`` (every 10th pose and revisits) from the true trajectory at 10 Hz, the
 same for every variant. Each variant maps through ``pipeline.map_sessions`` with auto options, as `carto map`
@@ -51,7 +51,7 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def run(world_name: str, seed: int, laps: int) -> list[dict]:
+def run(world_name: str, seed: int, laps: int, use_odometry: bool = True) -> list[dict]:
     from harness import relations_from_groundtruth
 
     world = WORLDS[world_name]()
@@ -65,7 +65,7 @@ def run(world_name: str, seed: int, laps: int) -> list[dict]:
             relations, _ = relations_from_groundtruth(truth)
         cpu = _cpu()
         result = map_sessions(MapRequest(recording, Auto(), topics=TopicChoice(scan=topic), align=Align.NONE,
-                                         clean=False))
+                                         clean=False, use_odometry=use_odometry))
         cpu = _cpu() - cpu
         error = relation_error(Trajectory.from_poses(result.times, result.poses), relations)
         row = {"world": world_name, "seed": seed, "variant": name, "relation_m": round(error.translation.mean, 4),
@@ -85,10 +85,12 @@ def main() -> None:
     parser.add_argument("--laps", type=int, default=2)
     parser.add_argument("--json", type=Path)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--no-odometry", action="store_true", help="map as `carto map --no-odometry` does")
     args = parser.parse_args()
     for name in set(VARIANTS) - set(args.variants):
         del VARIANTS[name]
-    rows = [row for w in args.worlds for seed in args.seeds for row in run(w, seed, args.laps)]
+    rows = [row for w in args.worlds for seed in args.seeds
+            for row in run(w, seed, args.laps, use_odometry=not args.no_odometry)]
     print("\n| world | seed | " + " | ".join(VARIANTS) + " |")
     print("|---|---|" + "---|" * len(VARIANTS))
     for w in args.worlds:
