@@ -191,8 +191,9 @@ class LocalSlam:
         self.extrapolator.add_imu(imu)
 
     def _predicted_motion(self, scan: Scan) -> tuple[float, float, float] | None:
-        """The motion the extrapolator predicts over the time ``scan``'s beams span (before the first pose, the
-        odometry's, else none); None for a scan taken at once."""
+        """The motion the extrapolator gives over the time ``scan``'s beams span (odometry's over that time where
+        it covers it, else its prediction; before the first pose, odometry's, else none); None for a scan taken at
+        once."""
         if not scan.timed:
             return None
         times = scan.beam_times()
@@ -258,6 +259,7 @@ class LocalSlam:
             with timer.stage("match"):
                 pose, score, ls_cost = self._match(matching.grid, points, prediction)
             self.stats.matched += 1
+
         with timer.stage("extrapolate"):
             self.extrapolator.add_pose(scan.time, pose)
         self._last_pose = pose
