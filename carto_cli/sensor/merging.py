@@ -51,14 +51,12 @@ def merged_topic(lasers: Sequence[Laser]) -> str:
     return "+".join(laser.topic for laser in lasers)
 
 
-def merge(parts: Sequence[Scan], mounts: Sequence[tuple[float, float, float]], frame: str, topic: str,
-          reference: float | None = None) -> Scan:
+def merge(parts: Sequence[Scan], mounts: Sequence[tuple[float, float, float]], frame: str, topic: str) -> Scan:
     """``parts`` (scans in time order, ``mounts[i]`` placing ``parts[i]``) as one scan in the tracking frame
-    ``frame``, at time ``reference`` (default: the newest part's), every beam with its own time."""
+    ``frame``, at the newest part's time, every beam with its own time."""
     if len(parts) != len(mounts) or not parts:
         raise ValueError(f"{len(parts)} scans but {len(mounts)} mounts")
-    if reference is None:
-        reference = max(p.time for p in parts)
+    reference = max(p.time for p in parts)
     ranges, angles, times, intensities = [], [], [], []
     for part, (mx, my, myaw) in zip(parts, mounts):
         r = np.asarray(within_sensor_limits(part.ranges, float(part.range_min), float(part.range_max)),
