@@ -252,6 +252,18 @@ def _system(regime: Regime, reasons: list[str]) -> str:
     return Algorithm.CARTOGRAPHER
 
 
+def _merged_lasers(regime: Regime, settings: list[str], reasons: list[str]) -> None:
+    """What several lasers merged need (appended to ``settings`` and ``reasons``). Their windows come 14 to 100 ms
+    apart (two lasers at 10 and 7 Hz): a velocity read off the last two poses 14 ms apart threw maps without
+    odometry off by 10-64 m; read over 0.2 s, 4-7 mm (bench/multi_lidar.py). With odometry the velocity is
+    odometry's, and this changes nothing."""
+    if len(regime.lasers) > 1:
+        settings.append("trajectory_builder_2d.pose_extrapolator.constant_velocity.pose_queue_duration="
+                        f"{MERGED_POSE_QUEUE:g}")
+        reasons.append(f"several lasers' windows come unevenly: velocity from the poses of the last "
+                       f"{MERGED_POSE_QUEUE:g} s")
+
+
 def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None = None,
            gmapping_max_range: float = 80.0,
            gmapping_noise: tuple[float, float, float, float] = (0.1, 0.2, 0.1, 0.2)) -> AutoChoice:
@@ -296,14 +308,7 @@ def choose(regime: Regime, base_max_range: float = 30.0, algorithm: str | None =
     else:
         profile = "office"
         reasons.append("dense scans without odometry: the correlative matcher on, a weak constant-velocity prior")
-    if len(regime.lasers) > 1:
-        # Merged windows come 14 to 100 ms apart (two lasers at 10 and 7 Hz): a velocity read off the last two poses
-        # 14 ms apart threw maps without odometry off by metres; over 0.2 s they map as one 360 degree lidar does
-        # (bench/multi_lidar.py). With odometry the velocity is odometry's, and this changes nothing.
-        settings.append("trajectory_builder_2d.pose_extrapolator.constant_velocity.pose_queue_duration="
-                        f"{MERGED_POSE_QUEUE:g}")
-        reasons.append(f"several lasers' windows come unevenly: velocity from the poses of the last "
-                       f"{MERGED_POSE_QUEUE:g} s")
+    _merged_lasers(regime, settings, reasons)
     if regime.no_return is not None and regime.no_return <= base_max_range + 0.05:
         settings.append(f"trajectory_builder_2d.max_range={max(regime.no_return - 0.1, 0.1):.3f}")
         reasons.append(f"'no return' is reported as {regime.no_return:.4g} m: readings there become misses")
