@@ -8,7 +8,7 @@ the tracking frame a window (``sensor.merging``) by :func:`selected_records`, so
 """
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,9 +94,7 @@ def choose_topic(recording: Recording, topics: list[TopicInfo], kind: str, wante
                  required: bool) -> str | None:
     candidates = [t for t in topics if t.kind == kind and t.count > 0]
     if wanted is not None:
-        by_name = {t.name: t for t in topics}
-        # ROS1 users often type topics without the leading slash.
-        match = by_name.get(wanted) or by_name.get("/" + wanted.lstrip("/"))
+        match = {t.name: t for t in topics}.get(_topic_name(topics, wanted))
         if match is None:
             names = ", ".join(t.name for t in candidates) or "none"
             raise TopicError(f"no topic '{wanted}' ({kind} topics: {names})", recording.path)
@@ -136,6 +134,13 @@ def select_topics(
     topic when each has a frame and a known mount of its own. ``laser_poses``: mounts (x, y, yaw) by topic, over
     TF's (None: the one laser's, unnamed)."""
     topics = recording.topics()
+    frames: dict[str, str | None] = {}
+
+    def frame_of(topic: str) -> str | None:  # read once a topic: each look opens the recording
+        if topic not in frames:
+            frames[topic] = first_scan_frame(recording, topic)
+        return frames[topic]
+
     wanted = [scan_topic] if isinstance(scan_topic, str) else list(scan_topic or ())
     poses = {_topic_name(topics, k): v for k, v in (laser_poses or {}).items()}
     if len(wanted) > 1:
@@ -143,14 +148,14 @@ def select_topics(
     elif wanted:
         scans = [_chosen(recording, topics, "scan", wanted[0])]
     else:
-        scans = _every_laser(recording, topics, poses)
+        scans = _every_laser(recording, topics, poses, frame_of)
     imu = choose_topic(recording, topics, "imu", imu_topic, False)
     if odom_topic is not None and (odom_frame or base_frame):
         raise TopicError("--odom-topic and --odom-frame / --base-frame exclude each other", recording.path)
     odom = None if (odom_frame or base_frame) else choose_topic(recording, topics, "odometry", odom_topic, False)
     tf = None
     if odom is None and odom_topic is None and (odom_frame or base_frame or any(t.kind == "tf" for t in topics)):
-        laser = first_scan_frame(recording, scans[0])
+        laser = frame_of(scans[0])
         tf = find_tf_odometry(recording, odom_frame=odom_frame, base_frame=base_frame, laser_frame=laser)
     if None in poses and len(scans) > 1:
         raise TopicError(f"{len(scans)} lasers: give each one's --laser-pose as TOPIC=x,y,yaw", recording.path)
@@ -162,7 +167,7 @@ def select_topics(
                                tf_odometry=tf)
     if len(scans) == 1:
         return selection
-    lasers, frame = _placed(recording, scans, poses, tf.fixed if tf is not None else ())
+    lasers, frame = _placed(recording, scans, poses, tf.fixed if tf is not None else (), frame_of)
     return TopicSelection(scan=scans[0], odometry=selection.odometry, imu=imu, tf_odometry=tf, lasers=lasers,
                           frame=frame)
 
@@ -181,14 +186,15 @@ def _chosen(recording: Recording, topics: list[TopicInfo], kind: str, wanted: st
     return found
 
 
-def _every_laser(recording: Recording, topics: list[TopicInfo], poses: Mapping) -> list[str]:
+def _every_laser(recording: Recording, topics: list[TopicInfo], poses: Mapping,
+                 frame_of: Callable[[str], str | None]) -> list[str]:
     """The scan topic, when there is one; else every LaserScan topic, when there are several, nothing else is a
     scan, each has a frame of its own and its mount is known (TF, or ``poses``); else :func:`choose_topic`'s
     answer (the format's preferred topic, or an error naming them)."""
     candidates = [t for t in topics if t.kind == "scan" and t.count > 0]
     if (len(candidates) > 1 and recording.preferred_topic("scan") is None
             and all(t.msgtype in PLANAR_SCANS for t in candidates)):
-        frames = [first_scan_frame(recording, t.name) for t in candidates]
+        frames = [frame_of(t.name) for t in candidates]
         if None not in frames and len(set(frames)) == len(frames) and all(
                 t.name in poses or laser_mount(recording, f, None)[1] != IDENTITY_MOUNT
                 for t, f in zip(candidates, frames)):
@@ -201,12 +207,12 @@ def _every_laser(recording: Recording, topics: list[TopicInfo], poses: Mapping) 
     return [_chosen(recording, topics, "scan", None)]
 
 
-def _placed(recording: Recording, scans: Sequence[str], poses: Mapping,
-            fixed_tf: Sequence[Transform]) -> tuple[tuple[Laser, ...], str]:
+def _placed(recording: Recording, scans: Sequence[str], poses: Mapping, fixed_tf: Sequence[Transform],
+            frame_of: Callable[[str], str | None]) -> tuple[tuple[Laser, ...], str]:
     """Each laser of ``scans`` with its mount (``poses`` over TF), and the tracking frame they are placed in."""
     lasers, roots = [], []
     for topic in scans:
-        frame = first_scan_frame(recording, topic)
+        frame = frame_of(topic)
         if frame is None:
             raise TopicError(f"no scans on {topic}", recording.path)
         mount, source, root = _mount(recording, frame, poses.get(topic), fixed_tf)

@@ -80,11 +80,13 @@ class PoseExtrapolator:
     def body_motion(self, time: float, duration: float = 0.0, start: float = 0.0) -> tuple[float, float, float]:
         """(vx, vy, yaw rate) of the tracking frame at ``time``, velocity in its own frame.
 
-        The motion ``extrapolate`` assumes: its linear velocity seen from the
-        predicted heading at ``time``, and the yaw rate averaged over
-        [time + start, time + start + duration] (what de-skewing a sweep of that
-        duration needs; ``start`` < 0 for beams measured before ``time``).
-        Zero before any pose.
+        What de-skewing beams measured over [time + start, time + start +
+        duration] needs (``start`` < 0 for beams measured before ``time``):
+        odometry's own motion over that window where it covers it (the IMU's yaw
+        rate, if used); else the motion ``extrapolate`` assumes, its linear
+        velocity seen from the predicted heading at ``time`` and the yaw rate
+        averaged over the window; before any pose, odometry's velocity (zero
+        without odometry).
         """
         window = self._odometry_window(time + start, time + start + duration)
         if window is not None:
@@ -118,9 +120,7 @@ class PoseExtrapolator:
             return None
         a, b = self._odometry_at(t0), self._odometry_at(t1)
         dt = t1 - t0
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        c, s = math.cos(a[2]), math.sin(a[2])
-        return (c * dx + s * dy) / dt, (-s * dx + c * dy) / dt, wrap_angle_scalar(b[2] - a[2]) / dt
+        return (*_velocity_seen_from(a, b, dt, a[2]), wrap_angle_scalar(b[2] - a[2]) / dt)
 
     def _odometry_at(self, t: float) -> tuple[float, float, float]:
         """Odometry's pose at ``t`` (within the queue), linear between its samples. (A plain loop: the queue holds
@@ -142,13 +142,10 @@ class PoseExtrapolator:
         if len(self._odometry) < 2:
             return 0.0, 0.0, 0.0
         (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
-        dt = t_new - t_old
-        dx, dy = p_new[0] - p_old[0], p_new[1] - p_old[1]
-        c, s = math.cos(p_new[2]), math.sin(p_new[2])
         if duration == 0.0:
             duration = 1e-3
         w = self._yaw_delta(time + start, time + start + duration) / duration
-        return (c * dx + s * dy) / dt, (-s * dx + c * dy) / dt, w
+        return (*_velocity_seen_from(p_old, p_new, t_new - t_old, p_new[2]), w)
 
     # --- internals ------------------------------------------------------------------------
 
@@ -185,12 +182,9 @@ class PoseExtrapolator:
 
     def _linear_velocity_from_odometry(self) -> tuple[float, float]:
         (t_old, p_old), (t_new, p_new) = self._odometry[0], self._odometry[-1]
-        dt = t_new - t_old
         # The newer sample's displacement since the older one, in the newer sample's frame
         # (Cartographer: -(pose_new⁻¹ · pose_old).translation / dt).
-        dx, dy = p_new[0] - p_old[0], p_new[1] - p_old[1]
-        c, s = math.cos(p_new[2]), math.sin(p_new[2])
-        bx, by = (c * dx + s * dy) / dt, (-s * dx + c * dy) / dt
+        bx, by = _velocity_seen_from(p_old, p_new, t_new - t_old, p_new[2])
         t_pose, pose = self._poses[-1]
         heading = pose[2] + self._yaw_delta(t_pose, t_new)
         c, s = math.cos(heading), math.sin(heading)
@@ -218,3 +212,11 @@ class PoseExtrapolator:
             t = ts
             rate = w
         return total + rate * (t1 - t)
+
+
+def _velocity_seen_from(a: tuple[float, float, float], b: tuple[float, float, float], dt: float,
+                        heading: float) -> tuple[float, float]:
+    """The displacement from pose ``a`` to pose ``b`` over ``dt`` seconds, per second, seen from ``heading``."""
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    c, s = math.cos(heading), math.sin(heading)
+    return (c * dx + s * dy) / dt, (-s * dx + c * dy) / dt
