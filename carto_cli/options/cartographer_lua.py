@@ -9,19 +9,20 @@ Cartographer's stock files define, so what the file changes is exactly what diff
 The trajectory builder and pose graph are read from the ``options`` table the file returns (as Cartographer's
 node does), else from the globals. Their keys map onto carto's by name (carto's options carry Cartographer's
 names); the few whose nesting differs are in :data:`RENAMED`. Keys carto has no use for (3D, TSDF, ROS node
-options, solver threads...) are reported, not silently dropped.
+options, solver threads...) are reported, not silently dropped. The Lua runs sandboxed (``options.lua_sandbox``).
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from carto_cli.core.errors import CartoError
 from carto_cli.options.layering import Layer, apply_values, packaged_defaults, validate_options
+from carto_cli.options.lua_sandbox import Sandbox, source
 from carto_cli.options.schema import Options, hints, is_section, options_to_dict
 
 __all__ = ["LuaImport", "import_lua", "stock_lua"]
@@ -192,6 +193,16 @@ def _to_python(value: Any, seen: frozenset = frozenset()) -> Any:
     return items
 
 
+def _read(value: Callable[[], Any], path: Path) -> Any:
+    """:func:`_to_python` of ``value()``, with what a configuration can make that Python cannot read as a CartoError."""
+    try:
+        return _to_python(value())
+    except RecursionError:
+        raise CartoError("its tables are nested too deeply to read", path) from None
+    except UnicodeDecodeError as e:
+        raise CartoError(f"a string among its options is not UTF-8 text ({e.reason})", path) from None
+
+
 def _typed(value: Any, tp: Any) -> Any:
     """A Lua number as the option's type: Lua writes 50 and 50. alike where carto wants an int or a float."""
     if tp is int and isinstance(value, float) and value.is_integer():
@@ -236,48 +247,18 @@ def import_lua(path: str | Path) -> LuaImport:
 
 def _import(path: Path) -> LuaImport:
     try:
-        from lupa import LuaError, LuaRuntime
+        import lupa  # noqa: F401
     except ImportError as e:  # pragma: no cover - a dependency of carto
         raise CartoError("reading Lua configurations needs the 'lupa' package (pip install lupa)", path) from e
 
     defaults = validate_options(packaged_defaults())
-    stock = stock_lua(defaults)
-    lua = LuaRuntime(unpack_returned_tuples=True, register_eval=False, register_builtins=False)
-    lua.execute(_PRELUDE)
-    included: set[str] = set()
-    search = [path.parent]
-
-    def include(name):
-        name = str(name)
-        if name in included:
-            return
-        included.add(name)
-        for d in search:
-            candidate = d / name
-            if candidate.is_file() and candidate.resolve() != path.resolve():
-                run(candidate.read_text(errors="replace"), candidate.name)
-                return
-        if name in stock:
-            run(stock[name], name)
-            return
-        raise CartoError(f'include "{name}": not found next to {path.name}, and not one of Cartographer\'s stock '
-                         f"files ({', '.join(sorted(stock))})", path)
-
-    def run(code: str, name: str) -> Any:
-        return lua.execute(code, name=f"@{name}")
-
-    lua.globals().include = include
-    try:
-        returned = run(path.read_text(errors="replace"), path.name)
-    except LuaError as e:
-        raise CartoError(f"Lua error: {str(e).strip().splitlines()[0]}", path) from None
-    except UnicodeDecodeError as e:
-        raise CartoError(f"not a text file: {e}", path) from None
-
-    g = lua.globals()
+    box = Sandbox(path, stock_lua(defaults))
+    box.run(_PRELUDE, None, "carto's prelude")
+    returned = box.run(source(path), path, path.name)
+    g = box.env
     found = {"trajectory_builder_2d": None, "pose_graph": None}
     unused: dict[str, Any] = {}
-    top = _to_python(returned) if returned is not None else None
+    top = _read(lambda: returned, path)
     if isinstance(top, dict):
         tb = top.pop("trajectory_builder", None)
         mb = top.pop("map_builder", None)
@@ -295,10 +276,10 @@ def _import(path: Path) -> LuaImport:
             mb.pop("trajectory_builder_3d", None)
             _collect(mb, "map_builder.", unused)
         _collect(top, "", unused)  # the ROS node's options (frames, topics, rates): carto reads them from the bag
-    if found["trajectory_builder_2d"] is None and g.TRAJECTORY_BUILDER_2D is not None:
-        found["trajectory_builder_2d"] = _to_python(g.TRAJECTORY_BUILDER_2D)
-    if found["pose_graph"] is None and g.POSE_GRAPH is not None:
-        found["pose_graph"] = _to_python(g.POSE_GRAPH)
+    if found["trajectory_builder_2d"] is None:  # (reading a global may meet a string that is not UTF-8)
+        found["trajectory_builder_2d"] = _read(lambda: g.TRAJECTORY_BUILDER_2D, path)
+    if found["pose_graph"] is None:
+        found["pose_graph"] = _read(lambda: g.POSE_GRAPH, path)
     if all(v is None for v in found.values()):
         raise CartoError("no TRAJECTORY_BUILDER_2D or POSE_GRAPH in it, and it returns no options table "
                          "(is it a Cartographer configuration?)", path)

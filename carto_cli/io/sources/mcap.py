@@ -1,4 +1,5 @@
-"""Standalone MCAP files (ROS2 cdr/ros2msg and ROS1 ros1/ros1msg), read with the mcap library."""
+"""Standalone MCAP files (ROS2 cdr with ros2msg or ros2idl schemas, ROS1 ros1 with ros1msg), read with the mcap
+library and decoded by rosbags' typestores from their own schemas, each schema checked first (definitions.py)."""
 from __future__ import annotations
 
 import contextlib
@@ -13,6 +14,7 @@ from carto_cli.core.records import Record, Transform
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
 from carto_cli.io.sources import messages
 from carto_cli.io.sources.decode_errors import translate_errors
+from carto_cli.io.sources.definitions import DefinitionFormat, checked_types, typestore_of
 
 _MAGIC = b"\x89MCAP0\r\n"
 
@@ -29,6 +31,7 @@ class McapRecording(Recording):
         self._cut = False  # the file ends before its summary: read up to the cut (_CutFile)
         if not self.path.is_file():
             raise CartoError("no such file" if not self.path.exists() else "not a file", self.path)
+        self._decoders = _Decoders()
         with self._translate_errors():
             self._channels, self._counts = self._read_index()
         if self._cut:
@@ -67,10 +70,11 @@ class McapRecording(Recording):
                 # records before the cut are whole.
                 yield _CutFile(f)
             else:
-                yield make_reader(f, validate_crcs=True, decoder_factories=_decoder_factories())
+                yield make_reader(f, validate_crcs=True)
 
     def _read_index(self):
-        """Channels as {id: (topic, normalised type)} and message counts by channel id."""
+        """Channels as {id: (topic, normalised type)} and message counts by channel id. The schema of every
+        channel carto reads is checked here, so a recording that carries a bad definition is refused when opened."""
         with self._open() as reader:
             summary = reader.get_summary()
             channels: dict[int, tuple[str, str]] = {}
@@ -78,16 +82,22 @@ class McapRecording(Recording):
             if summary is not None:
                 for cid, ch in summary.channels.items():
                     schema = summary.schemas.get(ch.schema_id)
-                    channels[cid] = (ch.topic, normalise_type(schema.name) if schema else "")
+                    channels[cid] = self._indexed(schema, ch)
                 if summary.statistics is not None:
                     counts = {cid: int(summary.statistics.channel_message_counts.get(cid, 0)) for cid in channels}
                     return channels, counts
             # No summary or no statistics: count with one pass that decodes nothing.
             for schema, ch, _ in reader.iter_messages(log_time_order=False):
                 if ch.id not in channels:
-                    channels[ch.id] = (ch.topic, normalise_type(schema.name) if schema else "")
+                    channels[ch.id] = self._indexed(schema, ch)
                 counts[ch.id] = counts.get(ch.id, 0) + 1
             return channels, counts
+
+    def _indexed(self, schema, channel) -> tuple[str, str]:
+        msgtype = normalise_type(schema.name) if schema else ""
+        if schema is not None and schema.encoding in _SCHEMA_FORMATS and messages.is_readable(channel.topic, msgtype):
+            self._decoders.prepare(schema, channel)  # an encoding carto does not read is refused when decoded
+        return channel.topic, msgtype
 
     # -- Recording --------------------------------------------------------------
 
@@ -107,7 +117,7 @@ class McapRecording(Recording):
             found: list[Transform] = []
             if wanted:
                 with self._translate_errors(), self._open() as reader:
-                    decode = _Decoders()
+                    decode = self._decoders
                     for schema, channel, message in _in_log_time_order(reader, wanted):
                         if kind_of(channel.topic, schema.name if schema else "") == "tf_static":
                             found.extend(messages.transforms_from_tf(decode(schema, channel, message)))
@@ -134,7 +144,7 @@ class McapRecording(Recording):
             return
         decoder = messages.Decoder(self.options, self.cloud_bands)
         with self._translate_errors(), self._open() as reader:
-            decode = _Decoders()
+            decode = self._decoders
             for schema, channel, message in _in_log_time_order(reader, topics):
                 msgtype = schema.name if schema is not None else ""
                 if not messages.is_readable(channel.topic, msgtype):
@@ -276,33 +286,45 @@ def _in_log_time_order(reader, topics: list[str]):
         yield heapq.heappop(heap)[2]
 
 
-def _decoder_factories() -> list:
-    from mcap_ros1.decoder import DecoderFactory as Ros1DecoderFactory
-    from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
-
-    return [Ros2DecoderFactory(), Ros1DecoderFactory()]
+# How each schema encoding is read, and the message encoding its messages come in.
+_SCHEMA_FORMATS = {"ros1msg": (DefinitionFormat.MSG, "ros1"), "ros2msg": (DefinitionFormat.MSG, "cdr"),
+                   "ros2idl": (DefinitionFormat.IDL, "cdr")}
 
 
 class _Decoders:
-    """A decoder per channel, as iter_decoded_messages finds them, but only for messages carto reads."""
+    """A decoder per channel, built from its schema by rosbags once the schema has passed its checks."""
 
     def __init__(self):
-        self._factories = _decoder_factories()
         self._by_channel: dict[int, Callable[[bytes], Any]] = {}
+        self._stores: dict[tuple, Any] = {}  # one typestore per schema: two schemas may define a type differently
 
-    def __call__(self, schema, channel, message):
+    def prepare(self, schema, channel) -> Callable[[bytes], Any]:
+        """The channel's decoder; raises FormatError for a schema carto cannot read or that is not a valid
+        definition."""
         decoder = self._by_channel.get(channel.id)
         if decoder is None:
-            # mcap_ros2's schema parser prints its complaints to stderr before raising;
-            # the FormatError carto reports says it once.
-            with contextlib.redirect_stderr(io.StringIO()):
-                for factory in self._factories:
-                    decoder = factory.decoder_for(channel.message_encoding, schema)
-                    if decoder is not None:
-                        break
-            if decoder is None:
-                raise FormatError(
-                    f"no decoder for topic {channel.topic}: message encoding {channel.message_encoding!r}, "
-                    f"schema encoding {schema.encoding if schema else None!r} (carto reads ROS1 and ROS2 messages)")
-            self._by_channel[channel.id] = decoder
-        return decoder(message.data)
+            decoder = self._by_channel[channel.id] = self._decoder(schema, channel)
+        return decoder
+
+    def _decoder(self, schema, channel) -> Callable[[bytes], Any]:
+        known = _SCHEMA_FORMATS.get(schema.encoding) if schema is not None else None
+        if known is None or channel.message_encoding != known[1]:
+            raise FormatError(
+                f"no decoder for topic {channel.topic}: message encoding {channel.message_encoding!r}, "
+                f"schema encoding {schema.encoding if schema else None!r} (carto reads ROS1 and ROS2 messages)")
+        fmt, encoding = known
+        text = bytes(schema.data).decode("utf-8", "replace")
+        types = checked_types(text, fmt, schema.name, channel.topic)
+        msgtype = normalise_type(schema.name)
+        if msgtype not in types:
+            raise FormatError(f"topic {channel.topic}: its schema does not define {schema.name}")
+        key = (schema.encoding, schema.name, text)
+        store = self._stores.get(key)
+        if store is None:
+            store = self._stores[key] = typestore_of(types)
+        if encoding == "ros1":
+            return lambda data: store.deserialize_ros1(data, msgtype)
+        return lambda data: store.deserialize_cdr(data, msgtype)
+
+    def __call__(self, schema, channel, message):
+        return self.prepare(schema, channel)(message.data)

@@ -1,8 +1,8 @@
 """Decoded ROS messages -> records.
 
-Works on any object with the ROS field names: rosbags' dataclasses (numpy
-arrays, ``sec/nanosec`` stamps), mcap_ros2's dynamic classes (lists) and
-mcap_ros1's genpy classes (tuples and bytes, ``secs/nsecs`` stamps).
+Every reader decodes through rosbags (numpy arrays, ``sec/nanosec`` stamps),
+but this works on any object with the ROS field names: sequences as lists,
+tuples or bytes, stamps spelled ``secs/nsecs`` as ROS1's Python classes do.
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ _NS_PER_S = 1_000_000_000
 # --- time -------------------------------------------------------------------
 
 def stamp_ns(stamp: Any) -> int:
-    """Integer nanoseconds of a ROS time (ROS2 ``sec/nanosec`` or genpy ``secs/nsecs``)."""
+    """Integer nanoseconds of a ROS time (``sec/nanosec``, or ROS1 Python's ``secs/nsecs``)."""
     sec = getattr(stamp, "sec", None)
     if sec is None:
         sec = stamp.secs
@@ -85,8 +85,6 @@ def _bytes_view(data: Any) -> np.ndarray:
         return data.reshape(-1).view(np.uint8)
     if isinstance(data, (bytes, bytearray, memoryview)):
         return np.frombuffer(data, dtype=np.uint8)
-    if isinstance(data, str):  # genpy under Python 2 semantics
-        return np.frombuffer(data.encode("latin-1"), dtype=np.uint8)
     return np.asarray(data, dtype=np.uint8)
 
 

@@ -26,6 +26,7 @@ from carto_cli.core.records import Record, Transform
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
 from carto_cli.io.sources import messages
 from carto_cli.io.sources.decode_errors import translate_errors
+from carto_cli.io.sources.definitions import DefinitionFormat, checked_types, typestore_of
 
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MESSAGE, OP_BAG_HEADER, OP_INDEX, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = 2, 3, 4, 5, 6, 7
@@ -232,15 +233,12 @@ class SalvagedBag(Recording):
         if not len(self._times):
             raise FormatError(f"corrupt or truncated ROS1 bag: {why or 'no index'}, and no message could be "
                               "recovered from its chunks", self.path)
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
         types: dict = {}
         with translate_errors(self.path, "ROS1 bag"):
             for c in self._connections.values():
                 if c.msgdef:
-                    types.update(get_types_from_msg(c.msgdef, c.msgtype))
-            self._typestore = get_typestore(Stores.EMPTY)
-            self._typestore.register(types)
+                    types.update(checked_types(c.msgdef, DefinitionFormat.MSG, c.msgtype, c.topic))
+            self._typestore = typestore_of(types)
         if walk.index_pos == 0:
             why = "no index (the recorder never closed the file)"
         elif walk.cut or walk.index_pos >= size:

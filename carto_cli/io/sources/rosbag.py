@@ -10,6 +10,7 @@ from carto_cli.core.records import Record, Transform
 from carto_cli.io.recording import ReadOptions, Recording, TopicInfo, kind_of, normalise_type
 from carto_cli.io.sources import messages
 from carto_cli.io.sources.decode_errors import translate_errors
+from carto_cli.io.sources.definitions import DefinitionFormat, check_type_name, checked_types
 
 
 def _check_sqlite_size(db: Path) -> None:
@@ -32,8 +33,9 @@ def _check_sqlite_size(db: Path) -> None:
             db.parent)
 
 
-def _modernise_definitions_on_open(sub_reader) -> None:
-    """Make ``sub_reader`` rewrite pre-Groovy definitions when it opens, before AnyReader registers them.
+def _checked_on_open(sub_reader) -> None:
+    """Make ``sub_reader`` check and modernise its definitions when it opens, before AnyReader builds a typestore
+    (and so Python source) from them: every definition passes definitions.checked_types first.
 
     Bags recorded before ROS Groovy embed ``Header`` as ``MSG: roslib/Header``;
     rosbags then resolves ``Header`` to a std_msgs/Header nobody defined. The
@@ -41,18 +43,23 @@ def _modernise_definitions_on_open(sub_reader) -> None:
     """
     from rosbags.interfaces import MessageDefinitionFormat
 
+    formats = {MessageDefinitionFormat.MSG: DefinitionFormat.MSG, MessageDefinitionFormat.IDL: DefinitionFormat.IDL}
     open_ = sub_reader.open
 
-    def open_and_fix() -> None:
+    def open_and_check() -> None:
         open_()
         conns = sub_reader.connections
         for i, c in enumerate(conns):
             d = c.msgdef
             if d.format == MessageDefinitionFormat.MSG and "MSG: roslib/Header" in d.data:
-                data = d.data.replace("MSG: roslib/Header", "MSG: std_msgs/Header")
-                conns[i] = c._replace(msgdef=d._replace(data=data))
+                d = d._replace(data=d.data.replace("MSG: roslib/Header", "MSG: std_msgs/Header"))
+                conns[i] = c._replace(msgdef=d)
+            if d.format in formats:
+                checked_types(d.data, formats[d.format], c.msgtype, c.topic)
+            else:  # no definition: the default typestore's, looked up by this name
+                check_type_name(c.msgtype, c.topic)
 
-    sub_reader.open = open_and_fix
+    sub_reader.open = open_and_check
 
 
 class RosbagRecording(Recording):
@@ -108,7 +115,7 @@ class RosbagRecording(Recording):
                 default = get_typestore(Stores.ROS2_HUMBLE)
             reader = AnyReader(sources, default_typestore=default)
             for sub in reader.readers:
-                _modernise_definitions_on_open(sub)
+                _checked_on_open(sub)
             reader.open()
         self._reader = reader
         self._connections = list(reader.connections)

@@ -5,8 +5,6 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapWriter
-from mcap_ros1._vendor.genpy import dynamic
-from mcap_ros1.writer import Writer as Ros1McapWriter
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from support import SHARED
 
@@ -37,55 +35,65 @@ def test_mcap_of_a_ros2_bag_read_standalone():
 
 # --- ROS1-encoded MCAP ----------------------------------------------------------------------------
 
-def genpy_types(msgtype):
-    """genpy classes from the noetic definition, as a ROS1 recorder writing MCAP would use."""
-    ros2_name = msgtype.replace("/", "/msg/", 1)
-    return dynamic.generate_dynamic(msgtype, NOETIC.generate_msgdef(ros2_name)[0])
+def write_ros1_mcap(path, messages):
+    """messages: (topic, log_time_ns, msgtype, message object of NOETIC), as a ROS1 recorder writing MCAP does:
+    ros1msg schemas named pkg/Name, ros1-encoded messages."""
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="ros1", library="test")
+        schemas, channels = {}, {}
+        for topic, ns, msgtype, msg in messages:
+            if msgtype not in schemas:
+                schemas[msgtype] = w.register_schema(msgtype.replace("/msg/", "/"), "ros1msg",
+                                                     NOETIC.generate_msgdef(msgtype)[0].encode())
+            if topic not in channels:
+                channels[topic] = w.register_channel(topic, "ros1", schemas[msgtype])
+            w.add_message(channels[topic], log_time=ns, publish_time=ns,
+                          data=bytes(NOETIC.serialize_ros1(msg, msgtype)))
+        w.finish()
+    return path
 
 
-def stamp(msg, ns):
-    msg.header.stamp.secs, msg.header.stamp.nsecs = divmod(ns, 10**9)
+def noetic_header(ns, frame):
+    T = NOETIC.types
+    return T["std_msgs/msg/Header"](seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
+                                    frame_id=frame)
 
 
 def test_ros1_encoded_mcap(tmp_path):
-    Laser = genpy_types("sensor_msgs/LaserScan")["sensor_msgs/LaserScan"]
-    odom_types = genpy_types("nav_msgs/Odometry")
-    imu_types = genpy_types("sensor_msgs/Imu")
-    tf_types = genpy_types("tf2_msgs/TFMessage")
-    path = tmp_path / "ros1.mcap"
-    with open(path, "wb") as f, Ros1McapWriter(f) as w:
-        tf = tf_types["tf2_msgs/TFMessage"]()
-        t = tf_types["geometry_msgs/TransformStamped"]()
-        t.header.frame_id, t.child_frame_id = "base_link", "laser"
-        t.transform.translation.x, t.transform.rotation.w = 0.25, 1.0
-        tf.transforms = [t]
-        w.write_message("/tf_static", tf, log_time=10**9)
-        for i in range(4):
-            ns = 10**9 + i * 10**8
-            scan = Laser()
-            stamp(scan, ns)
-            scan.header.frame_id = "/laser"
-            scan.angle_min, scan.angle_increment = -1.0, 0.5
-            scan.range_max = 30.0
-            scan.ranges = [1.0 + i, 2.0, float("nan"), 4.0, 5.0]
-            scan.intensities = [7.0] * 5
-            w.write_message("/scan", scan, log_time=ns)
-            odom = odom_types["nav_msgs/Odometry"]()
-            stamp(odom, ns + 5 * 10**7)
-            odom.header.frame_id, odom.child_frame_id = "odom", "base_link"
-            odom.pose.pose.position.x = float(i)
-            q = yaw_quaternion(0.3 * i)
-            o = odom.pose.pose.orientation
-            o.x, o.y, o.z, o.w = q
-            odom.twist.twist.linear.x, odom.twist.twist.angular.z = 0.5, 0.1
-            w.write_message("/odom", odom, log_time=ns + 5 * 10**7)
-            imu = imu_types["sensor_msgs/Imu"]()
-            stamp(imu, ns + 2 * 10**7)
-            imu.header.frame_id = "imu"
-            imu.orientation_covariance = [-1.0] + [0.0] * 8
-            imu.angular_velocity.z = 0.1
-            imu.linear_acceleration.z = 9.81
-            w.write_message("/imu", imu, log_time=ns + 2 * 10**7)
+    T = NOETIC.types
+    vec = T["geometry_msgs/msg/Vector3"]
+    quat = T["geometry_msgs/msg/Quaternion"]
+    cov = np.zeros(36)
+    messages = [("/tf_static", 10**9, "tf2_msgs/msg/TFMessage", T["tf2_msgs/msg/TFMessage"](transforms=[
+        T["geometry_msgs/msg/TransformStamped"](header=noetic_header(0, "base_link"), child_frame_id="laser",
+                                                transform=T["geometry_msgs/msg/Transform"](
+                                                    translation=vec(x=0.25, y=0.0, z=0.0),
+                                                    rotation=quat(x=0.0, y=0.0, z=0.0, w=1.0)))]))]
+    for i in range(4):
+        ns = 10**9 + i * 10**8
+        scan = T["sensor_msgs/msg/LaserScan"](
+            header=noetic_header(ns, "/laser"), angle_min=-1.0, angle_max=1.0, angle_increment=0.5, time_increment=0.0,
+            scan_time=0.0, range_min=0.0, range_max=30.0,
+            ranges=np.float32([1.0 + i, 2.0, np.nan, 4.0, 5.0]), intensities=np.float32([7.0] * 5))
+        q = yaw_quaternion(0.3 * i)
+        odom = T["nav_msgs/msg/Odometry"](
+            header=noetic_header(ns + 5 * 10**7, "odom"), child_frame_id="base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                pose=T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(i), y=0.0, z=0.0),
+                                                 orientation=quat(x=q[0], y=q[1], z=q[2], w=q[3])), covariance=cov),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                twist=T["geometry_msgs/msg/Twist"](linear=vec(x=0.5, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=0.1)),
+                covariance=cov))
+        imu = T["sensor_msgs/msg/Imu"](
+            header=noetic_header(ns + 2 * 10**7, "imu"), orientation=quat(x=0.0, y=0.0, z=0.0, w=1.0),
+            orientation_covariance=np.array([-1.0] + [0.0] * 8), angular_velocity=vec(x=0.0, y=0.0, z=0.1),
+            angular_velocity_covariance=np.zeros(9), linear_acceleration=vec(x=0.0, y=0.0, z=9.81),
+            linear_acceleration_covariance=np.zeros(9))
+        messages += [("/scan", ns, "sensor_msgs/msg/LaserScan", scan),
+                     ("/odom", ns + 5 * 10**7, "nav_msgs/msg/Odometry", odom),
+                     ("/imu", ns + 2 * 10**7, "sensor_msgs/msg/Imu", imu)]
+    path = write_ros1_mcap(tmp_path / "ros1.mcap", messages)
     with McapRecording(path) as rec:
         assert {(t.name, t.msgtype, t.count) for t in rec.topics()} == {
             ("/scan", "sensor_msgs/msg/LaserScan", 4), ("/odom", "nav_msgs/msg/Odometry", 4),
@@ -203,7 +211,7 @@ def test_unknown_encoding_is_a_format_error(tmp_path):
             list(rec.records())
 
 
-def test_bad_schema_is_a_format_error_without_noise(tmp_path, capfd):
+def test_bad_schema_is_refused_when_opened_without_noise(tmp_path, capfd):
     path = tmp_path / "b.mcap"
     with open(path, "wb") as f:
         w = McapWriter(f)
@@ -212,10 +220,42 @@ def test_bad_schema_is_a_format_error_without_noise(tmp_path, capfd):
         cid = w.register_channel("/scan", "cdr", sid)
         w.add_message(cid, log_time=1, publish_time=1, data=b"\x00\x01\x00\x00")
         w.finish()
-    with McapRecording(path) as rec:
-        with pytest.raises(FormatError, match="b.mcap"):
-            list(rec.records())
+    with pytest.raises(FormatError, match=r"b.mcap: topic /scan: .* line 1: 'float32 ranges broken line here'"):
+        McapRecording(path)
     assert capfd.readouterr().err == ""
+
+
+def idl(name, body):
+    pkg, _, struct = name.split("/")
+    return (f"{'=' * 80}\nIDL: {name}\nmodule {pkg} {{\n  module msg {{\n    struct {struct} {{\n{body}"
+            "    };\n  };\n};\n")
+
+
+def test_ros2idl_schemas_are_read(tmp_path):
+    """rosbag2 writes a ros2idl schema for a type defined in .idl alone: the type's IDL, then each it uses."""
+    floats = "".join(f"      float {n};\n" for n in ("angle_min", "angle_max", "angle_increment", "time_increment",
+                                                     "scan_time", "range_min", "range_max"))
+    text = (idl("sensor_msgs/msg/LaserScan", "      std_msgs::msg::Header header;\n" + floats
+                + "      sequence<float> ranges;\n      sequence<float> intensities;\n")
+            + idl("std_msgs/msg/Header", "      builtin_interfaces::msg::Time stamp;\n      string frame_id;\n")
+            + idl("builtin_interfaces/msg/Time", "      int32 sec;\n      uint32 nanosec;\n"))
+
+    def write(path, text):
+        with open(path, "wb") as f:
+            w = McapWriter(f)
+            w.start(profile="ros2", library="test")
+            cid = w.register_channel("/scan", "cdr", w.register_schema("sensor_msgs/msg/LaserScan", "ros2idl",
+                                                                       text.encode()))
+            for _, ns, msgtype, msg in scans_out_of_order():
+                w.add_message(cid, log_time=ns, publish_time=ns, data=HUMBLE.serialize_cdr(msg, msgtype))
+            w.finish()
+        return path
+
+    with McapRecording(write(tmp_path / "idl.mcap", text)) as rec:
+        assert [s.ranges[0] for s in rec.records()] == list(range(8))
+    broken = write(tmp_path / "broken.mcap", text.replace("float scan_time;", "float scan-time;"))
+    with pytest.raises(FormatError, match=r"broken.mcap: topic /scan: .*, line 5: the declaration beginning on this line does not parse"):
+        McapRecording(broken)
 
 
 def test_not_mcap(tmp_path):

@@ -59,9 +59,9 @@ def cloud(points, fields, point_step, *, height=1, row_step=None, bigendian=Fals
 
 def test_stamp_both_spellings_and_exact_seconds():
     ros2 = NS(sec=1282836370, nanosec=970876375)
-    genpy = NS(secs=1282836370, nsecs=970876375)
-    assert M.stamp_seconds(ros2) == M.stamp_seconds(genpy) == 1282836370.970876375
-    assert M.stamp_ns(genpy) == 1282836370970876375
+    ros1 = NS(secs=1282836370, nsecs=970876375)
+    assert M.stamp_seconds(ros2) == M.stamp_seconds(ros1) == 1282836370.970876375
+    assert M.stamp_ns(ros1) == 1282836370970876375
 
 
 @pytest.mark.parametrize("ns", [0, 1, 999_999_999, 1_000_000_000, 1000_100_000_000, 1282836370970876375,
@@ -104,7 +104,7 @@ def test_laserscan_without_intensities_and_ros1_type_name():
 
 
 def test_laserscan_from_plain_python_objects():
-    """mcap_ros1's genpy objects: tuples, secs/nsecs."""
+    """Objects as ROS1's Python classes hold a message: tuples, secs/nsecs."""
     msg = NS(header=NS(stamp=NS(secs=5, nsecs=500_000_000), frame_id="laser", seq=3), angle_min=-1.0,
              angle_max=1.0, angle_increment=0.5, time_increment=0.0, scan_time=0.0, range_min=0.0,
              range_max=10.0, ranges=(1.0, 2.0, 3.0, 4.0, 5.0), intensities=())
@@ -202,7 +202,7 @@ def test_pointcloud_last_point_without_trailing_padding():
 
 
 def test_pointcloud_data_as_bytes_or_list():
-    """mcap_ros2 and genpy hand uint8[] over as bytes (or lists)."""
+    """uint8[] held as bytes (or lists), as other decoders hand it over."""
     msg = cloud(POINTS, [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)], 12)
     for data in (bytes(msg.data), list(bytes(msg.data))):
         plain = NS(**{k: v for k, v in msg.__dict__.items() if k != "data"}, data=data)
