@@ -63,7 +63,7 @@ def checked_types(text: str, fmt: DefinitionFormat, msgtype: str, topic: str) ->
     Raises FormatError naming the topic, the type and the line for text that is not a valid definition.
     """
     try:
-        return _checked(text, fmt, msgtype)
+        return dict(_checked(text, fmt, msgtype))  # a copy: the cached tree stays as checked
     except _Invalid as e:
         where = f", line {e.line}" if e.line is not None else ""
         raise FormatError(f"topic {topic}: the message definition of {_shown(msgtype)}{where}: {e.reason}: "
@@ -164,8 +164,8 @@ def _check_field(desc: Any, text: str) -> None:
     from rosbags.interfaces import Nodetype
 
     kind, payload = desc
-    if kind == Nodetype.BASE:
-        _check_name(payload[0], _BASE_TYPE, text)
+    if kind == Nodetype.BASE:  # (name, string bound); a bare name in rosbags before 0.10
+        _check_name(payload[0] if isinstance(payload, tuple) else payload, _BASE_TYPE, text)
     elif kind == Nodetype.NAME:
         _check_name(payload, _TYPE_NAME, text)
     elif kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
