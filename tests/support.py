@@ -112,3 +112,20 @@ def sim_carmen_log(path: Path, duration: float = 8.0, gz: bool = False) -> Path:
     sim = simulate(world, loop_trajectory(world), duration=duration, lidar=Lidar(beams=181, fov=math.pi, dropout=0.0),
                    scan_rate=5.0, odom_rate=10.0, imu_rate=0.0)
     return write_carmen_log(sim, path, gz=gz)
+
+
+def _idl(name, body):
+    pkg, _, struct = name.split("/")
+    return (f"{'=' * 80}\nIDL: {name}\nmodule {pkg} {{\n  module msg {{\n    struct {struct} {{\n{body}"
+            "    };\n  };\n};\n")
+
+
+def laser_scan_idl(extra_member=""):
+    """sensor_msgs/msg/LaserScan as rosbag2 writes a ros2idl definition: the type's IDL, then each type it uses,
+    each after a separator and a header; ``extra_member`` is a line put first in LaserScan's struct (line 6)."""
+    floats = "".join(f"      float {n};\n" for n in ("angle_min", "angle_max", "angle_increment", "time_increment",
+                                                     "scan_time", "range_min", "range_max"))
+    return (_idl("sensor_msgs/msg/LaserScan", extra_member + "      std_msgs::msg::Header header;\n" + floats
+                 + "      sequence<float> ranges;\n      sequence<float> intensities;\n")
+            + _idl("std_msgs/msg/Header", "      builtin_interfaces::msg::Time stamp;\n      string frame_id;\n")
+            + _idl("builtin_interfaces/msg/Time", "      int32 sec;\n      uint32 nanosec;\n"))

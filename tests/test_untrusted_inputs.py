@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from mcap.writer import Writer as McapWriter
 from rosbags.typesys import Stores, get_typestore
-from support import SAMPLE_BAG
+from support import SAMPLE_BAG, laser_scan_idl
 from typer.testing import CliRunner
 
 from carto_cli.cli import app
@@ -28,7 +28,6 @@ from carto_cli.io.map_file import MAP_FORMAT
 NOETIC = get_typestore(Stores.ROS1_NOETIC)
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
 LASER = "sensor_msgs/msg/LaserScan"
-SEPARATOR = "=" * 80 + "\n"
 
 
 def code(canary):
@@ -65,15 +64,7 @@ def int_constant(canary):
 
 def idl_definition(canary):
     """LaserScan as rosbag2 writes a ros2idl definition, with a statement where a member's name belongs."""
-    floats = "".join(f"      float {n};\n" for n in ("angle_min", "angle_max", "angle_increment", "time_increment",
-                                                     "scan_time", "range_min", "range_max"))
-    return (f"{SEPARATOR}IDL: sensor_msgs/msg/LaserScan\nmodule sensor_msgs {{\n  module msg {{\n    struct LaserScan {{\n"
-            f"      std_msgs::msg::Header header;\n      float x; {code(canary)};\n{floats}"
-            "      sequence<float> ranges;\n      sequence<float> intensities;\n    };\n  };\n};\n"
-            f"{SEPARATOR}IDL: std_msgs/msg/Header\nmodule std_msgs {{\n  module msg {{\n    struct Header {{\n"
-            "      builtin_interfaces::msg::Time stamp;\n      string frame_id;\n    };\n  };\n};\n"
-            f"{SEPARATOR}IDL: builtin_interfaces/msg/Time\nmodule builtin_interfaces {{\n  module msg {{\n"
-            "    struct Time {\n      int32 sec;\n      uint32 nanosec;\n    };\n  };\n};\n")
+    return laser_scan_idl(f"      float x; {code(canary)};\n")
 
 
 # --- recordings -----------------------------------------------------------------------------------------------

@@ -6,7 +6,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapWriter
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-from support import SHARED
+from support import SHARED, laser_scan_idl
 
 from carto_cli.core.errors import CartoError, FormatError, TopicError
 from carto_cli.core.records import Imu, Odometry, Scan, Transform, yaw_quaternion
@@ -225,20 +225,9 @@ def test_bad_schema_is_refused_when_opened_without_noise(tmp_path, capfd):
     assert capfd.readouterr().err == ""
 
 
-def idl(name, body):
-    pkg, _, struct = name.split("/")
-    return (f"{'=' * 80}\nIDL: {name}\nmodule {pkg} {{\n  module msg {{\n    struct {struct} {{\n{body}"
-            "    };\n  };\n};\n")
-
-
 def test_ros2idl_schemas_are_read(tmp_path):
     """rosbag2 writes a ros2idl schema for a type defined in .idl alone: the type's IDL, then each it uses."""
-    floats = "".join(f"      float {n};\n" for n in ("angle_min", "angle_max", "angle_increment", "time_increment",
-                                                     "scan_time", "range_min", "range_max"))
-    text = (idl("sensor_msgs/msg/LaserScan", "      std_msgs::msg::Header header;\n" + floats
-                + "      sequence<float> ranges;\n      sequence<float> intensities;\n")
-            + idl("std_msgs/msg/Header", "      builtin_interfaces::msg::Time stamp;\n      string frame_id;\n")
-            + idl("builtin_interfaces/msg/Time", "      int32 sec;\n      uint32 nanosec;\n"))
+    text = laser_scan_idl()
 
     def write(path, text):
         with open(path, "wb") as f:
